@@ -1,0 +1,122 @@
+"""Host side of the two-level ray caster: per-process asset BVH cache and per-clip instance BVH.
+
+``SceneAccel`` takes F "frames" (camera pose + one pose per instance); frames need not be the clip's
+frames (motion blur passes sub-frame times). All poses are composed in float64 here and handed to the
+kernels as float32 ``obj_T_ref`` matrices relative to the frame's camera, so the float32 kernels only
+ever see camera-relative coordinates: precision does not depend on the distance from the world origin.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+
+import numpy as np
+import trimesh
+
+from flowsynth.kernels import wp_runtime
+
+__all__ = ["SceneAccel", "asset_mesh", "MESH_CACHE_SIZE", "BOX_PAD_REL"]
+
+# Maximum number of asset BVHs kept per process (least recently used are dropped).
+MESH_CACHE_SIZE = 512
+# Instance boxes are inflated by this fraction of their size (plus the same fraction of their distance
+# to the camera) so float32 rounding of the ray never culls a true hit.
+BOX_PAD_REL = 1e-4
+
+_MESHES: OrderedDict = OrderedDict()
+
+
+def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float32).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int32).tobytes())
+    return h.digest()
+
+
+def asset_mesh(mesh: trimesh.Trimesh, device: str = "cpu"):
+    """The cached ``wp.Mesh`` (BVH) of a triangle mesh, built once per process and device.
+
+    Keyed by the content of the vertex and face arrays, so a mesh regenerated identically for another
+    sample hits the cache.
+    """
+    wp = wp_runtime()
+    key = (_mesh_key(mesh), device)
+    m = _MESHES.get(key)
+    if m is None:
+        points = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3, device=device)
+        indices = wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32, device=device)
+        m = wp.Mesh(points=points, indices=indices)
+        _MESHES[key] = m
+        while len(_MESHES) > MESH_CACHE_SIZE:
+            _MESHES.popitem(last=False)
+    else:
+        _MESHES.move_to_end(key)
+    return m
+
+
+class SceneAccel:
+    """Ray-casting structure for F frames of N instances.
+
+    Args:
+        meshes: N object-frame meshes (instances may share a mesh).
+        cam_T_world: (F, 4, 4) float64.
+        world_T_obj: (F, N, 4, 4) float64.
+        device: Warp device, "cpu" (default) or "cuda".
+    """
+
+    def __init__(self, meshes: list[trimesh.Trimesh], cam_T_world: np.ndarray, world_T_obj: np.ndarray,
+                 device: str = "cpu") -> None:
+        wp = wp_runtime()
+        F = cam_T_world.shape[0]
+        N = len(meshes)
+        self.F, self.N, self.device = F, N, device
+        self.empty = N == 0
+        if self.empty:
+            return
+        self.wp_meshes = [asset_mesh(m, device) for m in meshes]
+        # cam_T_obj per (frame, instance), float64
+        cam_T_obj = np.einsum("fij,fnjk->fnik", cam_T_world, world_T_obj)
+        obj_T_cam = _rigid_inverse(cam_T_obj)
+        self.cam_T_obj = cam_T_obj
+        lo_loc = np.stack([np.asarray(m.vertices).min(0) for m in meshes])  # (N, 3)
+        hi_loc = np.stack([np.asarray(m.vertices).max(0) for m in meshes])
+        corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
+        box = lo_loc[:, None, :] + corners[None] * (hi_loc - lo_loc)[:, None, :]  # (N, 8, 3)
+        pts = np.einsum("fnij,nkj->fnki", cam_T_obj[..., :3, :3], box) + cam_T_obj[:, :, None, :3, 3]
+        lo, hi = pts.min(2), pts.max(2)
+        pad = BOX_PAD_REL * ((hi - lo).max(-1, keepdims=True) + np.abs(pts).max((2, 3))[..., None]) + 1e-30
+        lowers = (lo - pad).reshape(-1, 3).astype(np.float32)
+        uppers = (hi + pad).reshape(-1, 3).astype(np.float32)
+        groups = np.repeat(np.arange(F, dtype=np.int32), N)
+        self._lowers = wp.array(lowers, dtype=wp.vec3, device=device)
+        self._uppers = wp.array(uppers, dtype=wp.vec3, device=device)
+        self._groups = wp.array(groups, dtype=wp.int32, device=device)
+        self.bvh = wp.Bvh(self._lowers, self._uppers, constructor="sah" if device == "cpu" else None,
+                          groups=self._groups)
+        roots = _group_roots(self.bvh, F, device)
+        self.roots = roots
+        ids = np.array([m.id for m in self.wp_meshes], dtype=np.uint64)
+        self.item_mesh = wp.array(np.tile(ids, F), dtype=wp.uint64, device=device)
+        self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
+        self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
+
+
+def _rigid_inverse(T: np.ndarray) -> np.ndarray:
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _group_roots(bvh, F: int, device: str):
+    from flowsynth.kernels.raycast import group_roots_kernel
+
+    wp = wp_runtime()
+    roots = wp.zeros(F, dtype=wp.int32, device=device)
+    wp.launch(group_roots_kernel, dim=F, inputs=[bvh.id], outputs=[roots], device=device)
+    return roots

@@ -1,0 +1,179 @@
+"""Two-level ray casting against rigid instances of cached per-asset meshes.
+
+Top level: one grouped ``wp.Bvh`` over instance boxes, group f = frame f, boxes in that frame's
+*reference* frame (the camera frame of frame f). Bottom level: one ``wp.Mesh`` per asset in the
+object frame. A ray (origin o, unit direction d, reference frame) visits the instances whose box it
+crosses, is mapped into each object's frame with ``obj_T_ref`` (float32, composed in float64 on the
+host) and tested against that asset's mesh. Nothing is rebuilt when objects move.
+
+Item index of instance n in frame f is ``f * N + n``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+__all__ = ["trace_closest", "trace_any", "primary_kernel", "visibility_kernel"]
+
+
+@wp.func
+def trace_closest(
+    bvh: wp.uint64,
+    root: wp.int32,
+    item_mesh: wp.array[wp.uint64],
+    obj_T_ref: wp.array[wp.mat44],
+    o: wp.vec3,
+    d: wp.vec3,
+    max_t: wp.float32,
+):
+    """Closest hit along o + t d, t in [0, max_t). Returns (item or -1, t, face, bary u, bary v)."""
+    best_t = max_t
+    best_item = wp.int32(-1)
+    best_face = wp.int32(-1)
+    best_u = wp.float32(0.0)
+    best_v = wp.float32(0.0)
+    query = wp.bvh_query_ray(bvh, o, d, root)
+    item = wp.int32(0)
+    while wp.bvh_query_next(query, item, best_t):
+        X = obj_T_ref[item]
+        hit = wp.mesh_query_ray(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), best_t)
+        if hit.result and hit.t < best_t:
+            best_t = hit.t
+            best_item = item
+            best_face = hit.face
+            best_u = hit.u
+            best_v = hit.v
+    return best_item, best_t, best_face, best_u, best_v
+
+
+@wp.func
+def trace_any(
+    bvh: wp.uint64,
+    root: wp.int32,
+    item_mesh: wp.array[wp.uint64],
+    obj_T_ref: wp.array[wp.mat44],
+    o: wp.vec3,
+    d: wp.vec3,
+    max_t: wp.float32,
+):
+    """True when anything is hit along o + t d with t in [0, max_t)."""
+    query = wp.bvh_query_ray(bvh, o, d, root)
+    item = wp.int32(0)
+    while wp.bvh_query_next(query, item, max_t):
+        X = obj_T_ref[item]
+        if wp.mesh_query_ray_anyhit(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), max_t):
+            return True
+    return False
+
+
+@wp.func
+def pixel_ray(i: wp.int32, j: wp.int32, intr: wp.vec4, skew: wp.float32):
+    """Unit camera-frame direction through the centre of pixel (row i, col j); intr = (fx, fy, cx, cy)."""
+    y = (wp.float32(i) - intr[3]) / intr[1]
+    x = (wp.float32(j) - intr[2] - skew * y) / intr[0]
+    return wp.normalize(wp.vec3(x, y, 1.0))
+
+
+_PRIMARY: dict = {}
+
+
+def primary_kernel(want_normals: bool, want_points: bool):
+    """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
+
+    Launch dims (F, H, W). Outputs per pixel: ``dist`` ray length [m] (0 = no hit), ``item``
+    (-1 = no hit), ``face``, and when requested ``point`` (object-frame hit point [m]) and
+    ``normal`` (unit, reference/camera frame, facing the camera; 0 = no hit).
+    """
+    key = (bool(want_normals), bool(want_points))
+    if key in _PRIMARY:
+        return _PRIMARY[key]
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def primary(
+        bvh: wp.uint64,
+        roots: wp.array[wp.int32],
+        item_mesh: wp.array[wp.uint64],
+        obj_T_ref: wp.array[wp.mat44],
+        ref_T_obj: wp.array[wp.mat44],
+        intr: wp.vec4,
+        skew: wp.float32,
+        max_t: wp.float32,
+        # outputs
+        dist: wp.array3d[wp.float32],
+        item_out: wp.array3d[wp.int32],
+        face_out: wp.array3d[wp.int32],
+        point: wp.array3d[wp.vec3],
+        normal: wp.array3d[wp.vec3],
+    ):
+        f, i, j = wp.tid()
+        d = pixel_ray(i, j, intr, skew)
+        item, t, face, u, v = trace_closest(bvh, roots[f], item_mesh, obj_T_ref, wp.vec3(0.0), d, max_t)
+        if item < 0:
+            item_out[f, i, j] = -1
+            face_out[f, i, j] = -1
+            dist[f, i, j] = 0.0
+            return
+        item_out[f, i, j] = item
+        face_out[f, i, j] = face
+        dist[f, i, j] = t
+        if wp.static(want_points):
+            point[f, i, j] = wp.mesh_eval_position(item_mesh[item], face, u, v)
+        if wp.static(want_normals):
+            m = wp.mesh_get(item_mesh[item])
+            a = m.points[m.indices[3 * face + 0]]
+            b = m.points[m.indices[3 * face + 1]]
+            c = m.points[m.indices[3 * face + 2]]
+            n = wp.normalize(wp.transform_vector(ref_T_obj[item], wp.cross(b - a, c - a)))
+            if wp.dot(n, d) > 0.0:
+                n = -n
+            normal[f, i, j] = n
+
+    _PRIMARY[key] = primary
+    return primary
+
+
+@wp.kernel(enable_backward=False)
+def visibility_kernel(
+    bvh: wp.uint64,
+    roots: wp.array[wp.int32],
+    item_mesh: wp.array[wp.uint64],
+    obj_T_ref: wp.array[wp.mat44],
+    target: wp.array[wp.vec3],
+    pair_frame: wp.array[wp.int32],
+    rel_tol: wp.float32,
+    # outputs
+    blocked: wp.array[wp.int8],
+):
+    """Is the straight segment from a target camera centre to a point blocked?
+
+    ``target[r]`` is the point in the camera frame of frame ``pair_frame[r]`` [m]. The ray from the
+    camera centre towards it counts as blocked when it hits a surface closer than (1 - rel_tol) times
+    the point's distance.
+    """
+    r = wp.tid()
+    p = target[r]
+    L = wp.length(p)
+    if L <= 0.0:
+        blocked[r] = wp.int8(1)
+        return
+    hit = trace_any(bvh, roots[pair_frame[r]], item_mesh, obj_T_ref, wp.vec3(0.0), p / L, L * (1.0 - rel_tol))
+    blocked[r] = wp.int8(1) if hit else wp.int8(0)
+
+
+def empty_like_frames(F: int, H: int, W: int) -> dict[str, np.ndarray]:
+    """G-buffer arrays for frames with nothing in them."""
+    return {
+        "dist": np.zeros((F, H, W), np.float32),
+        "item": np.full((F, H, W), -1, np.int32),
+        "face": np.full((F, H, W), -1, np.int32),
+        "point": np.zeros((F, H, W, 3), np.float32),
+        "normal": np.zeros((F, H, W, 3), np.float32),
+    }
+
+
+@wp.kernel(enable_backward=False)
+def group_roots_kernel(bvh: wp.uint64, roots: wp.array[wp.int32]):
+    """roots[f] = root node of group f (frame f) of a grouped BVH."""
+    f = wp.tid()
+    roots[f] = wp.bvh_get_group_root(bvh, f)

@@ -1,0 +1,85 @@
+"""Which pipeline stages a request needs. Stages whose outputs nobody asked for never run.
+
+| stage            | runs when any of these is requested                                  |
+|------------------|----------------------------------------------------------------------|
+| primary cast     | always (one per frame)                                               |
+| hit points       | position, flow_*, valid_*, occ_*, oof_*, motion, rgb                 |
+| normals          | normals, rgb                                                         |
+| reprojection     | flow_*, valid_*, occ_*, oof_* (per direction), motion                |
+| visibility rays  | occ_fw / occ_bw with occlusion="exact" (per direction)               |
+| object tables    | object_* , world_T_obj, box*, visible_pixels                         |
+| shading          | rgb                                                                   |
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from flowsynth.errors import ConfigError
+
+__all__ = ["OUTPUTS", "GBUFFER_KEYS", "FLOW_KEYS", "TABLE_KEYS", "Plan", "make_plan"]
+
+GBUFFER_KEYS = ("depth", "distance", "normals", "position", "instance", "category", "asset")
+FLOW_KEYS = ("flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw", "motion")
+TABLE_KEYS = ("object_valid", "object_category", "object_asset", "world_T_obj", "box3d_corners",
+              "box2d_amodal", "box2d_visible", "visible_pixels")
+CAMERA_KEYS = ("K", "cam_T_world")
+OUTPUTS = ("rgb",) + GBUFFER_KEYS + FLOW_KEYS + TABLE_KEYS + CAMERA_KEYS
+OCCLUSION_METHODS = ("exact", "depth")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The stages needed for ``outputs``; flags are derived, never set by hand."""
+
+    outputs: tuple[str, ...]
+    occlusion: str = "exact"
+    max_objects: int | None = None
+
+    def _any(self, *keys: str) -> bool:
+        return any(k in self.outputs for k in keys)
+
+    @property
+    def rgb(self) -> bool:
+        return "rgb" in self.outputs
+
+    @property
+    def fw(self) -> bool:
+        return self._any("flow_fw", "valid_fw", "occ_fw", "oof_fw", "motion")
+
+    @property
+    def bw(self) -> bool:
+        return self._any("flow_bw", "valid_bw", "occ_bw", "oof_bw")
+
+    @property
+    def flow_stage(self) -> bool:
+        return self.fw or self.bw
+
+    @property
+    def points(self) -> bool:
+        return self.flow_stage or self.rgb or "position" in self.outputs
+
+    @property
+    def normals(self) -> bool:
+        return self._any("normals", "rgb")
+
+    @property
+    def boxes(self) -> bool:
+        return self._any(*TABLE_KEYS)
+
+
+def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None) -> Plan:
+    """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys."""
+    if isinstance(outputs, str):
+        outputs = [s for s in outputs.split(",") if s]
+    outputs = tuple(dict.fromkeys(outputs))
+    if not outputs:
+        raise ConfigError(f"outputs is empty; choose from {', '.join(OUTPUTS)}")
+    unknown = [k for k in outputs if k not in OUTPUTS]
+    if unknown:
+        raise ConfigError(f"unknown output(s) {unknown}; valid outputs are: {', '.join(OUTPUTS)}")
+    if occlusion not in OCCLUSION_METHODS:
+        raise ConfigError(f"occlusion must be one of {OCCLUSION_METHODS}, got {occlusion!r}")
+    if max_objects is not None and (not isinstance(max_objects, int) or max_objects < 0):
+        raise ConfigError(f"max_objects must be a non-negative integer, got {max_objects!r}")
+    return Plan(outputs, occlusion, max_objects)
