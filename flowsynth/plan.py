@@ -35,6 +35,10 @@ class Plan:
     outputs: tuple[str, ...]
     occlusion: str = "exact"
     max_objects: int | None = None
+    render_mode: str = "direct"
+    spp: int = 1
+    shutter: float = 0.0
+    seed: int = 0
 
     def _any(self, *keys: str) -> bool:
         return any(k in self.outputs for k in keys)
@@ -68,7 +72,11 @@ class Plan:
         return self._any(*TABLE_KEYS)
 
 
-def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None) -> Plan:
+RENDER_MODES = ("flat", "direct", "path")
+
+
+def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None, render_mode: str = "direct",
+              spp: int = 1, shutter: float = 0.0, seed: int = 0) -> Plan:
     """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys."""
     if isinstance(outputs, str):
         outputs = [s for s in outputs.split(",") if s]
@@ -82,4 +90,10 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None)
         raise ConfigError(f"occlusion must be one of {OCCLUSION_METHODS}, got {occlusion!r}")
     if max_objects is not None and (not isinstance(max_objects, int) or max_objects < 0):
         raise ConfigError(f"max_objects must be a non-negative integer, got {max_objects!r}")
-    return Plan(outputs, occlusion, max_objects)
+    if render_mode not in RENDER_MODES:
+        raise ConfigError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if not isinstance(spp, int) or spp < 1:
+        raise ConfigError(f"spp must be an integer >= 1, got {spp!r}")
+    if not (0.0 <= float(shutter) <= 1.0):
+        raise ConfigError(f"shutter must be in [0, 1] (fraction of the frame interval), got {shutter!r}")
+    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed))

@@ -92,6 +92,8 @@ class Scene:
         self.fps = float(fps)
         self.world_T_cam = np.tile(np.eye(4), (self.num_frames, 1, 1))
         self.objects: list[SceneObject] = []
+        self.lights: list = []  # light sources for RGB shading (see flowsynth.shading); empty = defaults
+        self.meta: dict = {}  # provenance: config, seed, index when the scene was sampled
         self._assets: dict[int, tuple[int, trimesh.Trimesh]] = {}  # id(mesh) -> (asset id, cleaned mesh)
         self._asset_refs: list[trimesh.Trimesh] = []  # keeps user meshes alive so id() stays unique
 

@@ -61,9 +61,7 @@ def _prepare_channel(name: str, array: Any, shape: tuple[int, int] | None) -> np
         raise ShapeError(f"EXR channel {name!r} has shape {a.shape}, other channels have {shape}")
     if a.dtype.type not in _NATIVE:
         if not np.issubdtype(a.dtype, np.floating):
-            raise ShapeError(
-                f"EXR channel {name!r} has dtype {a.dtype}; use float32 (or float16 / uint32)"
-            )
+            raise ShapeError(f"EXR channel {name!r} has dtype {a.dtype}; use float32 (or float16 / uint32)")
         a = a.astype(np.float32)
     return np.ascontiguousarray(a)
 

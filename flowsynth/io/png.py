@@ -112,7 +112,11 @@ def decode_png(data: bytes, *, name: str = "<bytes>") -> np.ndarray:
         length, tag = struct.unpack(">I4s", data[pos : pos + 8])
         payload = data[pos + 8 : pos + 8 + length]
         crc = data[pos + 8 + length : pos + 12 + length]
-        if len(payload) != length or len(crc) != 4 or struct.unpack(">I", crc)[0] != zlib.crc32(tag + payload):
+        if (
+            len(payload) != length
+            or len(crc) != 4
+            or struct.unpack(">I", crc)[0] != zlib.crc32(tag + payload)
+        ):
             raise ExportError(f"{name}: corrupt PNG chunk {tag!r} at byte {pos}")
         if tag == b"IHDR":
             header = struct.unpack(">IIBBBBB", payload)

@@ -1,0 +1,148 @@
+"""Optical flow, validity, occlusion and motion masks by exact reprojection of ray-cast hit points.
+
+For a pixel (u, v) of source frame s that sees instance n at object-frame point p (kept by the
+primary cast), with target frame r (r = s + 1 forward, r = s - 1 backward):
+
+    X_r   = cam_T_world[r] @ world_T_obj[r, n] @ p           (float64)
+    valid = hit and X_r.z > 0
+    (u', v') = project(K, X_r)                               (kornia, float64)
+    flow  = (u' - u, v' - v)         where valid, else 0
+    oof   = hit and (X_r.z <= 0 or (u', v') outside [-0.5, W - 0.5) x [-0.5, H - 0.5))
+    occ   = oof or (hit and the ray from camera r towards X_r hits a surface closer than
+                    (1 - VISIBILITY_REL_TOL) |X_r|)                         (occlusion="exact")
+    motion = hit and |world_T_obj[s+1, n] p - world_T_obj[s, n] p| > MOTION_TOL
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from kornia.geometry.camera import project_points
+
+from flowsynth.kernels import wp_runtime
+
+__all__ = ["flow_outputs", "reproject", "VISIBILITY_REL_TOL", "DEPTH_TEST_REL_TOL", "MOTION_TOL"]
+
+# A visibility ray is blocked only by a hit closer than (1 - tol) * distance to the point: this absorbs
+# float32 error of the hit point (~1e-7 relative) and grazing self-intersections, while an occluder
+# must lie at least tol * distance (1 mm at 10 m) in front of the point to count.
+VISIBILITY_REL_TOL = 1e-4
+# occlusion="depth": occluded when the point's depth exceeds the target depth map at the nearest pixel
+# by more than this fraction.
+DEPTH_TEST_REL_TOL = 1e-2
+# A surface point "moves" when its world displacement between frames exceeds this [m] (+1e-12 relative).
+MOTION_TOL = 1e-7
+
+
+def reproject(points: np.ndarray, M: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Map object-frame points by per-point (4,4) transforms into a camera and project them.
+
+    Args:
+        points: (P, 3) float64 object-frame points.
+        M: (P, 4, 4) float64 cam_T_obj per point.
+        K: (3, 3) intrinsics.
+    Returns:
+        X (P, 3) camera-frame points [m] and uv (P, 2) image coordinates [px] (0 where X.z <= 0).
+    """
+    X = np.einsum("pij,pj->pi", M[:, :3, :3], points) + M[:, :3, 3]
+    front = X[:, 2] > 0
+    Xs = np.where(front[:, None], X, np.array([0.0, 0.0, 1.0]))
+    if len(Xs):
+        uv = project_points(torch.from_numpy(Xs), torch.from_numpy(K).expand(len(Xs), 3, 3)).numpy()
+    else:
+        uv = np.zeros((0, 2))
+    uv = np.where(front[:, None], uv, 0.0)
+    return X, uv
+
+
+def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
+    """Every flow-family key the plan asks for, as tensors of shape (T-1, C, H, W)."""
+    T, H, W = gb.dist.shape
+    K = scene.camera.K
+    want = set(plan.outputs)
+    out: dict[str, torch.Tensor] = {}
+    idx = gb.instance_index
+    directions = [("fw", plan.fw, 0, 1), ("bw", plan.bw, 1, -1)]
+    rays, jobs = [], []
+    for name, needed, first_src, step in directions:
+        if not needed:
+            continue
+        src = np.arange(first_src, first_src + T - 1)
+        f, i, j = np.nonzero(gb.hit[src])
+        s = src[f]
+        r = s + step
+        n = idx[s, i, j]
+        p = gb.point[s, i, j].astype(np.float64)
+        M = np.einsum("pij,pjk->pik", cam_T_world[r], world_T_obj[r, n]) if len(n) else np.zeros((0, 4, 4))
+        X, uv = reproject(p, M, K)
+        front = X[:, 2] > 0
+        inside = front & (uv[:, 0] >= -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < H - 0.5)
+        flow = np.zeros((T - 1, 2, H, W), np.float32)
+        flow[f, 0, i, j] = np.where(front, uv[:, 0] - j, 0.0)
+        flow[f, 1, i, j] = np.where(front, uv[:, 1] - i, 0.0)
+        masks = {k: np.zeros((T - 1, 1, H, W), bool) for k in ("valid", "oof", "occ")}
+        masks["valid"][f, 0, i, j] = front
+        masks["oof"][f, 0, i, j] = ~inside
+        jobs.append((name, f, i, j, r, X, uv, inside, flow, masks))
+        if f"occ_{name}" in want and plan.occlusion == "exact":
+            rays.append((X[inside], r[inside]))
+    blocked_all = _visibility(accel, rays) if rays else None
+    offset = 0
+    for name, f, i, j, r, X, uv, inside, flow, masks in jobs:
+        if f"occ_{name}" in want:
+            if plan.occlusion == "exact":
+                cnt = int(inside.sum())
+                blocked = blocked_all[offset:offset + cnt]
+                offset += cnt
+            else:
+                blocked = _depth_test(gb, r[inside], X[inside], uv[inside], scene.camera.pixel_rays()[..., 2].numpy())
+            occ = ~inside
+            occ[np.nonzero(inside)[0]] = blocked
+            masks["occ"][f, 0, i, j] = occ
+        out[f"flow_{name}"] = torch.from_numpy(flow)
+        for k, m in masks.items():
+            out[f"{k}_{name}"] = torch.from_numpy(m)
+    if "motion" in want:
+        out["motion"] = torch.from_numpy(_motion(gb, idx, world_T_obj))
+    return {k: v for k, v in out.items() if k in want}
+
+
+def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Blocked flag per point: (X in camera frame r, r) lists -> one visibility-kernel launch."""
+    X = np.concatenate([x for x, _ in rays]).astype(np.float32)
+    r = np.concatenate([f for _, f in rays]).astype(np.int32)
+    if len(X) == 0 or accel.empty:
+        return np.zeros(len(X), bool)
+    wp = wp_runtime()
+    from flowsynth.kernels.raycast import visibility_kernel
+
+    dev = accel.device
+    blocked = wp.zeros(len(X), dtype=wp.int8, device=dev)
+    wp.launch(visibility_kernel, dim=len(X),
+              inputs=[accel.bvh.id, accel.roots, accel.item_mesh, accel.obj_T_ref,
+                      wp.array(X, dtype=wp.vec3, device=dev), wp.array(r, dtype=wp.int32, device=dev),
+                      VISIBILITY_REL_TOL],
+              outputs=[blocked], device=dev)
+    return blocked.numpy().astype(bool)
+
+
+def _depth_test(gb, r: np.ndarray, X: np.ndarray, uv: np.ndarray, dz: np.ndarray) -> np.ndarray:
+    """Cheap occlusion: compare the point's depth with the target frame's depth at the nearest pixel."""
+    jj = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, gb.dist.shape[2] - 1)
+    ii = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, gb.dist.shape[1] - 1)
+    target_depth = gb.dist[r, ii, jj].astype(np.float64) * dz[ii, jj]
+    return ~gb.hit[r, ii, jj] | (X[:, 2] > target_depth * (1.0 + DEPTH_TEST_REL_TOL))
+
+
+def _motion(gb, idx: np.ndarray, world_T_obj: np.ndarray) -> np.ndarray:
+    T, H, W = gb.dist.shape
+    out = np.zeros((T - 1, 1, H, W), bool)
+    f, i, j = np.nonzero(gb.hit[:-1])
+    n = idx[f, i, j]
+    p = gb.point[f, i, j].astype(np.float64)
+    A, B = world_T_obj[f, n], world_T_obj[f + 1, n]
+    xa = np.einsum("pij,pj->pi", A[:, :3, :3], p) + A[:, :3, 3]
+    xb = np.einsum("pij,pj->pi", B[:, :3, :3], p) + B[:, :3, 3]
+    moved = np.linalg.norm(xb - xa, axis=1) > MOTION_TOL + 1e-12 * np.linalg.norm(xa, axis=1)
+    out[f, 0, i, j] = moved
+    return out
