@@ -10,9 +10,17 @@ from flowsynth.scene import Scene, SceneObject
 __version__ = "0.1.0"
 
 __all__ = [
-    "Camera", "Scene", "SceneObject", "render",
-    "FlowsynthError", "ConfigError", "AssetError", "ShapeError", "ExportError",
-    "BouncingThingsConfig", "datasets",
+    "AssetError",
+    "BouncingThingsConfig",
+    "Camera",
+    "ConfigError",
+    "ExportError",
+    "FlowsynthError",
+    "Scene",
+    "SceneObject",
+    "ShapeError",
+    "datasets",
+    "render",
 ]
 
 
@@ -25,6 +33,6 @@ def __getattr__(name: str):
         from flowsynth.config import BouncingThingsConfig
         return BouncingThingsConfig
     if name == "datasets":
-        import flowsynth.datasets as datasets
+        from flowsynth import datasets
         return datasets
     raise AttributeError(f"module 'flowsynth' has no attribute {name!r}")

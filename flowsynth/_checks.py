@@ -7,7 +7,7 @@ import torch
 
 from flowsynth.errors import ConfigError, ShapeError
 
-__all__ = ["as_float64_array", "check_rigid", "RIGID_TOL"]
+__all__ = ["RIGID_TOL", "as_float64_array", "check_rigid"]
 
 # Tolerance on R^T R = I and det R = 1 for a pose to count as rigid (float32 poses carry ~1e-7 error).
 RIGID_TOL = 1e-4

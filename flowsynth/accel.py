@@ -16,7 +16,7 @@ import trimesh
 
 from flowsynth.kernels import wp_runtime
 
-__all__ = ["SceneAccel", "asset_mesh", "MESH_CACHE_SIZE", "BOX_PAD_REL"]
+__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh"]
 
 # Maximum number of asset BVHs kept per process (least recently used are dropped).
 MESH_CACHE_SIZE = 512

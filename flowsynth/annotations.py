@@ -20,7 +20,7 @@ import torch
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["object_tables", "amodal_box", "NEAR"]
+__all__ = ["NEAR", "amodal_box", "object_tables"]
 
 # Near plane [m] at which mesh edges crossing behind the camera are cut for the amodal box.
 NEAR = 1e-6
@@ -91,7 +91,7 @@ def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndar
 
 
 def _visible(idx: np.ndarray, Nmax: int) -> tuple[np.ndarray, np.ndarray]:
-    T, H, W = idx.shape
+    T, _, W = idx.shape
     boxes = np.zeros((T, Nmax, 4), np.float32)
     counts = np.zeros((T, Nmax), np.int32)
     for t in range(T):

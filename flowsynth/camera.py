@@ -42,7 +42,7 @@ class Camera:
         self.height = int(height)
 
     @classmethod
-    def from_fov(cls, width: int, height: int, fov_deg: float = 60.0) -> "Camera":
+    def from_fov(cls, width: int, height: int, fov_deg: float = 60.0) -> Camera:
         """Camera with horizontal field of view ``fov_deg`` [deg], square pixels and the principal point
         at the image centre ((W-1)/2, (H-1)/2)."""
         if not (isinstance(fov_deg, (int, float)) and math.isfinite(fov_deg) and 0.0 < fov_deg < 180.0):

@@ -1,6 +1,6 @@
 """Exception hierarchy. Every error the library raises on purpose derives from FlowsynthError."""
 
-__all__ = ["FlowsynthError", "ConfigError", "AssetError", "ShapeError", "ExportError"]
+__all__ = ["AssetError", "ConfigError", "ExportError", "FlowsynthError", "ShapeError"]
 
 
 class FlowsynthError(Exception):

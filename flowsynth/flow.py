@@ -21,7 +21,7 @@ from kornia.geometry.camera import project_points
 
 from flowsynth.kernels import wp_runtime
 
-__all__ = ["flow_outputs", "reproject", "VISIBILITY_REL_TOL", "DEPTH_TEST_REL_TOL", "MOTION_TOL"]
+__all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject"]
 
 # A visibility ray is blocked only by a hit closer than (1 - tol) * distance to the point: this absorbs
 # float32 error of the hit point (~1e-7 relative) and grazing self-intersections, while an occluder

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["OUTPUTS", "GBUFFER_KEYS", "FLOW_KEYS", "TABLE_KEYS", "Plan", "make_plan"]
+__all__ = ["FLOW_KEYS", "GBUFFER_KEYS", "OUTPUTS", "TABLE_KEYS", "Plan", "make_plan"]
 
 GBUFFER_KEYS = ("depth", "distance", "normals", "position", "instance", "category", "asset")
 FLOW_KEYS = ("flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw", "motion")

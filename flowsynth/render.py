@@ -15,7 +15,7 @@ from flowsynth.kernels import wp_runtime
 from flowsynth.plan import Plan, make_plan
 from flowsynth.scene import Scene
 
-__all__ = ["render", "GBuffer", "cast_gbuffer"]
+__all__ = ["GBuffer", "cast_gbuffer", "render"]
 
 
 @dataclass

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-__all__ = ["trace_closest", "trace_any", "primary_kernel", "visibility_kernel"]
+__all__ = ["primary_kernel", "trace_any", "trace_closest", "visibility_kernel"]
 
 
 @wp.func
