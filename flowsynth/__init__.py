@@ -5,6 +5,7 @@ Importing flowsynth compiles nothing; Warp kernels load on first use.
 
 from flowsynth.camera import Camera
 from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ShapeError
+from flowsynth.render import render
 from flowsynth.scene import Scene, SceneObject
 
 __version__ = "0.1.0"
@@ -26,9 +27,6 @@ __all__ = [
 
 def __getattr__(name: str):
     # Lazy imports keep `import flowsynth` cheap (no Warp initialisation, no kernel compilation).
-    if name == "render":
-        from flowsynth.render import render
-        return render
     if name == "BouncingThingsConfig":
         from flowsynth.config import BouncingThingsConfig
         return BouncingThingsConfig

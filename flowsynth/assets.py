@@ -1,0 +1,265 @@
+"""Meshes for BouncingThings: built-in primitives and irregular shapes, and user mesh files.
+
+Every asset is normalised in its object frame so that the sphere of radius 1/2 centred at the origin
+bounds it (the farthest vertex lies at distance exactly 1/2). ``get_asset(name, size)`` scales it by
+``size`` [m], so ``size`` is the diameter of the object's bounding sphere about its origin. The origin
+is the centre of the unscaled mesh's axis-aligned bounding box.
+
+Each asset carries its collision shape (:class:`Collider`): the analytic primitive for box, sphere,
+capsule, cylinder and cone (axis +z, as Newton expects), and the convex hull of the visual mesh for
+everything else (torus, irregular shapes, user files). The visual mesh always lies inside its
+collider, so colliders that never overlap imply visual meshes that never overlap.
+
+Meshes are cached per process: the same (name, size) returns the same ``trimesh.Trimesh`` object, so
+objects that share an asset share an asset id in a :class:`flowsynth.Scene` and the renderer's per-asset
+acceleration structures are reused across samples. Treat returned meshes as read-only.
+"""
+
+from __future__ import annotations
+
+import functools
+import glob
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from flowsynth.errors import AssetError
+from flowsynth.scene import clean_mesh
+
+__all__ = ["BUILTIN_ASSETS", "PRIMITIVE_ASSETS", "Asset", "Collider", "get_asset", "unit_mesh",
+           "load_user_mesh", "resolve_assets", "room_mesh"]
+
+PRIMITIVE_ASSETS = ("box", "sphere", "cylinder", "capsule", "cone")
+"""Built-in assets whose collider is the analytic primitive."""
+
+BUILTIN_ASSETS = (*PRIMITIVE_ASSETS, "torus", "rock", "crystal", "star", "blob")
+"""Every built-in asset name, in category order (see ``docs/scenes.md``)."""
+
+_GLOB_CHARS = "*?["
+# Bounding-sphere radius of every unit-size asset [m]: the farthest vertex from the origin.
+_UNIT_RADIUS = 0.5
+
+
+@dataclass(frozen=True)
+class Collider:
+    """Collision shape of an asset in its object frame [m].
+
+    Attributes:
+        kind: "box" | "sphere" | "capsule" | "cylinder" | "cone" | "convex".
+        params: box (hx, hy, hz) half extents; sphere (r,); capsule (r, half_height) of the
+            cylindrical part; cylinder (r, half_height); cone (r, half_height), base at z = -half_height,
+            apex at +half_height. Axes of capsule, cylinder and cone are +z. Empty for "convex".
+        hull: the convex hull (watertight) for "convex"; for primitives, the hull of the visual mesh,
+            used for mass properties only.
+    """
+
+    kind: str
+    params: tuple[float, ...]
+    hull: trimesh.Trimesh
+
+
+@dataclass(frozen=True, eq=False)
+class Asset:
+    """A scaled mesh and its collider.
+
+    Attributes:
+        name: the built-in name, or the absolute path of a user mesh file.
+        size: bounding-sphere diameter about the origin [m].
+        mesh: visual mesh in the object frame [m]; every vertex has norm <= size / 2.
+        collider: collision shape in the object frame [m].
+    """
+
+    name: str
+    size: float
+    mesh: trimesh.Trimesh
+    collider: Collider
+
+
+def resolve_assets(entries: tuple[str, ...] | list[str], field: str = "assets") -> tuple[str, ...]:
+    """Expand built-in names, file paths and globs into asset keys, in order.
+
+    Built-in names stay as they are; paths become absolute; a glob expands to its matches sorted by
+    name. Every file is loaded once (cached) to check it. Raises AssetError naming ``field`` when an
+    entry is unknown, a glob matches nothing, or a file does not load.
+    """
+    out: list[str] = []
+    for entry in entries:
+        if not isinstance(entry, str) or not entry:
+            raise AssetError(f"{field}: entries must be non-empty strings, got {entry!r}")
+        if entry in BUILTIN_ASSETS:
+            out.append(entry)
+            continue
+        expanded = os.path.expanduser(entry)
+        if any(c in expanded for c in _GLOB_CHARS):
+            matches = sorted(p for p in glob.glob(expanded, recursive=True) if os.path.isfile(p))
+            if not matches:
+                raise AssetError(f"{field}: glob {entry!r} matches no files; fix the pattern or remove it")
+        elif os.path.sep in expanded or os.path.splitext(expanded)[1]:
+            matches = [expanded]
+        else:
+            raise AssetError(f"{field}: unknown asset {entry!r}; use one of {list(BUILTIN_ASSETS)} "
+                             "or a path to a mesh file that trimesh can load")
+        for path in matches:
+            path = os.path.abspath(path)
+            load_user_mesh(path)
+            out.append(path)
+    return tuple(out)
+
+
+def load_user_mesh(path: str) -> trimesh.Trimesh:
+    """Load a mesh file with ``trimesh.load(path, force="mesh")``, cleaned and normalised to unit
+    bounding-sphere diameter (see the module docstring). Cached per (path, mtime, size on disk).
+
+    Raises AssetError when the file is missing, does not load, or has no usable triangles.
+    """
+    path = os.path.abspath(os.path.expanduser(path))
+    if not os.path.isfile(path):
+        raise AssetError(f"mesh file {path!r} does not exist; check the path in `assets`")
+    st = os.stat(path)
+    return _load_user_mesh_cached(path, st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=256)
+def _load_user_mesh_cached(path: str, mtime_ns: int, nbytes: int) -> trimesh.Trimesh:
+    try:
+        loaded = trimesh.load(path, force="mesh")
+    except Exception as e:  # trimesh raises many exception types for bad files
+        raise AssetError(f"mesh file {path!r} could not be loaded by trimesh ({type(e).__name__}: {e}); "
+                         "use a format trimesh reads (obj, ply, stl, glb, off)") from e
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise AssetError(f"mesh file {path!r} contains no triangles; export it as a triangle mesh")
+    return _normalise(clean_mesh(loaded, name=f"mesh file {path!r}"))
+
+
+def unit_mesh(name: str) -> trimesh.Trimesh:
+    """The visual mesh of a built-in asset or user file at bounding-sphere diameter 1 [m] (cached)."""
+    if name in BUILTIN_ASSETS:
+        return _builtin_unit(name)
+    return load_user_mesh(name)
+
+
+@functools.lru_cache(maxsize=1024)
+def get_asset(name: str, size: float) -> Asset:
+    """The asset ``name`` (built-in name or mesh file path) scaled to bounding-sphere diameter ``size`` [m].
+
+    Cached: the same (name, size) returns the same :class:`Asset` and the same mesh object.
+    """
+    if not (isinstance(size, (int, float)) and math.isfinite(size) and size > 0):
+        raise AssetError(f"asset size must be a positive finite number of metres, got {size!r}")
+    unit = unit_mesh(name)
+    mesh = trimesh.Trimesh(vertices=unit.vertices * size, faces=unit.faces, process=False, validate=False)
+    hull = mesh.convex_hull
+    kind, params = _PRIMITIVE_PARAMS.get(name, ("convex", ()))
+    return Asset(name=name, size=float(size), mesh=mesh,
+                 collider=Collider(kind=kind, params=tuple(p * size for p in params), hull=hull))
+
+
+@functools.lru_cache(maxsize=64)
+def room_mesh(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> trimesh.Trimesh:
+    """Axis-aligned box from ``lo`` to ``hi`` [m] with inward-facing triangles (seen from inside), cached."""
+    lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    box = trimesh.creation.box(extents=hi_a - lo_a)
+    box.apply_translation((lo_a + hi_a) / 2.0)
+    box.invert()
+    return trimesh.Trimesh(vertices=box.vertices, faces=box.faces, process=False, validate=False)
+
+
+# Built-in shapes, proportions before normalisation. Primitive parameters are stored at unit size.
+_BOX_EXTENTS = (1.0, 0.7, 0.45)
+_CYL_R, _CYL_H = 0.35, 1.0
+_CAP_R, _CAP_H = 0.25, 0.7  # radius, length of the cylindrical part
+_CONE_R, _CONE_H = 0.45, 0.9
+_SECTIONS = 32
+
+
+def _primitive_params() -> dict[str, tuple[str, tuple[float, ...]]]:
+    def unit(kind: str, params: tuple[float, ...], radius: float) -> tuple[str, tuple[float, ...]]:
+        s = _UNIT_RADIUS / radius
+        return kind, tuple(p * s for p in params)
+
+    bx = tuple(e / 2 for e in _BOX_EXTENTS)
+    return {
+        "box": unit("box", bx, math.sqrt(sum(e * e for e in bx))),
+        "sphere": ("sphere", (_UNIT_RADIUS,)),
+        "cylinder": unit("cylinder", (_CYL_R, _CYL_H / 2), math.hypot(_CYL_R, _CYL_H / 2)),
+        "capsule": unit("capsule", (_CAP_R, _CAP_H / 2), _CAP_R + _CAP_H / 2),
+        "cone": unit("cone", (_CONE_R, _CONE_H / 2), math.hypot(_CONE_R, _CONE_H / 2)),
+    }
+
+
+_PRIMITIVE_PARAMS = _primitive_params()
+
+
+@functools.lru_cache(maxsize=None)
+def _builtin_unit(name: str) -> trimesh.Trimesh:
+    if name == "box":
+        m = trimesh.creation.box(extents=_BOX_EXTENTS)
+    elif name == "sphere":
+        m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    elif name == "cylinder":
+        m = trimesh.creation.cylinder(radius=_CYL_R, height=_CYL_H, sections=_SECTIONS)
+    elif name == "capsule":
+        m = trimesh.creation.capsule(height=_CAP_H, radius=_CAP_R, count=[_SECTIONS, _SECTIONS])
+    elif name == "cone":
+        m = trimesh.creation.cone(radius=_CONE_R, height=_CONE_H, sections=_SECTIONS)
+    elif name == "torus":
+        m = trimesh.creation.torus(major_radius=0.35, minor_radius=0.15, major_sections=48, minor_sections=24)
+    elif name == "rock":
+        m = _displaced_sphere(seed=1, lobes=9, amplitude=0.18, sharpness=3.0)
+    elif name == "blob":
+        m = _displaced_sphere(seed=2, lobes=4, amplitude=0.45, sharpness=12.0)
+    elif name == "star":
+        m = _star()
+    elif name == "crystal":
+        m = _crystal()
+    else:
+        raise AssetError(f"unknown built-in asset {name!r}; use one of {list(BUILTIN_ASSETS)}")
+    # Cones are centred on their geometric centre (base at -h, apex at +h), like Newton's cone.
+    return _normalise(m)
+
+
+def _normalise(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Centre on the bounding-box centre and scale so the farthest vertex is at distance 1/2."""
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    V = V - (V.min(0) + V.max(0)) / 2.0
+    radius = float(np.linalg.norm(V, axis=1).max())
+    if not radius > 0:
+        raise AssetError("mesh has zero extent (all vertices coincide)")
+    return trimesh.Trimesh(vertices=V * (_UNIT_RADIUS / radius), faces=np.asarray(mesh.faces), process=False,
+                           validate=False)
+
+
+def _displaced_sphere(seed: int, lobes: int, amplitude: float, sharpness: float) -> trimesh.Trimesh:
+    """Icosphere with radius 1 + amplitude * sum of smooth bumps exp(sharpness (n . d_k - 1))."""
+    rng = np.random.default_rng(seed)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    n = np.asarray(sphere.vertices)
+    dirs = rng.normal(size=(lobes, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    weights = rng.uniform(0.3, 1.0, size=lobes)
+    r = 1.0 + amplitude * (weights * np.exp(sharpness * (n @ dirs.T - 1.0))).sum(1)
+    return trimesh.Trimesh(vertices=n * r[:, None], faces=sphere.faces, process=False)
+
+
+def _star() -> trimesh.Trimesh:
+    """Spiky ball: an icosphere with 12 cone-like spikes along the icosahedron's vertex directions."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    n = np.asarray(sphere.vertices)
+    spikes = np.asarray(trimesh.creation.icosahedron().vertices)
+    spikes /= np.linalg.norm(spikes, axis=1, keepdims=True)
+    c = np.clip((n @ spikes.T).max(1), -1.0, 1.0)
+    r = 0.55 + 0.45 * np.clip((c - 0.85) / 0.15, 0.0, 1.0) ** 1.5
+    return trimesh.Trimesh(vertices=n * r[:, None], faces=sphere.faces, process=False)
+
+
+def _crystal() -> trimesh.Trimesh:
+    """Elongated hexagonal crystal with pointed tips: convex hull of jittered prism and apex points."""
+    rng = np.random.default_rng(3)
+    ang = np.arange(6) * (np.pi / 3) + rng.uniform(-0.15, 0.15, 6)
+    rad = 0.3 * rng.uniform(0.85, 1.15, 6)
+    ring = np.stack([rad * np.cos(ang), rad * np.sin(ang), np.zeros(6)], axis=1)
+    pts = [ring + [0, 0, -0.45], ring + [0, 0, 0.35], [[0.03, -0.02, -0.75]], [[-0.02, 0.04, 0.8]]]
+    return trimesh.convex.convex_hull(np.concatenate(pts))

@@ -1,0 +1,318 @@
+"""Visualisation: flow colour wheel, depth / id / normal colouring, boxes, labelled contact sheets.
+
+Inputs are numpy arrays or torch tensors (any device; converted with ``.detach().cpu()``), in the
+layouts of a flowsynth sample (DESIGN.md section 3). Every function returns an (H, W, 3) uint8 RGB
+numpy image. Drawing and saving use Pillow; there is no matplotlib dependency.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from flowsynth.errors import ConfigError, ShapeError
+from flowsynth.io.atomic import atomic_write_bytes
+
+__all__ = [
+    "contact_sheet",
+    "depth_to_color",
+    "draw_boxes",
+    "flow_to_color",
+    "ids_to_color",
+    "make_colorwheel",
+    "mask_to_color",
+    "normals_to_color",
+    "sample_preview",
+    "save_png",
+]
+
+# Middlebury colour wheel (Baker et al. 2011), segment lengths in hues: red-yellow, yellow-green, ...
+_WHEEL_SEGMENTS = (15, 6, 4, 11, 13, 6)  # RY, YG, GC, CB, BM, MR
+# viridis at 0, 1/4, 1/2, 3/4, 1 (matplotlib's values, sRGB 8-bit), interpolated linearly.
+_VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64)
+_GOLDEN = 0.618033988749895  # hue step between consecutive ids
+_PAD = 2  # contact sheet: pixels between tiles and around labels [px]
+
+
+def _np(x: Any) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu()
+        if x.dtype.is_floating_point and x.dtype.itemsize < 4:
+            x = x.float()
+        x = x.numpy()
+    return np.asarray(x)
+
+
+def _plane(x: Any, name: str) -> np.ndarray:
+    """(H, W) or (1, H, W) -> (H, W)."""
+    a = _np(x)
+    if a.ndim == 3 and a.shape[0] == 1:
+        a = a[0]
+    if a.ndim != 2:
+        raise ShapeError(f"{name} must be (H, W) or (1, H, W), got shape {a.shape}")
+    return a
+
+
+def make_colorwheel() -> np.ndarray:
+    """The Middlebury flow colour wheel: (55, 3) uint8 RGB, hue 0 = red, in the segment order above."""
+    ramps = [np.floor(255 * np.arange(n) / n) for n in _WHEEL_SEGMENTS]
+    full = [np.full(n, 255.0) for n in _WHEEL_SEGMENTS]
+    zero = [np.zeros(n) for n in _WHEEL_SEGMENTS]
+    r = np.concatenate([full[0], 255 - ramps[1], zero[2], zero[3], ramps[4], full[5]])
+    g = np.concatenate([ramps[0], full[1], full[2], 255 - ramps[3], zero[4], zero[5]])
+    b = np.concatenate([zero[0], zero[1], ramps[2], full[3], full[4], 255 - ramps[5]])
+    return np.stack([r, g, b], axis=1).astype(np.uint8)
+
+
+def flow_to_color(flow: Any, max_flow: float | None = None) -> np.ndarray:
+    """Colour-code a flow field with the Middlebury wheel (as torchvision ``flow_to_image``).
+
+    Hue is the direction (+x red, +y blue-ish, -x cyan-ish, -y yellow-green), saturation the
+    magnitude divided by ``max_flow``; zero flow is white. Magnitudes above ``max_flow`` are darkened
+    to 75 % as in the Middlebury code. NaN / inf vectors are treated as zero.
+
+    Args:
+        flow: (2, H, W) float (dx, dy) [px].
+        max_flow: normalising magnitude [px]; default the largest finite magnitude in ``flow``.
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+    """
+    f = _np(flow).astype(np.float64)
+    if f.ndim != 3 or f.shape[0] != 2:
+        raise ShapeError(f"flow_to_color expects flow of shape (2, H, W), got {f.shape}")
+    f = np.where(np.isfinite(f).all(axis=0), f, 0.0)
+    u, v = f
+    rad = np.hypot(u, v)
+    norm = float(rad.max(initial=0.0)) if max_flow is None else float(max_flow)
+    if norm > 0:
+        u, v, rad = u / norm, v / norm, rad / norm
+    wheel = make_colorwheel().astype(np.float64) / 255.0
+    ncols = wheel.shape[0]
+    angle = np.arctan2(-v, -u) / np.pi  # in [-1, 1]; -1 and 1 both mean +x (red)
+    fk = (angle + 1) / 2 * (ncols - 1)
+    k0 = np.floor(fk).astype(np.int64)
+    k1 = (k0 + 1) % ncols
+    frac = (fk - k0)[..., None]
+    col = (1 - frac) * wheel[k0] + frac * wheel[k1]
+    inside = (rad <= 1)[..., None]
+    col = np.where(inside, 1 - rad[..., None] * (1 - col), col * 0.75)
+    return np.floor(255 * col).astype(np.uint8)
+
+
+def _colormap(x: np.ndarray) -> np.ndarray:
+    """x in [0, 1] -> (..., 3) uint8 viridis."""
+    pos = np.clip(x, 0.0, 1.0) * (len(_VIRIDIS) - 1)
+    i0 = np.minimum(np.floor(pos).astype(np.int64), len(_VIRIDIS) - 2)
+    t = (pos - i0)[..., None]
+    return np.rint((1 - t) * _VIRIDIS[i0] + t * _VIRIDIS[i0 + 1]).astype(np.uint8)
+
+
+def depth_to_color(depth: Any, valid: Any | None = None) -> np.ndarray:
+    """Colour inverse depth with viridis: near = yellow, far = purple, no hit / invalid = black.
+
+    Args:
+        depth: (H, W) or (1, H, W) float depth or distance [m]; 0 = no hit.
+        valid: optional (H, W) or (1, H, W) bool; pixels that are False are black.
+
+    Returns:
+        (H, W, 3) uint8 RGB, inverse depth normalised between its min and max over valid pixels.
+    """
+    d = _plane(depth, "depth").astype(np.float64)
+    ok = np.isfinite(d) & (d > 0)
+    if valid is not None:
+        ok &= _plane(valid, "valid").astype(bool)
+    out = np.zeros((*d.shape, 3), np.uint8)
+    if ok.any():
+        inv = 1.0 / d[ok]
+        lo, hi = inv.min(), inv.max()
+        out[ok] = _colormap((inv - lo) / (hi - lo) if hi > lo else np.ones_like(inv))
+    return out
+
+
+def ids_to_color(ids: Any) -> np.ndarray:
+    """Colour an id map (instance, category, asset) deterministically; id 0 = black.
+
+    Consecutive ids get hues of the flow colour wheel a golden-ratio step apart; saturation and value
+    vary with a hash of the id. Neighbouring ids stay distinguishable and id k has one colour everywhere.
+
+    Args:
+        ids: (H, W) or (1, H, W) integer array.
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+    """
+    a = _plane(ids, "ids").astype(np.int64)
+    uniq, inverse = np.unique(a, return_inverse=True)
+    hashed = (uniq.astype(np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
+    wheel = make_colorwheel().astype(np.float64)
+    hue = wheel[np.floor((uniq * _GOLDEN) % 1.0 * len(wheel)).astype(np.int64) % len(wheel)]
+    sat = 0.55 + 0.45 * ((hashed >> np.uint64(8)) % np.uint64(256)).astype(np.float64)[:, None] / 255
+    val = 0.75 + 0.25 * ((hashed >> np.uint64(16)) % np.uint64(256)).astype(np.float64)[:, None] / 255
+    palette = np.rint(val * (255 - sat * (255 - hue))).astype(np.uint8)
+    palette[uniq == 0] = 0
+    return palette[inverse.reshape(a.shape)]
+
+
+def normals_to_color(normals: Any) -> np.ndarray:
+    """Colour unit normals as RGB = (n + 1) / 2; pixels with a zero normal (no hit) are black.
+
+    Args:
+        normals: (3, H, W) float, unit vectors in the camera frame, 0 where no hit.
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+    """
+    n = _np(normals).astype(np.float64)
+    if n.ndim != 3 or n.shape[0] != 3:
+        raise ShapeError(f"normals_to_color expects (3, H, W), got {n.shape}")
+    n = np.where(np.isfinite(n), n, 0.0).transpose(1, 2, 0)
+    rgb = np.rint(np.clip((n + 1) / 2, 0, 1) * 255).astype(np.uint8)
+    rgb[~(n != 0).any(axis=-1)] = 0
+    return rgb
+
+
+def mask_to_color(mask: Any) -> np.ndarray:
+    """(H, W) or (1, H, W) bool mask -> (H, W, 3) uint8: True white, False black."""
+    m = _plane(mask, "mask").astype(bool)
+    return np.repeat(np.where(m, 255, 0).astype(np.uint8)[..., None], 3, axis=-1)
+
+
+def draw_boxes(
+    img: np.ndarray,
+    boxes: Any,
+    valid: Any,
+    colors: Sequence[tuple[int, int, int]] | None = None,
+    *,
+    width: int = 1,
+) -> np.ndarray:
+    """Draw xyxy boxes on a copy of ``img``.
+
+    Args:
+        img: (H, W, 3) uint8 RGB.
+        boxes: (N, 4) float xyxy [px], e.g. ``box2d_visible[t]``; non-finite boxes are skipped.
+        valid: (N,) bool; only True boxes are drawn.
+        colors: N RGB triples; default ``ids_to_color`` of instance id n + 1, matching the id map.
+        width: line width [px].
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+    """
+    b = _np(boxes).astype(np.float64)
+    keep = _np(valid).astype(bool)
+    if b.ndim != 2 or b.shape[1] != 4 or keep.shape != (b.shape[0],):
+        raise ShapeError(f"draw_boxes expects boxes (N, 4) and valid (N,), got {b.shape} and {keep.shape}")
+    if colors is None:
+        colors = [tuple(int(c) for c in rgb) for rgb in ids_to_color(np.arange(1, b.shape[0] + 1)[None])[0]]
+    im = Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8))
+    draw = ImageDraw.Draw(im)
+    for n in np.flatnonzero(keep & np.isfinite(b).all(axis=1)):
+        x0, y0, x1, y1 = b[n]
+        draw.rectangle([min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)], outline=colors[n], width=width)
+    return np.asarray(im)
+
+
+def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, scale: int = 1) -> np.ndarray:
+    """Lay labelled images out on a grid, label text above each tile (Pillow's default font).
+
+    Args:
+        tiles: (label, (H, W, 3) uint8) pairs; sizes may differ (cells fit the largest).
+        columns: tiles per row.
+        scale: integer nearest-neighbour upscaling of every tile.
+
+    Returns:
+        (rows * (cell_h + label_h + 2 * pad) + pad, columns * (cell_w + pad) + pad, 3) uint8 RGB on
+        a dark grey background, rows = ceil(len(tiles) / columns).
+    """
+    if not tiles or columns < 1 or scale < 1:
+        raise ConfigError("contact_sheet needs at least one tile, columns >= 1 and scale >= 1")
+    imgs = [np.repeat(np.repeat(np.asarray(t, np.uint8), scale, 0), scale, 1) for _, t in tiles]
+    for (label, _), im in zip(tiles, imgs, strict=True):
+        if im.ndim != 3 or im.shape[2] != 3:
+            raise ShapeError(f"tile {label!r} must be (H, W, 3) uint8, got {im.shape}")
+    font = ImageFont.load_default()
+    label_h = max(int(font.getbbox(label + "Ag")[3]) for label, _ in tiles) + _PAD
+    cell_h = max(im.shape[0] for im in imgs) + label_h + _PAD
+    cell_w = max(im.shape[1] for im in imgs) + _PAD
+    rows = -(-len(tiles) // columns)
+    cols = min(columns, len(tiles))
+    sheet = Image.new("RGB", (cols * cell_w + _PAD, rows * cell_h + _PAD), (32, 32, 32))
+    draw = ImageDraw.Draw(sheet)
+    for k, ((label, _), im) in enumerate(zip(tiles, imgs, strict=True)):
+        x = _PAD + (k % columns) * cell_w
+        y = _PAD + (k // columns) * cell_h
+        draw.text((x, y), label, fill=(255, 255, 255), font=font)
+        sheet.paste(Image.fromarray(np.ascontiguousarray(im)), (x, y + label_h))
+    return np.asarray(sheet)
+
+
+def save_png(path: str | os.PathLike[str], img: np.ndarray) -> None:
+    """Save an (H, W, 3) uint8 RGB image as PNG, atomically."""
+    a = np.asarray(img)
+    if a.dtype != np.uint8 or a.ndim != 3 or a.shape[2] != 3:
+        raise ShapeError(f"save_png expects (H, W, 3) uint8, got {a.dtype} {a.shape}")
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(a)).save(buf, format="PNG")
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _rgb_tile(rgb: np.ndarray) -> np.ndarray:
+    return (
+        np.rint(np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255)
+        .astype(np.uint8)
+        .transpose(1, 2, 0)
+    )
+
+
+def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 1) -> np.ndarray:
+    """Contact sheet of the first frame / pair of a flowsynth sample dict.
+
+    Uses whichever of these keys are present: ``rgb`` (T,3,H,W) frames 0 and 1; ``flow_fw`` /
+    ``flow_bw`` (T-1,2,H,W) pair 0 with one shared ``max_flow``; masks ``valid_fw``, ``occ_fw``,
+    ``occ_bw``, ``motion`` (T-1,1,H,W) pair 0; ``depth`` / ``distance`` (T,1,H,W), ``normals``
+    (T,3,H,W), id maps ``instance`` / ``category`` / ``asset`` (T,1,H,W), frame 0;
+    ``box2d_visible`` (T,N,4) with ``object_valid`` (N,) (and ``visible_pixels`` (T,N) if present)
+    drawn on rgb frame 0, or on the instance map when there is no rgb.
+
+    Returns:
+        (H', W', 3) uint8 RGB, see :func:`contact_sheet`.
+
+    Raises:
+        ConfigError: none of the keys above is present.
+    """
+    s = {k: _np(v) for k, v in sample.items() if isinstance(k, str)}
+    tiles: list[tuple[str, np.ndarray]] = []
+    if "rgb" in s:
+        tiles += [(f"rgb t={t}", _rgb_tile(s["rgb"][t])) for t in range(min(2, len(s["rgb"])))]
+    flows = [k for k in ("flow_fw", "flow_bw") if k in s and len(s[k])]
+    if flows:
+        mags = [np.hypot(*np.nan_to_num(s[k][0], posinf=0.0, neginf=0.0)).max(initial=0.0) for k in flows]
+        shared = float(max(mags))
+        for k in flows:
+            tiles.append((f"{k} 0 (max {shared:.1f} px)", flow_to_color(s[k][0], max_flow=shared or None)))
+    for k in ("valid_fw", "occ_fw", "occ_bw", "motion"):
+        if k in s and len(s[k]):
+            tiles.append((f"{k} 0", mask_to_color(s[k][0])))
+    for k in ("depth", "distance"):
+        if k in s:
+            tiles.append((f"{k} t=0", depth_to_color(s[k][0])))
+    if "normals" in s:
+        tiles.append(("normals t=0", normals_to_color(s["normals"][0])))
+    for k in ("instance", "category", "asset"):
+        if k in s and s[k].ndim == 4:  # per-pixel maps; object tables of the same name are (N,)
+            tiles.append((f"{k} t=0", ids_to_color(s[k][0])))
+    if "box2d_visible" in s and ("rgb" in s or "instance" in s):
+        boxes = s["box2d_visible"][0]
+        keep = s["object_valid"].astype(bool) if "object_valid" in s else np.ones(len(boxes), bool)
+        if "visible_pixels" in s:
+            keep = keep & (s["visible_pixels"][0] > 0)
+        base = _rgb_tile(s["rgb"][0]) if "rgb" in s else ids_to_color(s["instance"][0])
+        tiles.append(("box2d_visible t=0", draw_boxes(base, boxes, keep)))
+    if not tiles:
+        raise ConfigError(f"sample_preview: no previewable key (rgb, flow_fw, depth, ...) in {sorted(s)}")
+    return contact_sheet(tiles, columns=columns, scale=scale)

@@ -1,0 +1,374 @@
+"""File formats: round trips against our own readers and against independent ones (OpenCV, OpenEXR,
+Pillow), atomic writes, and error paths."""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+import torch
+from PIL import Image
+
+from flowsynth.errors import ExportError, ShapeError
+from flowsynth.io.atomic import atomic_path, atomic_write_bytes
+from flowsynth.io.exr import CHANNEL_NAMES, read_exr, read_tensor_exr, write_exr, write_tensor_exr
+from flowsynth.io.flo import read_flo, write_flo
+from flowsynth.io.jsonio import coco_boxes, read_json, write_json
+from flowsynth.io.kitti import KITTI_FLOW_MAX, KITTI_FLOW_MIN, read_kitti_flow, write_kitti_flow
+from flowsynth.io.png import (
+    decode_png,
+    read_ppm,
+    read_rgb_png,
+    read_u16_png,
+    write_ppm,
+    write_rgb_png,
+    write_u16_png,
+)
+
+H, W = 7, 11
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(0)
+
+
+def _special_floats(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Random float32 with awkward values mixed in: -0, denormals, huge, inf."""
+    a = (rng.standard_normal(shape) * 100).astype(np.float32)
+    flat = a.reshape(-1)
+    flat[:6] = [-0.0, 1e-45, -3e-39, 3.4e38, np.inf, -np.inf]
+    return a
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32).view(np.uint32)
+
+
+# ---------------------------------------------------------------- EXR
+
+
+@pytest.mark.parametrize("output", sorted(CHANNEL_NAMES))
+def test_exr_tensor_round_trip_bit_exact(tmp_path: Path, rng: np.random.Generator, output: str) -> None:
+    names = CHANNEL_NAMES[output]
+    a = _special_floats(rng, (len(names), H, W))
+    path = tmp_path / f"{output}.exr"
+    write_tensor_exr(path, a, names)
+    back = read_tensor_exr(path, names)
+    assert back.shape == a.shape and back.dtype == np.float32
+    np.testing.assert_array_equal(_bits(back), _bits(a))
+    # Independent reader: the OpenEXR library directly, default (grouping) mode.
+    exr = OpenEXR.File(str(path))
+    channels = exr.channels()
+    assert sorted(channels) == sorted(names)
+    for c, name in enumerate(names):
+        np.testing.assert_array_equal(_bits(channels[name].pixels), _bits(a[c]))
+    assert exr.header()["compression"] == OpenEXR.ZIP_COMPRESSION
+
+
+def test_exr_nan_survives(tmp_path: Path) -> None:
+    a = np.full((H, W), np.nan, np.float32)
+    write_exr(tmp_path / "n.exr", {"Z": a})
+    assert np.isnan(read_exr(tmp_path / "n.exr")["Z"]).all()
+
+
+def test_exr_non_contiguous_and_caller_dict(tmp_path: Path, rng: np.random.Generator) -> None:
+    wide = rng.random((H, 2 * W), dtype=np.float32)
+    tall = rng.random((W, H), dtype=np.float32)
+    channels = {"flow.x": wide[:, ::2], "flow.y": tall.T}
+    assert not channels["flow.x"].flags.c_contiguous and not channels["flow.y"].flags.c_contiguous
+    write_exr(tmp_path / "f.exr", channels)
+    assert isinstance(channels["flow.x"], np.ndarray)  # OpenEXR.File would swap in Channel objects
+    back = OpenEXR.File(str(tmp_path / "f.exr"), separate_channels=True).channels()
+    np.testing.assert_array_equal(back["flow.x"].pixels, wide[:, ::2])
+    np.testing.assert_array_equal(back["flow.y"].pixels, tall.T)
+    # A channels-first tensor slice (non-contiguous planes of a torch tensor) too.
+    t = torch.from_numpy(rng.random((H, W, 3), dtype=np.float32)).permute(2, 0, 1)
+    write_tensor_exr(tmp_path / "n.exr", t, CHANNEL_NAMES["normals"])
+    np.testing.assert_array_equal(read_tensor_exr(tmp_path / "n.exr", CHANNEL_NAMES["normals"]), t.numpy())
+
+
+def test_exr_rejects_bad_input(tmp_path: Path) -> None:
+    with pytest.raises(ShapeError, match="2-D"):
+        write_exr(tmp_path / "x.exr", {"flow": np.zeros((H, W, 2), np.float32)})
+    with pytest.raises(ShapeError, match="shape"):
+        write_exr(tmp_path / "x.exr", {"A": np.zeros((H, W), np.float32), "B": np.zeros((W, H), np.float32)})
+    with pytest.raises(ShapeError, match="dtype"):
+        write_exr(tmp_path / "x.exr", {"A": np.zeros((H, W), np.int64)})
+    write_exr(tmp_path / "x.exr", {"Z": np.zeros((H, W), np.float32)})
+    with pytest.raises(ExportError, match="no channel"):
+        read_tensor_exr(tmp_path / "x.exr", CHANNEL_NAMES["flow"])
+    assert not list(tmp_path.glob(".*"))
+
+
+# ---------------------------------------------------------------- .flo
+
+
+def test_flo_round_trip_and_opencv(tmp_path: Path, rng: np.random.Generator) -> None:
+    cv2 = pytest.importorskip("cv2")
+    flow = _special_floats(rng, (2, H, W))
+    path = tmp_path / "a.flo"
+    write_flo(path, flow)
+    assert path.stat().st_size == 12 + 8 * H * W
+    back = read_flo(path)
+    assert back.shape == (2, H, W) and back.dtype == np.float32
+    np.testing.assert_array_equal(_bits(back), _bits(flow))
+    theirs = cv2.readOpticalFlow(str(path))  # (H, W, 2): u, v
+    np.testing.assert_array_equal(_bits(theirs), _bits(flow.transpose(1, 2, 0)))
+    # And the other way: OpenCV writes, we read.
+    cv2.writeOpticalFlow(str(tmp_path / "cv.flo"), np.ascontiguousarray(flow.transpose(1, 2, 0)))
+    np.testing.assert_array_equal(_bits(read_flo(tmp_path / "cv.flo")), _bits(flow))
+
+
+def test_flo_non_contiguous(tmp_path: Path, rng: np.random.Generator) -> None:
+    hw2 = rng.standard_normal((H, W, 2)).astype(np.float32)
+    flow = hw2.transpose(2, 0, 1)  # a view, not C-contiguous
+    write_flo(tmp_path / "a.flo", flow)
+    np.testing.assert_array_equal(read_flo(tmp_path / "a.flo"), flow)
+
+
+def test_flo_rejects_bad_files(tmp_path: Path) -> None:
+    write_flo(tmp_path / "a.flo", np.zeros((2, H, W), np.float32))
+    data = (tmp_path / "a.flo").read_bytes()
+    (tmp_path / "magic.flo").write_bytes(struct.pack("<f", 1.0) + data[4:])
+    with pytest.raises(ExportError, match="magic"):
+        read_flo(tmp_path / "magic.flo")
+    (tmp_path / "short.flo").write_bytes(data[:-4])
+    with pytest.raises(ExportError, match="bytes"):
+        read_flo(tmp_path / "short.flo")
+    with pytest.raises(ShapeError):
+        write_flo(tmp_path / "b.flo", np.zeros((H, W, 2), np.float32))
+
+
+# ---------------------------------------------------------------- KITTI
+
+
+def test_kitti_round_trip_and_opencv(tmp_path: Path, rng: np.random.Generator) -> None:
+    flow = (rng.standard_normal((2, H, W)) * 50).astype(np.float32)
+    flow[0, 0, 0], flow[1, 0, 1], flow[0, 0, 2] = 600.0, -700.0, np.nan
+    valid = rng.random((H, W)) > 0.2
+    valid[0, :3] = True
+    path = tmp_path / "k.png"
+    write_kitti_flow(path, flow, valid)
+    back, back_valid = read_kitti_flow(path)
+    expected_valid = valid & np.isfinite(flow).all(axis=0)
+    np.testing.assert_array_equal(back_valid, expected_valid)
+    clipped = np.clip(flow, KITTI_FLOW_MIN, KITTI_FLOW_MAX)
+    m = expected_valid
+    assert np.abs(back[:, m] - clipped[:, m]).max() <= 1 / 128 + 1e-6
+    assert back[0, 0, 0] == KITTI_FLOW_MAX and back[1, 0, 1] == KITTI_FLOW_MIN
+    assert (back[:, ~m] == 0).all()
+    cv2 = pytest.importorskip("cv2")
+    bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert bgr.dtype == np.uint16 and bgr.shape == (H, W, 3)
+    np.testing.assert_array_equal(bgr[..., 0], expected_valid)
+    u = (bgr[..., 2].astype(np.float64) - 2**15) / 64
+    v = (bgr[..., 1].astype(np.float64) - 2**15) / 64
+    np.testing.assert_allclose(u[m], clipped[0][m], atol=1 / 128 + 1e-6)
+    np.testing.assert_allclose(v[m], clipped[1][m], atol=1 / 128 + 1e-6)
+    # OpenCV (libpng, adaptive row filters) writes a KITTI file; our decoder reads it.
+    cv2.imwrite(str(tmp_path / "cv.png"), bgr)
+    back2, valid2 = read_kitti_flow(tmp_path / "cv.png")
+    np.testing.assert_array_equal(back2, back)
+    np.testing.assert_array_equal(valid2, back_valid)
+
+
+def _filtered_png(image: np.ndarray, ftype: int) -> bytes:
+    """Reference PNG encoder (8-bit RGB) applying one filter type to every row (PNG spec 9.2)."""
+    h, w, _ = image.shape
+    rows = image.reshape(h, -1).astype(np.int64)
+    bpp, raw = 3, b""
+    for y in range(h):
+        line, prior = rows[y], rows[y - 1] if y else np.zeros_like(rows[0])
+        left = np.concatenate([np.zeros(bpp, np.int64), line[:-bpp]])
+        upleft = np.concatenate([np.zeros(bpp, np.int64), prior[:-bpp]])
+        if ftype == 1:
+            pred = left
+        elif ftype == 2:
+            pred = prior
+        elif ftype == 3:
+            pred = (left + prior) // 2
+        else:
+            p = left + prior - upleft
+            pa, pb, pc = np.abs(p - left), np.abs(p - prior), np.abs(p - upleft)
+            pred = np.where((pa <= pb) & (pa <= pc), left, np.where(pb <= pc, prior, upleft))
+        raw += bytes([ftype]) + ((line - pred) % 256).astype(np.uint8).tobytes()
+
+    def chunk(tag: bytes, payload: bytes) -> bytes:
+        return struct.pack(">I", len(payload)) + tag + payload + struct.pack(">I", zlib.crc32(tag + payload))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+
+
+@pytest.mark.parametrize("ftype", [1, 2, 3, 4])
+def test_png_decoder_every_filter(rng: np.random.Generator, ftype: int) -> None:
+    image = rng.integers(0, 256, (5, 6, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(decode_png(_filtered_png(image, ftype)), image)
+
+
+# ---------------------------------------------------------------- PNG / PPM
+
+
+def test_u16_png_round_trip_and_opencv(tmp_path: Path, rng: np.random.Generator) -> None:
+    ids = rng.integers(0, 65536, (H, W)).astype(np.int32)
+    ids[0, 0], ids[0, 1] = 0, 65535
+    path = tmp_path / "ids.png"
+    write_u16_png(path, torch.from_numpy(ids))
+    back = read_u16_png(path)
+    assert back.dtype == np.int32
+    np.testing.assert_array_equal(back, ids)
+    cv2 = pytest.importorskip("cv2")
+    theirs = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert theirs.dtype == np.uint16 and theirs.shape == (H, W)
+    np.testing.assert_array_equal(theirs, ids)
+    mask = ids > 30000
+    write_u16_png(tmp_path / "mask.png", mask[:, ::-1])
+    np.testing.assert_array_equal(read_u16_png(tmp_path / "mask.png"), mask[:, ::-1])
+
+
+def test_u16_png_rejects_out_of_range(tmp_path: Path) -> None:
+    for bad in (np.array([[65536]]), np.array([[-1]])):
+        with pytest.raises(ExportError, match="65535"):
+            write_u16_png(tmp_path / "x.png", bad)
+    with pytest.raises(ShapeError):
+        write_u16_png(tmp_path / "x.png", np.zeros((H, W), np.float32))
+    assert not list(tmp_path.iterdir())
+
+
+def test_rgb_png_and_ppm_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:
+    rgb = rng.random((3, H, W), dtype=np.float32)
+    rgb[:, 0, 0] = [0.6 / 255, 0.4 / 255, 1.0]  # round, not truncate: 1, 0, 255
+    view = rgb[:, :, ::-1]  # non-contiguous
+    for name, write, read in (("a.png", write_rgb_png, read_rgb_png), ("a.ppm", write_ppm, read_ppm)):
+        write(tmp_path / name, view)
+        back = read(tmp_path / name)
+        assert back.shape == (3, H, W) and back.dtype == np.float32
+        assert np.abs(back - view).max() <= 0.5 / 255 + 1e-6
+        with Image.open(tmp_path / name) as im:  # independent reader
+            assert im.mode == "RGB" and im.size == (W, H)
+            pixels = np.asarray(im)
+        np.testing.assert_array_equal(pixels[0, -1], [1, 0, 255])
+        np.testing.assert_array_equal(pixels, np.rint(view.transpose(1, 2, 0) * 255))
+    assert (tmp_path / "a.ppm").read_bytes()[:2] == b"P6"
+
+
+# ---------------------------------------------------------------- JSON and COCO
+
+
+def test_json_round_trip_and_rejects_nan(tmp_path: Path) -> None:
+    obj = {
+        "K": np.eye(3, dtype=np.float32),
+        "poses": torch.zeros(2, 4, 4),
+        "seed": np.int64(7),
+        "flag": np.bool_(True),
+        1: (1.5, "a", None),
+        "path": tmp_path,
+    }
+    write_json(tmp_path / "m.json", obj)
+    back = read_json(tmp_path / "m.json")
+    assert back["K"] == np.eye(3).tolist() and back["poses"] == torch.zeros(2, 4, 4).tolist()
+    assert back["seed"] == 7 and back["flag"] is True and back["1"] == [1.5, "a", None]
+    assert back["path"] == str(tmp_path)
+    for bad in ({"a": [1.0, float("nan")]}, {"K": np.array([1.0, np.inf])}, {"t": torch.tensor([np.nan])}):
+        with pytest.raises(ExportError, match="non-finite"):
+            write_json(tmp_path / "bad.json", bad)
+    assert not (tmp_path / "bad.json").exists()
+    (tmp_path / "nan.json").write_text('{"a": NaN}')
+    with pytest.raises(ExportError):
+        read_json(tmp_path / "nan.json")
+
+
+def test_coco_boxes_hand_computed() -> None:
+    # T = 2 frames, N = 3 slots: object 0 visible in both, object 1 only in frame 1, slot 2 padding.
+    boxes = np.array(
+        [
+            [[1.0, 2.0, 5.0, 4.0], [0.0, 0.0, 0.0, 0.0], [np.nan] * 4],
+            [[2.0, 2.0, 6.0, 5.0], [3.0, 1.0, 4.0, 9.0], [np.nan] * 4],
+        ]
+    )
+    coco = coco_boxes(
+        torch.from_numpy(boxes),
+        np.array([True, True, False]),
+        np.array([3, 1, 0]),
+        np.array([[12, 0, 0], [15, 4, 0]]),
+        width=W,
+        height=H,
+        file_names=["rgb_0000.png", "rgb_0001.png"],
+        category_names={1: "cube"},
+    )
+    assert coco["images"] == [
+        {"id": 1, "file_name": "rgb_0000.png", "width": W, "height": H, "frame": 0},
+        {"id": 2, "file_name": "rgb_0001.png", "width": W, "height": H, "frame": 1},
+    ]
+    common = {"iscrowd": 0}
+    assert coco["annotations"] == [
+        {"id": 1, "image_id": 1, "category_id": 3, "bbox": [1.0, 2.0, 4.0, 2.0], "area": 8.0,
+         "instance_id": 1, "frame": 0, "visible_pixels": 12, **common},
+        {"id": 2, "image_id": 2, "category_id": 3, "bbox": [2.0, 2.0, 4.0, 3.0], "area": 12.0,
+         "instance_id": 1, "frame": 1, "visible_pixels": 15, **common},
+        {"id": 3, "image_id": 2, "category_id": 1, "bbox": [3.0, 1.0, 1.0, 8.0], "area": 8.0,
+         "instance_id": 2, "frame": 1, "visible_pixels": 4, **common},
+    ]  # fmt: skip
+    assert coco["categories"] == [
+        {"id": 1, "name": "cube", "supercategory": "object"},
+        {"id": 3, "name": "category_3", "supercategory": "object"},
+    ]
+    with pytest.raises(ShapeError):
+        coco_boxes(boxes, np.ones(2, bool), np.ones(3), np.ones((2, 3)), width=W, height=H, file_names=["a", "b"])
+
+
+# ---------------------------------------------------------------- atomic writes and unwritable paths
+
+_WRITERS = {
+    "exr": lambda p: write_exr(p, {"Z": np.zeros((H, W), np.float32)}),
+    "flo": lambda p: write_flo(p, np.zeros((2, H, W), np.float32)),
+    "kitti": lambda p: write_kitti_flow(p, np.zeros((2, H, W), np.float32), np.ones((H, W), bool)),
+    "png": lambda p: write_rgb_png(p, np.zeros((3, H, W), np.float32)),
+    "ppm": lambda p: write_ppm(p, np.zeros((3, H, W), np.float32)),
+    "u16": lambda p: write_u16_png(p, np.zeros((H, W), np.int32)),
+    "json": lambda p: write_json(p, {"a": 1}),
+}
+
+
+@pytest.mark.parametrize("fmt", sorted(_WRITERS))
+def test_writers_atomic_and_unwritable(tmp_path: Path, fmt: str) -> None:
+    path = tmp_path / f"out.{fmt}"
+    _WRITERS[fmt](path)
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary left behind
+    missing = tmp_path / "no" / "such" / "dir" / f"out.{fmt}"
+    with pytest.raises(ExportError, match=str(missing)):
+        _WRITERS[fmt](missing)
+    with pytest.raises(ExportError):  # parent is a file
+        _WRITERS[fmt](path / "child.bin")
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root ignores directory permissions")
+def test_read_only_directory(tmp_path: Path) -> None:
+    tmp_path.chmod(0o500)
+    try:
+        with pytest.raises(ExportError, match="not writable"):
+            atomic_write_bytes(tmp_path / "x.bin", b"x")
+    finally:
+        tmp_path.chmod(0o700)
+
+
+def test_atomic_path_temp_name_failure_and_permissions(tmp_path: Path) -> None:
+    final = tmp_path / "depth_0003.exr"
+    final.write_bytes(b"old")
+    with pytest.raises(RuntimeError), atomic_path(final) as tmp:
+        assert tmp.parent == tmp_path and tmp.name.startswith(".depth_0003.tmp-") and tmp.suffix == ".exr"
+        tmp.write_bytes(b"partial")
+        raise RuntimeError("crash mid-write")
+    assert final.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == [final.name]
+    atomic_write_bytes(final, b"new")
+    assert final.read_bytes() == b"new"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert final.stat().st_mode & 0o777 == 0o666 & ~umask

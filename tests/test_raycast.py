@@ -1,0 +1,328 @@
+"""G-buffer ray casting against an independent float64 brute-force oracle and analytic geometry."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import flowsynth as fs
+
+BARY_EPS = 1e-9
+GB = ["depth", "distance", "normals", "position", "instance", "category", "asset"]
+
+
+def brute_force(cam: fs.Camera, cam_T_world: np.ndarray, meshes, world_T_objs, dirs=None):
+    """Closest hit of every pixel-centre ray over all triangles (Moller-Trumbore, float64).
+
+    Returns t (H,W) [inf = miss], instance index (H,W) [-1 = miss], unit normal (H,W,3) camera frame.
+    """
+    H, W = cam.height, cam.width
+    if dirs is None:
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+        d = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(cam.K).T
+        dirs = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    D = dirs.reshape(-1, 3)
+    best_t = np.full(len(D), np.inf)
+    best_k = np.full(len(D), -1)
+    best_n = np.zeros((len(D), 3))
+    for k, (mesh, P) in enumerate(zip(meshes, world_T_objs)):
+        M = cam_T_world @ P
+        tri = np.asarray(mesh.vertices)[mesh.faces] @ M[:3, :3].T + M[:3, 3]  # (F,3,3) camera frame
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        for s in range(0, len(D), 4096):
+            d = D[s:s + 4096, None, :]
+            p = np.cross(d, e2[None])
+            det = np.einsum("rfi,fi->rf", p, e1)
+            ok = np.abs(det) > 1e-300
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            tv = -tri[None, :, 0]
+            uu = np.einsum("rfi,rfi->rf", np.broadcast_to(tv, p.shape), p) * inv
+            q = np.cross(np.broadcast_to(tv, p.shape), e1[None])
+            vv = np.einsum("rfi,rfi->rf", np.broadcast_to(d, q.shape), q) * inv
+            tt = np.einsum("rfi,fi->rf", q, e2) * inv
+            # edge-inclusive with a 1e-9 slack: exact float64 tests miss some rays aimed at shared vertices
+            hit = ok & (uu >= -BARY_EPS) & (vv >= -BARY_EPS) & (uu + vv <= 1 + BARY_EPS) & (tt > 0)
+            tt = np.where(hit, tt, np.inf)
+            f = tt.argmin(1)
+            tmin = tt[np.arange(len(f)), f]
+            better = tmin < best_t[s:s + 4096]
+            idx = np.arange(s, s + len(f))[better]
+            best_t[idx] = tmin[better]
+            best_k[idx] = k
+            n = np.cross(e1[f[better]], e2[f[better]])
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            n *= -np.sign(np.einsum("ri,ri->r", n, D[idx]))[:, None]
+            best_n[idx] = n
+    shape = dirs.shape[:-1]
+    return best_t.reshape(shape), best_k.reshape(shape), best_n.reshape(*shape, 3), dirs
+
+
+def near_silhouette(cam, cam_T_world, meshes, poses, eps_px=1e-3):
+    """Pixels whose ray, moved by eps_px in any direction, changes which object it hits."""
+    H, W = cam.height, cam.width
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    ref = None
+    out = np.zeros((H, W), bool)
+    for du, dv in [(0, 0), (eps_px, 0), (-eps_px, 0), (0, eps_px), (0, -eps_px)]:
+        d = np.stack([u + du, v + dv, np.ones_like(u)], -1) @ np.linalg.inv(cam.K).T
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        _, k, _, _ = brute_force(cam, cam_T_world, meshes, poses, d)
+        ref = k if ref is None else ref
+        out |= k != ref
+    return out
+
+
+def random_pose(rng, center, scale=1.0):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    P = np.eye(4)
+    P[:3, :3] = trimesh.transformations.quaternion_matrix(q)[:3, :3]
+    P[:3, 3] = center + scale * rng.uniform(-1, 1, 3)
+    return P
+
+
+def look_at(eye, target, up=(0, -1, 0)):
+    """world_T_cam with OpenCV axes (z toward target, y down)."""
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up) * -1.0
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    P = np.eye(4)
+    P[:3, :3] = np.stack([x, y, z], 1)
+    P[:3, 3] = eye
+    return P
+
+
+def build_scene(seed=0, offset=np.zeros(3), T=2, W=48, H=36):
+    rng = np.random.default_rng(seed)
+    cam = fs.Camera.from_fov(W, H, 60)
+    scene = fs.Scene(cam, T)
+    cams = np.stack([look_at(offset + [0.1 * t, 0.05 * t, -6.0], offset) for t in range(T)])
+    scene.set_camera_poses(cams)
+    meshes = [trimesh.creation.box((1.0, 0.6, 0.8)), trimesh.creation.icosphere(2, radius=0.7),
+              trimesh.creation.box((6.0, 6.0, 0.05)), trimesh.creation.box((1.5, 0.3, 1.0))]
+    poses = []
+    for k, m in enumerate(meshes):
+        if k == 2:
+            P = np.tile(np.eye(4), (T, 1, 1))
+            P[:, :3, 3] = offset + [0, 0, 2.5]
+        else:
+            P = np.stack([random_pose(rng, offset + [0, 0, 0], 1.2) for _ in range(T)])
+        scene.add_object(m, P, category=10 + k)
+        poses.append(P)
+    return scene, meshes, poses, cams
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+def test_gbuffer_matches_brute_force_oracle(offset):
+    scene, meshes, poses, cams = build_scene(seed=1, offset=np.full(3, offset))
+    out = fs.render(scene, GB)
+    for t in range(scene.num_frames):
+        cam_T_world = np.linalg.inv(cams[t])
+        tt, kk, nn, dirs = brute_force(scene.camera, cam_T_world, meshes, [P[t] for P in poses])
+        sil = near_silhouette(scene.camera, cam_T_world, meshes, [P[t] for P in poses])
+        hit_ref = kk >= 0
+        hit = out["instance"][t, 0].numpy() > 0
+        assert not (hit != hit_ref)[~sil].any()
+        both = hit & hit_ref & ~sil
+        assert both.sum() > 0.5 * hit_ref.size
+        dist = out["distance"][t, 0].numpy()
+        rel = np.abs(dist[both] - tt[both]) / tt[both]
+        assert rel.max() <= 1e-5
+        depth = out["depth"][t, 0].numpy()
+        depth_ref = tt * dirs[..., 2]
+        assert (np.abs(depth[both] - depth_ref[both]) / depth_ref[both]).max() <= 1e-5
+        np.testing.assert_array_equal(out["instance"][t, 0].numpy()[both], kk[both] + 1)
+        np.testing.assert_array_equal(out["category"][t, 0].numpy()[both], kk[both] + 10)
+        n = out["normals"][t].numpy().transpose(1, 2, 0)
+        assert np.abs(n[both] - nn[both]).max() < 1e-4
+        pos_ref = (cams[t][:3, :3] @ (tt[..., None] * dirs)[both].T).T + cams[t][:3, 3]
+        pos = out["position"][t].numpy().transpose(1, 2, 0)[both]
+        # float32 positions: error relative to |position|
+        assert np.abs(pos - pos_ref).max() <= 1e-5 * (np.abs(pos_ref).max() + 1.0)
+        # no hit -> zeros everywhere
+        miss = ~hit
+        for key in ("depth", "distance", "normals", "position", "instance", "category", "asset"):
+            assert (out[key][t][:, miss] == 0).all()
+
+
+def test_shared_asset_ids():
+    scene, *_ = build_scene()
+    m = scene.objects[0].mesh
+    k = scene.add_object(m, np.eye(4))
+    assert scene.objects[k - 1].asset != scene.objects[0].asset  # cleaned copy is a new mesh object
+    box = trimesh.creation.box()
+    a = scene.add_object(box, np.eye(4))
+    b = scene.add_object(box, np.eye(4))
+    assert scene.objects[a - 1].asset == scene.objects[b - 1].asset
+
+
+def test_planar_depth_is_distance_times_cos():
+    cam = fs.Camera.from_fov(40, 30, 70)
+    scene = fs.Scene(cam, 1)
+    P = np.eye(4)
+    P[:3, 3] = [0, 0, 3]
+    scene.add_object(trimesh.creation.box((20, 20, 0.01)), P)
+    out = fs.render(scene, ["depth", "distance", "normals"])
+    d = cam.pixel_rays().numpy()
+    depth, dist = out["depth"][0, 0].numpy(), out["distance"][0, 0].numpy()
+    np.testing.assert_allclose(depth, dist * d[..., 2], rtol=2e-7)
+    np.testing.assert_allclose(depth, 3 - 0.005, rtol=1e-6)
+    n = out["normals"][0].numpy().transpose(1, 2, 0)
+    np.testing.assert_allclose(n, np.broadcast_to([0, 0, -1], n.shape), atol=1e-6)
+
+
+def test_normals_unit_and_facing_camera():
+    scene, *_ = build_scene(seed=3)
+    out = fs.render(scene, ["normals", "instance"])
+    d = scene.camera.pixel_rays().numpy()
+    for t in range(scene.num_frames):
+        n = out["normals"][t].numpy().transpose(1, 2, 0)
+        hit = out["instance"][t, 0].numpy() > 0
+        np.testing.assert_allclose(np.linalg.norm(n[hit], axis=-1), 1.0, atol=1e-6)
+        assert (np.einsum("ij,ij->i", n[hit], d[hit]) < 0).all()
+
+
+def test_posed_object_renders_like_pretransformed_mesh():
+    rng = np.random.default_rng(7)
+    cam = fs.Camera.from_fov(48, 36, 50)
+    mesh = trimesh.creation.icosphere(2)
+    mesh.vertices[:, 0] *= 1.7
+    P = random_pose(rng, np.array([0.0, 0.0, 4.0]), 0.3)
+    a = fs.Scene(cam, 1)
+    a.add_object(mesh, P)
+    b = fs.Scene(cam, 1)
+    b.add_object(trimesh.Trimesh(mesh.vertices @ P[:3, :3].T + P[:3, 3], mesh.faces, process=False), np.eye(4))
+    oa, ob = fs.render(a, GB), fs.render(b, GB)
+    hit = (oa["instance"] > 0) & (ob["instance"] > 0)
+    assert (oa["instance"] != ob["instance"]).sum() <= 2  # silhouette pixels only
+    # equal up to float32 rounding of the pre-transformed vertices (a few ulps)
+    np.testing.assert_allclose(oa["depth"][hit], ob["depth"][hit], rtol=4e-6)
+    assert (oa["normals"] - ob["normals"]).abs().amax(1, keepdim=True)[hit].max() < 1e-5
+
+
+def test_rays_through_shared_vertices_and_edges_never_miss():
+    # A tessellated plane whose vertices and edge midpoints project exactly onto pixel centres.
+    cam = fs.Camera(np.array([[16.0, 0, 16], [0, 16.0, 16], [0, 0, 1]]), 33, 33)
+    grid = trimesh.creation.box((1, 1, 1))
+    n = 8
+    xs = np.arange(-n, n + 1) * 0.5  # vertices at u = 16 + 4 x / z * ... -> integer pixel centres at z = 2
+    X, Y = np.meshgrid(xs, xs)
+    V = np.stack([X.ravel(), Y.ravel(), np.full(X.size, 2.0)], 1)
+    F = []
+    m = len(xs)
+    for i in range(m - 1):
+        for j in range(m - 1):
+            a, b, c, d = i * m + j, i * m + j + 1, (i + 1) * m + j, (i + 1) * m + j + 1
+            F += [[a, b, d], [a, d, c]]
+    grid = trimesh.Trimesh(V, np.array(F), process=False)
+    closed = trimesh.creation.box((2.0, 2.0, 2.0))  # a corner aimed at the principal point
+    R = trimesh.transformations.rotation_matrix(np.arctan(np.sqrt(0.5)), [1, -1, 0]) @ \
+        trimesh.transformations.rotation_matrix(np.pi / 4, [0, 0, 1])
+    for mesh, pose in [(grid, np.eye(4)), (closed, R)]:
+        scene = fs.Scene(cam, 1)
+        P = pose.copy()
+        if mesh is closed:
+            P[:3, 3] = [0, 0, 6.0]
+        scene.add_object(mesh, P)
+        out = fs.render(scene, ["instance", "depth"])
+        ref_t, ref_k, _, _ = brute_force(cam, np.eye(4), [mesh], [P])
+        got = out["instance"][0, 0].numpy() > 0
+        assert not (got & (ref_k < 0)).any()
+        missed = (ref_k >= 0) & ~got
+        assert not missed.any(), f"{missed.sum()} vertex/edge-aimed rays missed"
+
+
+def test_grazing_rays_and_camera_inside_object_are_finite():
+    cam = fs.Camera.from_fov(32, 24, 90)
+    scene = fs.Scene(cam, 2)
+    # plane containing the optical axis (pure grazing) and a box around the camera
+    scene.add_object(trimesh.creation.box((0.0001, 10, 10)), np.eye(4))
+    scene.add_object(trimesh.creation.box((3, 3, 3)), np.eye(4))
+    out = fs.render(scene, GB)
+    for v in out.values():
+        assert torch.isfinite(v.float()).all()
+    assert (out["instance"] > 0).all()  # inside a closed box every ray hits something
+    assert (out["depth"] > 0).all()
+
+
+def test_empty_scene_renders_zeros():
+    scene = fs.Scene(fs.Camera.from_fov(16, 12), 3)
+    out = fs.render(scene, GB + ["flow_fw", "occ_fw", "valid_fw", "motion"])
+    for k, v in out.items():
+        assert not v.any(), k
+    assert out["flow_fw"].shape == (2, 2, 12, 16)
+
+
+def test_single_pixel_image():
+    scene = fs.Scene(fs.Camera.from_fov(1, 1, 10), 1)
+    P = np.eye(4)
+    P[2, 3] = 5
+    scene.add_object(trimesh.creation.box(), P)
+    out = fs.render(scene, ["depth", "instance"])
+    assert out["depth"].shape == (1, 1, 1, 1)
+    assert out["depth"].item() == pytest.approx(4.5, rel=1e-6)
+
+
+@pytest.mark.parametrize("K,W,H", [
+    (np.diag([0.0, 1.0, 1.0]), 4, 4),
+    (np.diag([1.0, -1.0, 1.0]), 4, 4),
+    (np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, np.nan]]), 4, 4),
+    (np.eye(3), 0, 4),
+    (np.eye(3), 4, -1),
+])
+def test_bad_camera(K, W, H):
+    with pytest.raises(fs.ConfigError):
+        fs.Camera(K, W, H)
+
+
+def test_bad_fov_and_shape():
+    with pytest.raises(fs.ConfigError):
+        fs.Camera.from_fov(10, 10, 180.0)
+    with pytest.raises(fs.ShapeError):
+        fs.Camera(np.eye(4), 4, 4)
+
+
+def test_bad_poses_and_meshes():
+    scene = fs.Scene(fs.Camera.from_fov(8, 8), 2)
+    box = trimesh.creation.box()
+    scaled = np.eye(4)
+    scaled[0, 0] = 2.0
+    with pytest.raises(fs.ConfigError, match="orthonormal"):
+        scene.add_object(box, scaled)
+    with pytest.raises(fs.ConfigError, match="NaN"):
+        scene.add_object(box, np.full((4, 4), np.nan))
+    with pytest.raises(fs.ConfigError, match="one pose per frame"):
+        scene.add_object(box, np.tile(np.eye(4), (3, 1, 1)))
+    with pytest.raises(fs.ShapeError):
+        scene.add_object(box, np.eye(3))
+    refl = np.diag([1.0, 1.0, -1.0, 1.0])
+    with pytest.raises(fs.ConfigError, match="reflection"):
+        scene.set_camera_poses(refl)
+    with pytest.raises(fs.AssetError, match="no faces"):
+        scene.add_object(trimesh.Trimesh(np.zeros((3, 3)), np.zeros((0, 3), int)))
+    bad = box.copy()
+    bad.vertices[0, 0] = np.inf
+    with pytest.raises(fs.AssetError, match="non-finite"):
+        scene.add_object(bad)
+    with pytest.raises(fs.AssetError):
+        scene.add_object("box.obj")
+    with pytest.raises(fs.ConfigError):
+        scene.add_object(box, category=-1)
+
+
+def test_degenerate_triangles_dropped_with_warning():
+    box = trimesh.creation.box()
+    V = np.vstack([box.vertices, [[0, 0, 0], [1, 1, 1]]])
+    F = np.vstack([box.faces, [[8, 9, 9], [0, 0, 1]]])
+    scene = fs.Scene(fs.Camera.from_fov(8, 8), 1)
+    with pytest.warns(UserWarning, match="degenerate"):
+        scene.add_object(trimesh.Trimesh(V, F, process=False))
+    assert len(scene.objects[0].mesh.faces) == 12
+
+
+def test_unknown_output_key_lists_valid_ones():
+    scene = fs.Scene(fs.Camera.from_fov(8, 8), 1)
+    with pytest.raises(fs.ConfigError, match="valid outputs are:.*depth"):
+        fs.render(scene, ["depht"])
