@@ -1,0 +1,53 @@
+"""``FlowPairs``: (img1, img2, flow, valid) items exactly as torchvision's optical-flow datasets return them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from PIL import Image
+from torch.utils.data import Dataset
+
+from flowsynth.datasets.bouncing import BouncingThings
+from flowsynth.errors import ConfigError
+
+__all__ = ["FlowPairs"]
+
+
+class FlowPairs(Dataset):
+    """Map-style dataset of image pairs with forward flow, like ``torchvision.datasets.FlyingChairs``.
+
+    Item i is frames (0, 1) of BouncingThings sample i: ``(img1, img2, flow, valid_flow_mask)`` with
+    img1/img2 ``PIL.Image`` RGB, flow ``np.ndarray`` (2, H, W) float32 [px] (dx, dy), valid
+    ``np.ndarray`` (H, W) bool — the torchvision convention (KITTI-style 4-tuple). When ``transforms``
+    is given it is called as ``transforms(img1, img2, flow, valid)`` and its result returned, as in
+    torchvision.
+
+    Args:
+        cfg: BouncingThingsConfig with num_frames >= 2 (default config when None).
+        seed: dataset seed.
+        length: number of pairs (len()).
+        transforms: optional callable (img1, img2, flow, valid) -> anything.
+    """
+
+    def __init__(self, cfg=None, seed: int = 0, length: int = 10000,
+                 transforms: Callable | None = None) -> None:
+        self.stream = BouncingThings(cfg, outputs=("rgb", "flow_fw", "valid_fw"), seed=seed, length=length)
+        if self.stream.cfg.num_frames < 2:
+            raise ConfigError("FlowPairs needs num_frames >= 2")
+        self.transforms = transforms
+
+    def __len__(self) -> int:
+        return self.stream.length
+
+    def __getitem__(self, i: int):
+        if not 0 <= i < len(self):
+            raise IndexError(f"index {i} out of range for FlowPairs of length {len(self)}")
+        s = self.stream.sample(i)
+        imgs = [Image.fromarray(np.ascontiguousarray(
+            (s["rgb"][t].permute(1, 2, 0).numpy() * 255.0 + 0.5).clip(0, 255).astype(np.uint8))) for t in (0, 1)]
+        flow = s["flow_fw"][0].numpy()
+        valid = s["valid_fw"][0, 0].numpy()
+        if self.transforms is not None:
+            return self.transforms(imgs[0], imgs[1], flow, valid)
+        return imgs[0], imgs[1], flow, valid
