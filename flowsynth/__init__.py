@@ -31,6 +31,7 @@ def __getattr__(name: str):
         from flowsynth.config import BouncingThingsConfig
         return BouncingThingsConfig
     if name == "datasets":
-        from flowsynth import datasets
-        return datasets
+        import importlib
+
+        return importlib.import_module("flowsynth.datasets")
     raise AttributeError(f"module 'flowsynth' has no attribute {name!r}")

@@ -35,7 +35,9 @@ __all__ = [
 _WHEEL_SEGMENTS = (15, 6, 4, 11, 13, 6)  # RY, YG, GC, CB, BM, MR
 # viridis at 0, 1/4, 1/2, 3/4, 1 (matplotlib's values, sRGB 8-bit), interpolated linearly.
 _VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64)
+_DEPTH_PERCENTILES = (1.0, 99.0)  # inverse-depth range mapped onto the colormap [%]
 _GOLDEN = 0.618033988749895  # hue step between consecutive ids
+RGB = tuple[int, int, int]
 _PAD = 2  # contact sheet: pixels between tiles and around labels [px]
 
 
@@ -72,9 +74,9 @@ def make_colorwheel() -> np.ndarray:
 def flow_to_color(flow: Any, max_flow: float | None = None) -> np.ndarray:
     """Colour-code a flow field with the Middlebury wheel (as torchvision ``flow_to_image``).
 
-    Hue is the direction (+x red, +y blue-ish, -x cyan-ish, -y yellow-green), saturation the
-    magnitude divided by ``max_flow``; zero flow is white. Magnitudes above ``max_flow`` are darkened
-    to 75 % as in the Middlebury code. NaN / inf vectors are treated as zero.
+    Hue is the direction (+x red, +y (down) orange-yellow, -x cyan-blue, -y (up) blue-violet),
+    saturation the magnitude divided by ``max_flow``; zero flow is white. Magnitudes above
+    ``max_flow`` are darkened to 75 % as in the Middlebury code. NaN / inf vectors count as zero.
 
     Args:
         flow: (2, H, W) float (dx, dy) [px].
@@ -93,15 +95,12 @@ def flow_to_color(flow: Any, max_flow: float | None = None) -> np.ndarray:
     if norm > 0:
         u, v, rad = u / norm, v / norm, rad / norm
     wheel = make_colorwheel().astype(np.float64) / 255.0
-    ncols = wheel.shape[0]
-    angle = np.arctan2(-v, -u) / np.pi  # in [-1, 1]; -1 and 1 both mean +x (red)
-    fk = (angle + 1) / 2 * (ncols - 1)
+    # angle in [-1, 1]: -1 and 1 both mean +x (red), wheel index 0 and len - 1
+    fk = (np.arctan2(-v, -u) / np.pi + 1) / 2 * (len(wheel) - 1)
     k0 = np.floor(fk).astype(np.int64)
-    k1 = (k0 + 1) % ncols
     frac = (fk - k0)[..., None]
-    col = (1 - frac) * wheel[k0] + frac * wheel[k1]
-    inside = (rad <= 1)[..., None]
-    col = np.where(inside, 1 - rad[..., None] * (1 - col), col * 0.75)
+    col = (1 - frac) * wheel[k0] + frac * wheel[(k0 + 1) % len(wheel)]
+    col = np.where((rad <= 1)[..., None], 1 - rad[..., None] * (1 - col), col * 0.75)
     return np.floor(255 * col).astype(np.uint8)
 
 
@@ -121,7 +120,8 @@ def depth_to_color(depth: Any, valid: Any | None = None) -> np.ndarray:
         valid: optional (H, W) or (1, H, W) bool; pixels that are False are black.
 
     Returns:
-        (H, W, 3) uint8 RGB, inverse depth normalised between its min and max over valid pixels.
+        (H, W, 3) uint8 RGB; inverse depth normalised between its 1st and 99th percentile over
+        valid pixels (so a few very near pixels do not flatten the rest), clipped outside.
     """
     d = _plane(depth, "depth").astype(np.float64)
     ok = np.isfinite(d) & (d > 0)
@@ -130,22 +130,16 @@ def depth_to_color(depth: Any, valid: Any | None = None) -> np.ndarray:
     out = np.zeros((*d.shape, 3), np.uint8)
     if ok.any():
         inv = 1.0 / d[ok]
-        lo, hi = inv.min(), inv.max()
+        lo, hi = np.percentile(inv, _DEPTH_PERCENTILES)
         out[ok] = _colormap((inv - lo) / (hi - lo) if hi > lo else np.ones_like(inv))
     return out
 
 
 def ids_to_color(ids: Any) -> np.ndarray:
-    """Colour an id map (instance, category, asset) deterministically; id 0 = black.
+    """Colour an (H, W) or (1, H, W) integer id map (instance, category, asset); id 0 = black.
 
     Consecutive ids get hues of the flow colour wheel a golden-ratio step apart; saturation and value
     vary with a hash of the id. Neighbouring ids stay distinguishable and id k has one colour everywhere.
-
-    Args:
-        ids: (H, W) or (1, H, W) integer array.
-
-    Returns:
-        (H, W, 3) uint8 RGB.
     """
     a = _plane(ids, "ids").astype(np.int64)
     uniq, inverse = np.unique(a, return_inverse=True)
@@ -160,14 +154,7 @@ def ids_to_color(ids: Any) -> np.ndarray:
 
 
 def normals_to_color(normals: Any) -> np.ndarray:
-    """Colour unit normals as RGB = (n + 1) / 2; pixels with a zero normal (no hit) are black.
-
-    Args:
-        normals: (3, H, W) float, unit vectors in the camera frame, 0 where no hit.
-
-    Returns:
-        (H, W, 3) uint8 RGB.
-    """
+    """Colour (3, H, W) unit normals (camera frame) as RGB = (n + 1) / 2; zero normals (no hit) black."""
     n = _np(normals).astype(np.float64)
     if n.ndim != 3 or n.shape[0] != 3:
         raise ShapeError(f"normals_to_color expects (3, H, W), got {n.shape}")
@@ -184,24 +171,15 @@ def mask_to_color(mask: Any) -> np.ndarray:
 
 
 def draw_boxes(
-    img: np.ndarray,
-    boxes: Any,
-    valid: Any,
-    colors: Sequence[tuple[int, int, int]] | None = None,
-    *,
-    width: int = 1,
+    img: np.ndarray, boxes: Any, valid: Any, colors: Sequence[RGB] | None = None, *, width: int = 1
 ) -> np.ndarray:
-    """Draw xyxy boxes on a copy of ``img``.
+    """Draw xyxy boxes on a copy of ``img``, an (H, W, 3) uint8 RGB image.
 
     Args:
-        img: (H, W, 3) uint8 RGB.
         boxes: (N, 4) float xyxy [px], e.g. ``box2d_visible[t]``; non-finite boxes are skipped.
         valid: (N,) bool; only True boxes are drawn.
         colors: N RGB triples; default ``ids_to_color`` of instance id n + 1, matching the id map.
         width: line width [px].
-
-    Returns:
-        (H, W, 3) uint8 RGB.
     """
     b = _np(boxes).astype(np.float64)
     keep = _np(valid).astype(bool)
@@ -226,15 +204,14 @@ def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, sca
         scale: integer nearest-neighbour upscaling of every tile.
 
     Returns:
-        (rows * (cell_h + label_h + 2 * pad) + pad, columns * (cell_w + pad) + pad, 3) uint8 RGB on
-        a dark grey background, rows = ceil(len(tiles) / columns).
+        (H', W', 3) uint8 RGB on dark grey: W' = min(columns, len(tiles)) * (tile W + 2) + 2,
+        H' = rows * (label height + tile H + 4) + 2 [px] with tile H, W the largest scaled size.
     """
     if not tiles or columns < 1 or scale < 1:
         raise ConfigError("contact_sheet needs at least one tile, columns >= 1 and scale >= 1")
+    if any(np.ndim(t) != 3 or np.shape(t)[2] != 3 for _, t in tiles):
+        raise ShapeError(f"tiles must be (H, W, 3) uint8, got shapes {[np.shape(t) for _, t in tiles]}")
     imgs = [np.repeat(np.repeat(np.asarray(t, np.uint8), scale, 0), scale, 1) for _, t in tiles]
-    for (label, _), im in zip(tiles, imgs, strict=True):
-        if im.ndim != 3 or im.shape[2] != 3:
-            raise ShapeError(f"tile {label!r} must be (H, W, 3) uint8, got {im.shape}")
     font = ImageFont.load_default()
     label_h = max(int(font.getbbox(label + "Ag")[3]) for label, _ in tiles) + _PAD
     cell_h = max(im.shape[0] for im in imgs) + label_h + _PAD
@@ -262,11 +239,9 @@ def save_png(path: str | os.PathLike[str], img: np.ndarray) -> None:
 
 
 def _rgb_tile(rgb: np.ndarray) -> np.ndarray:
-    return (
-        np.rint(np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255)
-        .astype(np.uint8)
-        .transpose(1, 2, 0)
-    )
+    """(3, H, W) float in [0, 1] -> (H, W, 3) uint8."""
+    u8 = np.rint(np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255).astype(np.uint8)
+    return u8.transpose(1, 2, 0)
 
 
 def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 1) -> np.ndarray:

@@ -203,7 +203,9 @@ def _filtered_png(image: np.ndarray, ftype: int) -> bytes:
         return struct.pack(">I", len(payload)) + tag + payload + struct.pack(">I", zlib.crc32(tag + payload))
 
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+    return (
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+    )
 
 
 @pytest.mark.parametrize("ftype", [1, 2, 3, 4])
@@ -320,7 +322,9 @@ def test_coco_boxes_hand_computed() -> None:
         {"id": 3, "name": "category_3", "supercategory": "object"},
     ]
     with pytest.raises(ShapeError):
-        coco_boxes(boxes, np.ones(2, bool), np.ones(3), np.ones((2, 3)), width=W, height=H, file_names=["a", "b"])
+        coco_boxes(
+            boxes, np.ones(2, bool), np.ones(3), np.ones((2, 3)), width=W, height=H, file_names=["a", "b"]
+        )
 
 
 # ---------------------------------------------------------------- atomic writes and unwritable paths

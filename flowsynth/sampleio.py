@@ -1,0 +1,114 @@
+"""One sample dict <-> one folder of standard files (the ``native`` export layout).
+
+Per-frame keys are written one file per frame, per-pair keys one file per pair (index t = pair
+(t, t+1)); everything that is not an image (cameras, object tables, index, seed) goes to ``meta.json``:
+
+| key                                   | file                    | format                              |
+|---------------------------------------|-------------------------|-------------------------------------|
+| rgb                                   | rgb_TTTT.png            | 8-bit sRGB PNG                      |
+| depth, distance, normals, position    | KEY_TTTT.exr            | float32 EXR (channels: io.exr)      |
+| flow_fw, flow_bw                      | KEY_TTTT.exr            | float32 EXR, channels flow.x/flow.y |
+| instance, category, asset             | KEY_TTTT.png            | 16-bit greyscale PNG                |
+| valid_*, occ_*, oof_*, motion         | KEY_TTTT.png            | 16-bit greyscale PNG, 0/1           |
+| K, cam_T_world, object tables, index  | meta.json               | JSON (float32 values, exact)        |
+| box2d_visible (when requested)        | boxes_coco.json         | COCO-style detection boxes          |
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from flowsynth.io import (
+    CHANNEL_NAMES,
+    coco_boxes,
+    read_json,
+    read_rgb_png,
+    read_tensor_exr,
+    read_u16_png,
+    write_json,
+    write_rgb_png,
+    write_tensor_exr,
+    write_u16_png,
+)
+from flowsynth.plan import FLOW_KEYS, GBUFFER_KEYS
+
+__all__ = ["file_digest", "read_sample", "write_sample"]
+
+_EXR = {"depth": "depth", "distance": "distance", "normals": "normals", "position": "position",
+        "flow_fw": "flow", "flow_bw": "flow"}
+_U16 = ("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.startswith("flow_"))
+
+
+def file_digest(path: Path) -> str:
+    """sha256 hex digest of a file."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def write_sample(sample: dict[str, torch.Tensor], folder: Path) -> list[str]:
+    """Write every key of ``sample`` into ``folder`` (which must exist). Returns the file names written."""
+    folder = Path(folder)
+    names: list[str] = []
+    meta: dict = {"keys": list(sample)}
+    for key, value in sample.items():
+        a = value.numpy()
+        if key == "rgb":
+            for t in range(a.shape[0]):
+                names.append(f"rgb_{t:04d}.png")
+                write_rgb_png(folder / names[-1], a[t])
+        elif key in _EXR:
+            for t in range(a.shape[0]):
+                names.append(f"{key}_{t:04d}.exr")
+                write_tensor_exr(folder / names[-1], a[t], CHANNEL_NAMES[_EXR[key]])
+        elif key in _U16:
+            for t in range(a.shape[0]):
+                names.append(f"{key}_{t:04d}.png")
+                write_u16_png(folder / names[-1], a[t, 0].astype(np.int64))
+        else:
+            meta[key] = {"shape": list(a.shape), "dtype": str(value.dtype).replace("torch.", ""),
+                         "data": a.reshape(-1).tolist()}
+    if "box2d_visible" in sample and "visible_pixels" in sample and "object_category" in sample:
+        T = sample["box2d_visible"].shape[0]
+        frames = [f"rgb_{t:04d}.png" for t in range(T)]
+        H, W = _image_size(sample)
+        write_json(folder / "boxes_coco.json", coco_boxes(
+            sample["box2d_visible"], sample["object_valid"], sample["object_category"],
+            sample["visible_pixels"], width=W, height=H, file_names=frames))
+        names.append("boxes_coco.json")
+    write_json(folder / "meta.json", meta)
+    names.append("meta.json")
+    return names
+
+
+def _image_size(sample: dict) -> tuple[int, int]:
+    for k in ("rgb",) + GBUFFER_KEYS + FLOW_KEYS:
+        if k in sample:
+            return int(sample[k].shape[-2]), int(sample[k].shape[-1])
+    return 0, 0
+
+
+def read_sample(folder: Path) -> dict[str, torch.Tensor]:
+    """Read a folder written by ``write_sample`` back into a sample dict (same keys, shapes, dtypes)."""
+    folder = Path(folder)
+    meta = read_json(folder / "meta.json")
+    out: dict[str, torch.Tensor] = {}
+    for key in meta["keys"]:
+        if key in meta:
+            m = meta[key]
+            dtype = getattr(torch, m["dtype"])
+            np_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+            out[key] = torch.from_numpy(np.asarray(m["data"], dtype=np_dtype).reshape(m["shape"]))
+            continue
+        files = sorted(folder.glob(f"{key}_[0-9][0-9][0-9][0-9].*"))
+        if key == "rgb":
+            arr = np.stack([read_rgb_png(f) for f in files]).astype(np.float32)
+        elif key in _EXR:
+            arr = np.stack([read_tensor_exr(f, CHANNEL_NAMES[_EXR[key]]) for f in files]).astype(np.float32)
+        else:
+            arr = np.stack([read_u16_png(f) for f in files])[:, None]
+            arr = arr.astype(bool) if key not in ("instance", "category", "asset") else arr.astype(np.int32)
+        out[key] = torch.from_numpy(np.ascontiguousarray(arr))
+    return out
