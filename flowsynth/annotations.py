@@ -11,6 +11,9 @@ Box conventions (image coordinates, pixel (row i, col j) centred at (u, v) = (j,
 - ``box2d_visible`` (T, N, 4) xyxy [px]: extent of the pixels showing the object in the instance map,
   pixel edges included: (j_min - 0.5, i_min - 0.5, j_max + 0.5, i_max + 0.5); all 0 when not visible.
 - ``visible_pixels`` (T, N) int32: pixels of the instance map showing the object.
+
+Rows list the scene's non-background objects in instance order (BouncingThings: row n is instance
+n + 1); background objects such as the room are rendered but have no row.
 """
 
 from __future__ import annotations
@@ -52,10 +55,13 @@ def amodal_box(V_cam: np.ndarray, edges: np.ndarray, K: np.ndarray, W: int, H: i
 def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
     """Padded object tables (see module docstring) for the keys the plan asks for."""
     T, H, W = gb.dist.shape
-    N = len(scene.objects)
+    rows = [n for n, o in enumerate(scene.objects) if not o.background]  # table row r <- scene object rows[r]
+    objects = [scene.objects[n] for n in rows]
+    N = len(rows)
     Nmax = N if plan.max_objects is None else plan.max_objects
     if N > Nmax:
         raise ConfigError(f"scene has {N} objects but max_objects={Nmax}; raise max_objects")
+    world_T_obj = world_T_obj[:, rows]
     want = set(plan.outputs)
     out = {
         "object_valid": np.zeros(Nmax, bool),
@@ -64,12 +70,12 @@ def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndar
         "world_T_obj": np.zeros((T, Nmax, 4, 4), np.float32),
     }
     out["object_valid"][:N] = True
-    out["object_category"][:N] = [o.category for o in scene.objects]
-    out["object_asset"][:N] = [o.asset for o in scene.objects]
+    out["object_category"][:N] = [o.category for o in objects]
+    out["object_asset"][:N] = [o.asset for o in objects]
     out["world_T_obj"][:, :N] = world_T_obj
     if "box3d_corners" in want:
         box = np.zeros((T, Nmax, 8, 3), np.float32)
-        for n, o in enumerate(scene.objects):
+        for n, o in enumerate(objects):
             lo, hi = o.mesh.bounds
             c = lo + _BITS * (hi - lo)
             box[:, n] = np.einsum("tij,kj->tki", world_T_obj[:, n, :3, :3], c) + world_T_obj[:, n, None, :3, 3]
@@ -77,7 +83,7 @@ def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndar
     if "box2d_amodal" in want:
         amodal = np.zeros((T, Nmax, 4), np.float32)
         K = scene.camera.K
-        for n, o in enumerate(scene.objects):
+        for n, o in enumerate(objects):
             V = np.asarray(o.mesh.vertices, np.float64)
             edges = np.asarray(o.mesh.edges_unique)
             cam_T_obj = np.einsum("tij,tjk->tik", cam_T_world, world_T_obj[:, n])
@@ -86,7 +92,9 @@ def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndar
                 amodal[t, n] = amodal_box(Vc, edges, K, W, H)
         out["box2d_amodal"] = amodal
     if "box2d_visible" in want or "visible_pixels" in want:
-        out["box2d_visible"], out["visible_pixels"] = _visible(gb.instance_index, Nmax)
+        row_of = np.full(len(scene.objects) + 1, -1)  # scene object index -> table row, -1 -> -1
+        row_of[rows] = np.arange(N)
+        out["box2d_visible"], out["visible_pixels"] = _visible(row_of[gb.instance_index], Nmax)
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items() if k in want}
 
 

@@ -33,6 +33,7 @@ class SceneObject:
         category: category id >= 0 written to the ``category`` channel.
         asset: id of the mesh asset, >= 1; objects added with the same mesh object share it.
         material: free-form shading parameters (used by RGB rendering); empty means defaults.
+        background: part of the set (e.g. the room): rendered, but left out of the object tables.
     """
 
     instance: int
@@ -41,6 +42,7 @@ class SceneObject:
     category: int
     asset: int
     material: dict = field(default_factory=dict)
+    background: bool = False
 
 
 def clean_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
@@ -106,7 +108,8 @@ class Scene:
         """Set the camera path: (T, 4, 4) world_T_cam, OpenCV axes (or one (4, 4) pose for all frames)."""
         self.world_T_cam = self._poses(world_T_cam, "world_T_cam")
 
-    def add_object(self, mesh: trimesh.Trimesh, poses=None, category: int = 1, material: dict | None = None) -> int:
+    def add_object(self, mesh: trimesh.Trimesh, poses=None, category: int = 1, material: dict | None = None,
+                   *, background: bool = False) -> int:
         """Add a rigid object and return its instance id k (1, 2, ... in call order).
 
         Args:
@@ -114,6 +117,7 @@ class Scene:
             poses: (T, 4, 4) world_T_obj, or (4, 4) for a static object; identity when None.
             category: category id >= 0.
             material: optional shading parameters for RGB rendering.
+            background: scenery such as the room: rendered, not listed in the object tables.
         """
         if not isinstance(category, (int, np.integer)) or category < 0:
             raise ConfigError(f"category must be a non-negative integer, got {category!r}")
@@ -125,7 +129,8 @@ class Scene:
             self._asset_refs.append(mesh)
         asset, cleaned = self._assets[key]
         k = len(self.objects) + 1
-        self.objects.append(SceneObject(k, cleaned, poses, int(category), asset, dict(material or {})))
+        self.objects.append(SceneObject(k, cleaned, poses, int(category), asset, dict(material or {}),
+                                        bool(background)))
         return k
 
     def _poses(self, poses, name: str) -> np.ndarray:

@@ -1,0 +1,153 @@
+"""Streaming dataset: determinism across workers/start methods, resume, shapes, sharding."""
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+import flowsynth as fs
+from flowsynth.datasets.bouncing import BouncingThings
+
+CFG = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 4),
+                              max_objects=4)
+OUTS = ["depth", "flow_fw", "valid_fw", "occ_fw", "instance", "box2d_visible", "object_valid"]
+
+
+def assert_sample_equal(a: dict, b: dict):
+    assert set(a) == set(b)
+    for k in a:
+        assert a[k].dtype == b[k].dtype, k
+        assert torch.equal(a[k], b[k]), k
+
+
+def unbatch(batch: dict, j: int) -> dict:
+    return {k: v[j] for k, v in batch.items()}
+
+
+def first_items(loader, n):
+    out = []
+    for batch in loader:
+        out += [unbatch(batch, j) for j in range(len(batch["index"]))]
+        if len(out) >= n:
+            return out[:n]
+    return out
+
+
+@pytest.mark.parametrize("ctx", ["fork", "spawn"])
+def test_workers_match_sample_and_single_process(ctx):
+    ds = BouncingThings(CFG, outputs=OUTS, seed=5, length=6)
+    multi = first_items(DataLoader(ds, batch_size=2, num_workers=2, multiprocessing_context=ctx), 6)
+    single = first_items(DataLoader(ds, batch_size=2, num_workers=0), 6)
+    assert sorted(int(s["index"]) for s in multi) == list(range(6))
+    by_index = {int(s["index"]): s for s in single}
+    for s in multi:
+        i = int(s["index"])
+        assert_sample_equal(s, by_index[i])
+        assert_sample_equal(s, ds.sample(i))
+        assert int(s["seed"]) == 5
+
+
+def test_keys_shapes_dtypes_follow_design():
+    T, H, W, N = CFG.num_frames, CFG.height, CFG.width, CFG.max_objects
+    expect = {
+        "depth": ((T, 1, H, W), torch.float32), "distance": ((T, 1, H, W), torch.float32),
+        "normals": ((T, 3, H, W), torch.float32), "position": ((T, 3, H, W), torch.float32),
+        "instance": ((T, 1, H, W), torch.int32), "category": ((T, 1, H, W), torch.int32),
+        "asset": ((T, 1, H, W), torch.int32),
+        "flow_fw": ((T - 1, 2, H, W), torch.float32), "flow_bw": ((T - 1, 2, H, W), torch.float32),
+        "valid_fw": ((T - 1, 1, H, W), torch.bool), "occ_bw": ((T - 1, 1, H, W), torch.bool),
+        "oof_fw": ((T - 1, 1, H, W), torch.bool), "motion": ((T - 1, 1, H, W), torch.bool),
+        "K": ((3, 3), torch.float32), "cam_T_world": ((T, 4, 4), torch.float32),
+        "object_valid": ((N,), torch.bool), "object_category": ((N,), torch.int32),
+        "world_T_obj": ((T, N, 4, 4), torch.float32), "box3d_corners": ((T, N, 8, 3), torch.float32),
+        "box2d_amodal": ((T, N, 4), torch.float32), "box2d_visible": ((T, N, 4), torch.float32),
+        "visible_pixels": ((T, N), torch.int32), "index": ((), torch.int64), "seed": ((), torch.int64),
+    }
+    subsets = [["depth"], ["flow_fw", "occ_bw", "motion"], [k for k in expect if k not in ("index", "seed")]]
+    for outs in subsets:
+        s = BouncingThings(CFG, outputs=outs, seed=1).sample(3)
+        assert set(s) == set(outs) | {"index", "seed", "K", "cam_T_world"}
+        for k, v in s.items():
+            assert (tuple(v.shape), v.dtype) == expect[k], k
+            if v.is_floating_point():
+                assert torch.isfinite(v).all(), k
+
+
+def test_unknown_output_and_bad_arguments():
+    with pytest.raises(fs.ConfigError, match="valid outputs"):
+        BouncingThings(CFG, outputs=["flow"])
+    with pytest.raises(fs.ConfigError):
+        BouncingThings(CFG, seed=-1)
+    with pytest.raises(fs.ConfigError):
+        BouncingThings(CFG, length=0)
+    with pytest.raises(fs.ConfigError, match="num_frames"):
+        BouncingThings(fs.BouncingThingsConfig(num_frames=1), outputs=["flow_fw"])
+
+
+def test_resume_with_stateful_dataloader():
+    tdl = pytest.importorskip("torchdata.stateful_dataloader")
+    ds = BouncingThings(CFG, outputs=["depth", "instance"], seed=2)
+    kw = dict(batch_size=2, num_workers=2)
+    full = tdl.StatefulDataLoader(ds, **kw)
+    it = iter(full)
+    reference = [next(it) for _ in range(5)]
+    del it
+    first = tdl.StatefulDataLoader(BouncingThings(CFG, outputs=["depth", "instance"], seed=2), **kw)
+    it = iter(first)
+    for _ in range(2):
+        next(it)
+    state = first.state_dict()
+    del it
+    resumed = tdl.StatefulDataLoader(BouncingThings(CFG, outputs=["depth", "instance"], seed=2), **kw)
+    resumed.load_state_dict(state)
+    it = iter(resumed)
+    for ref in reference[2:]:
+        got = next(it)
+        assert torch.equal(got["index"], ref["index"])
+        assert torch.equal(got["depth"], ref["depth"])
+
+
+def test_endless_stream_does_not_repeat_across_epochs():
+    ds = BouncingThings(CFG, outputs=["depth"], seed=0)
+    seen = []
+    for _ in range(2):  # two "epochs" of an endless stream on the same object
+        for n, s in enumerate(ds):
+            seen.append(int(s["index"]))
+            if n == 2:
+                break
+    assert seen == list(range(6))
+    finite = BouncingThings(CFG, outputs=["depth"], seed=0, length=3)
+    epochs = [[int(s["index"]) for s in finite] for _ in range(2)]
+    assert epochs == [[0, 1, 2], [3, 4, 5]]
+    loader = DataLoader(finite, batch_size=None, num_workers=2, persistent_workers=True)
+    finite.set_epoch(0)
+    e0 = sorted(int(s["index"]) for s in loader)
+    e1 = sorted(int(s["index"]) for s in loader)
+    assert e0 == [0, 1, 2] and e1 == [3, 4, 5]
+
+
+def test_shards_cover_every_index_once():
+    ds = BouncingThings(CFG, outputs=["depth"], length=50)
+    for G in (1, 2, 3, 8):
+        got = sorted(i for g in range(G) for i, _ in ds._indices(g, G, epoch=1, pos=0))
+        assert got == list(range(50, 100))
+
+
+def test_cpu_run_never_initialises_cuda():
+    BouncingThings(CFG, outputs=["depth", "flow_fw"]).sample(0)
+    assert not torch.cuda.is_initialized()
+
+
+def test_flow_pairs_adapter_matches_torchvision_convention():
+    from PIL import Image
+
+    pytest.importorskip("flowsynth.shading")
+    pairs = fs.datasets.FlowPairs(CFG, seed=0, length=4)
+    img1, img2, flow, valid = pairs[1]
+    assert isinstance(img1, Image.Image) and img1.size == (CFG.width, CFG.height) and img1.mode == "RGB"
+    assert flow.shape == (2, CFG.height, CFG.width) and flow.dtype == np.float32
+    assert valid.shape == (CFG.height, CFG.width) and valid.dtype == bool
+    s = BouncingThings(CFG, outputs=["flow_fw"], seed=0).sample(1)
+    np.testing.assert_array_equal(flow, s["flow_fw"][0].numpy())
+    with pytest.raises(IndexError):
+        pairs[4]
