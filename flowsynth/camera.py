@@ -2,7 +2,7 @@
 
 Conventions (see docs/conventions.md): camera frame x right, y down, z forward. The centre of pixel
 (row i, col j) has image coordinates (u, v) = (j, i). A camera point X = (x, y, z) projects to
-u = fx x / z + cx, v = fy y / z + cy.
+u = (fx x + s y) / z + cx, v = fy y / z + cy, with skew s = K[0, 1] (usually 0).
 """
 
 from __future__ import annotations

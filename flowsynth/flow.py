@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from kornia.geometry.camera import project_points
+from kornia.geometry.conversions import convert_points_from_homogeneous
 
 from flowsynth.kernels import wp_runtime
 
@@ -44,13 +44,11 @@ def reproject(points: np.ndarray, M: np.ndarray, K: np.ndarray) -> tuple[np.ndar
     Returns:
         X (P, 3) camera-frame points [m] and uv (P, 2) image coordinates [px] (0 where X.z <= 0).
     """
-    X = np.einsum("pij,pj->pi", M[:, :3, :3], points) + M[:, :3, 3]
+    X = (M[:, :3, :3] @ points[:, :, None])[:, :, 0] + M[:, :3, 3]
     front = X[:, 2] > 0
     Xs = np.where(front[:, None], X, np.array([0.0, 0.0, 1.0]))
-    if len(Xs):
-        uv = project_points(torch.from_numpy(Xs), torch.from_numpy(K).expand(len(Xs), 3, 3)).numpy()
-    else:
-        uv = np.zeros((0, 2))
+    # full K (skew included; kornia's project_points drops K[0, 1]), dehomogenised by kornia in float64
+    uv = convert_points_from_homogeneous(torch.from_numpy(Xs @ K.T)).numpy()
     uv = np.where(front[:, None], uv, 0.0)
     return X, uv
 
@@ -62,6 +60,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
     want = set(plan.outputs)
     out: dict[str, torch.Tensor] = {}
     idx = gb.instance_index
+    cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)  # (T, N, 4, 4), once per frame and object
     directions = [("fw", plan.fw, 0, 1), ("bw", plan.bw, 1, -1)]
     rays, jobs = [], []
     for name, needed, first_src, step in directions:
@@ -73,8 +72,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
         r = s + step
         n = idx[s, i, j]
         p = gb.point[s, i, j].astype(np.float64)
-        M = np.einsum("pij,pjk->pik", cam_T_world[r], world_T_obj[r, n]) if len(n) else np.zeros((0, 4, 4))
-        X, uv = reproject(p, M, K)
+        X, uv = reproject(p, cam_T_obj[r, n], K)
         front = X[:, 2] > 0
         inside = front & (uv[:, 0] >= -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < H - 0.5)
         flow = np.zeros((T - 1, 2, H, W), np.float32)
@@ -141,8 +139,8 @@ def _motion(gb, idx: np.ndarray, world_T_obj: np.ndarray) -> np.ndarray:
     n = idx[f, i, j]
     p = gb.point[f, i, j].astype(np.float64)
     A, B = world_T_obj[f, n], world_T_obj[f + 1, n]
-    xa = np.einsum("pij,pj->pi", A[:, :3, :3], p) + A[:, :3, 3]
-    xb = np.einsum("pij,pj->pi", B[:, :3, :3], p) + B[:, :3, 3]
+    xa = (A[:, :3, :3] @ p[:, :, None])[:, :, 0] + A[:, :3, 3]
+    xb = (B[:, :3, :3] @ p[:, :, None])[:, :, 0] + B[:, :3, 3]
     moved = np.linalg.norm(xb - xa, axis=1) > MOTION_TOL + 1e-12 * np.linalg.norm(xa, axis=1)
     out[f, 0, i, j] = moved
     return out

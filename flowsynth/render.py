@@ -141,7 +141,7 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
         pos = np.zeros(gb.point.shape, np.float64)
         f, i, j = np.nonzero(hit)
         P = world_T_obj[f, idx[f, i, j]]
-        pos[f, i, j] = np.einsum("kij,kj->ki", P[:, :3, :3], gb.point[f, i, j].astype(np.float64)) + P[:, :3, 3]
+        pos[f, i, j] = (P[:, :3, :3] @ gb.point[f, i, j].astype(np.float64)[:, :, None])[:, :, 0] + P[:, :3, 3]
         out["position"] = torch.from_numpy(np.ascontiguousarray(pos.astype(np.float32).transpose(0, 3, 1, 2)))
     lut = {
         "instance": np.array([o.instance for o in scene.objects], np.int32),

@@ -1,0 +1,167 @@
+"""Shared helpers for the scripts in ``benchmarks/``: machine description, timing, table, JSON, plot.
+
+Every benchmark prints a table, writes ``benchmarks/results/<name>.json`` holding its numbers and
+``machine_info()``, and says how it was pinned. Only the standard library is imported at module level,
+so a benchmark can set its thread environment before numpy, torch or Warp are loaded.
+"""
+
+from __future__ import annotations
+
+import datetime
+import importlib.metadata
+import json
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+__all__ = ["RESULTS_DIR", "machine_info", "pin_single_core", "print_table", "save_plot", "time_calls", "timeit",
+           "write_json"]
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+# Thread-count variables read by OpenMP, MKL, OpenBLAS and numexpr when they load. TBB (Embree's thread
+# pool) has none: it sizes itself from the CPU affinity mask, hence ``pin_single_core``'s affinity.
+_THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def pin_single_core(cpu: int | None = None) -> dict:
+    """Restrict this process to one CPU and one thread per library. Call before importing numpy/torch.
+
+    Sets the thread-count variables of ``_THREAD_VARS`` to 1 and, when the process may run on more than
+    one CPU, sets its affinity to a single one (``cpu``, default the lowest allowed): thread pools that
+    size themselves from the affinity mask (TBB, which Embree uses; OpenMP) then start one worker.
+    Running the script under ``taskset -c 0`` has the same effect on the affinity.
+
+    Returns:
+        dict describing the pinning, for the results file.
+    """
+    for var in _THREAD_VARS:
+        os.environ[var] = "1"
+    allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    if len(allowed) > 1:
+        os.sched_setaffinity(0, {allowed[0] if cpu is None else cpu})
+    return {
+        "affinity_before": allowed,
+        "affinity": sorted(os.sched_getaffinity(0)) if allowed else [],
+        "env": {var: os.environ[var] for var in _THREAD_VARS},
+    }
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def machine_info(extra_packages: Sequence[str] = ()) -> dict:
+    """Platform, CPU model, CPU counts, package versions and the date, for a results file."""
+    info = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "platform": platform.platform(),
+        "cpu_model": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "cpus_allowed": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "python": platform.python_version(),
+    }
+    for dist in ("torch", "warp-lang", "newton", "numpy", "trimesh", *extra_packages):
+        info[dist] = _version(dist)
+    return info
+
+
+def time_calls(fn: Callable[[], object], repeat: int = 5, warmup: int = 1) -> dict:
+    """Wall and process-CPU time of ``fn()`` over ``repeat`` calls after ``warmup`` untimed calls.
+
+    Returns:
+        dict with ``wall_s`` and ``cpu_s`` (medians), ``wall_min_s``, ``cpu_min_s`` [s] and ``repeat``.
+        On a single pinned core the CPU time is the work done; wall time also counts time the core
+        spent on other processes, so it is the noisier of the two on a shared machine.
+    """
+    for _ in range(warmup):
+        fn()
+    wall, cpu = [], []
+    for _ in range(max(repeat, 1)):
+        w0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        cpu.append(time.process_time() - c0)
+        wall.append(time.perf_counter() - w0)
+    return {"wall_s": statistics.median(wall), "cpu_s": statistics.median(cpu), "wall_min_s": min(wall),
+            "cpu_min_s": min(cpu), "repeat": len(wall)}
+
+
+def timeit(fn: Callable[[], object], repeat: int = 5, warmup: int = 1, clock: str = "wall") -> float:
+    """Median time of ``fn()`` over ``repeat`` calls after ``warmup`` untimed calls [s].
+
+    ``clock`` is "wall" (``time.perf_counter``) or "cpu" (``time.process_time``, all threads of this process).
+    """
+    if clock not in ("wall", "cpu"):
+        raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}")
+    return time_calls(fn, repeat, warmup)[f"{clock}_s"]
+
+
+def _fmt(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}" if abs(value) < 1e5 else f"{value:.3e}"
+    return "" if value is None else str(value)
+
+
+def print_table(rows: Sequence[dict], columns: Sequence[str]) -> None:
+    """Print ``rows`` (dicts) as an aligned text table with the given column keys."""
+    cells = [[_fmt(r.get(c)) for c in columns] for r in rows]
+    widths = [max([len(c)] + [len(row[k]) for row in cells]) for k, c in enumerate(columns)]
+    print("  ".join(c.ljust(w) for c, w in zip(columns, widths)))
+    print("  ".join("-" * w for w in widths))
+    for row in cells:
+        print("  ".join(v.rjust(w) if k else v.ljust(w) for k, (v, w) in enumerate(zip(row, widths))))
+
+
+def write_json(name: str, data: dict) -> Path:
+    """Write ``data`` to ``benchmarks/results/<name>.json`` (indented) and return the path."""
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    path = RESULTS_DIR / f"{name}.json"
+    path.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    return path
+
+
+def _json_default(obj):
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot write {type(obj).__name__} to JSON")
+
+
+def save_plot(name: str, labels: Sequence[str], values: Sequence[float], ylabel: str,
+              title: str = "") -> Path | None:
+    """Bar chart to ``benchmarks/results/<name>.png``; returns None (and does nothing) without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(labels), 3.2))
+    ax.bar(range(len(labels)), values)
+    ax.set_xticks(range(len(labels)), labels, rotation=20, ha="right")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    fig.tight_layout()
+    path = RESULTS_DIR / f"{name}.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
