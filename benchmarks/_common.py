@@ -17,8 +17,8 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-__all__ = ["RESULTS_DIR", "machine_info", "pin_single_core", "print_table", "save_plot", "time_calls", "timeit",
-           "write_json"]
+__all__ = ["RESULTS_DIR", "machine_info", "pin_single_core", "print_table", "save_plot", "time_calls",
+           "time_round_robin", "timeit", "write_json"]
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
@@ -90,16 +90,25 @@ def time_calls(fn: Callable[[], object], repeat: int = 5, warmup: int = 1) -> di
         On a single pinned core the CPU time is the work done; wall time also counts time the core
         spent on other processes, so it is the noisier of the two on a shared machine.
     """
+    return time_round_robin({"fn": fn}, repeat, warmup)["fn"]
+
+
+def time_round_robin(fns: dict[str, Callable[[], object]], repeat: int = 5, warmup: int = 1) -> dict[str, dict]:
+    """``time_calls`` for several functions, called in turn each round, so load changes on a shared
+    machine hit all of them alike and their ratios stay meaningful. Returns {name: time_calls dict}."""
     for _ in range(warmup):
-        fn()
-    wall, cpu = [], []
+        for fn in fns.values():
+            fn()
+    wall: dict[str, list[float]] = {k: [] for k in fns}
+    cpu: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(max(repeat, 1)):
-        w0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        cpu.append(time.process_time() - c0)
-        wall.append(time.perf_counter() - w0)
-    return {"wall_s": statistics.median(wall), "cpu_s": statistics.median(cpu), "wall_min_s": min(wall),
-            "cpu_min_s": min(cpu), "repeat": len(wall)}
+        for name, fn in fns.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            cpu[name].append(time.process_time() - c0)
+            wall[name].append(time.perf_counter() - w0)
+    return {k: {"wall_s": statistics.median(wall[k]), "cpu_s": statistics.median(cpu[k]), "wall_min_s": min(wall[k]),
+                "cpu_min_s": min(cpu[k]), "repeat": len(wall[k])} for k in fns}
 
 
 def timeit(fn: Callable[[], object], repeat: int = 5, warmup: int = 1, clock: str = "wall") -> float:

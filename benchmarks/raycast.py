@@ -1,0 +1,348 @@
+"""G-buffer ray cast on one CPU core: flowsynth vs Embree (embreex) vs Newton's SensorCamera.
+
+Scene: 30 icospheres (radius 1 m, 5120 faces each, random rotations) at random non-overlapping positions
+4-12 m in front of a 640x480 camera (60 deg horizontal fov) at the origin, OpenCV axes, looking down +z.
+Every engine casts the same pixel-centre rays (unit directions through the pixel centres of the same K)
+against the same triangles and returns ray distance (or depth), the hit object and its face normal:
+
+- flowsynth ``fs.render(scene, ["depth", "instance", "normals"])`` (cast + torch post-processing), the raw
+  ``cast_gbuffer`` on a prebuilt ``SceneAccel``, and the kernel launch alone into preallocated arrays;
+- Embree through ``embreex``: the 30 meshes merged into one world-space triangle soup; ``scene.run(...,
+  output=1)`` returns distance, primitive id and Embree's geometric normal ("cast" level); the row
+  "Embree run + numpy post" adds the numpy work to reach flowsynth's outputs (instance id from the
+  primitive id, unit camera-facing normal from the hit triangle's vertices, depth) ("full" level);
+- Newton ``SensorCamera.update`` with depth (ray distance), shape index and normal images; the same ray
+  directions handed over as a camera-space ray bundle (Newton's camera frame is OpenGL's: x right,
+  y up, looking down -z, so directions are (x, -y, -z) and the camera pose is a half-turn about x).
+
+Single core: the script sets OMP/MKL/OpenBLAS/numexpr thread counts to 1 and its CPU affinity to one core
+before importing numpy (Embree's TBB pool sizes itself from the affinity mask), and calls
+``torch.set_num_threads(1)``; Warp's CPU kernels run on the calling thread. Run it as
+``taskset -c 0 python benchmarks/raycast.py [--quick] [--cold-cache]``. Prints a table; writes
+``benchmarks/results/raycast.json``.
+
+Timing: all engines are set up first (``first_s``: first call, including kernel compilation or cache load
+and BVH builds), then timed round-robin so load changes hit all alike. Mrays/s comes from the median
+process CPU time, which on one pinned core is the work done even when other processes share the core;
+wall-clock rates are reported beside it. ``x_embree`` compares with Embree's row of the same level,
+``x_newton`` with Newton's update (which returns raw images, i.e. the "cast" level).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path[:0] = [str(HERE), str(HERE.parent)]  # _common, and flowsynth from this checkout when not installed
+from _common import machine_info, pin_single_core, print_table, save_plot, time_round_robin, write_json
+
+PINNING = pin_single_core()
+
+import numpy as np
+import torch
+import trimesh
+
+import flowsynth as fs
+from flowsynth.accel import SceneAccel
+from flowsynth.kernels import wp_runtime
+from flowsynth.plan import make_plan
+from flowsynth.render import cast_gbuffer, gbuffer_outputs, scene_arrays
+
+WIDTH, HEIGHT, FOV_DEG = 640, 480, 60.0
+NUM_SPHERES, SUBDIVISIONS, RADIUS = 30, 4, 1.0
+Z_RANGE = (4.0, 12.0)  # sphere centre depth [m]
+OUTPUTS = ["depth", "instance", "normals"]
+NEWTON_NO_HIT = 0xFFFFFFFF
+# Agreement target for depth between engines where both hit the same object (float32 ray casts).
+DEPTH_REL_TOL = 1e-5
+
+
+def make_scene(seed: int = 0) -> fs.Scene:
+    """30 unit icospheres at random rotations and non-overlapping positions inside the view frustum."""
+    rng = np.random.default_rng(seed)
+    camera = fs.Camera.from_fov(WIDTH, HEIGHT, FOV_DEG)
+    scene = fs.Scene(camera, num_frames=1)
+    mesh = trimesh.creation.icosphere(subdivisions=SUBDIVISIONS, radius=RADIUS)
+    half_x = np.tan(np.radians(FOV_DEG) / 2)
+    half_y = half_x * HEIGHT / WIDTH
+    centres: list[np.ndarray] = []
+    while len(centres) < NUM_SPHERES:
+        z = rng.uniform(*Z_RANGE)
+        c = np.array([rng.uniform(-1, 1) * half_x * z * 0.85, rng.uniform(-1, 1) * half_y * z * 0.85, z])
+        if all(np.linalg.norm(c - p) > 2.02 * RADIUS for p in centres):
+            centres.append(c)
+    for c in centres:
+        pose = np.eye(4)
+        q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+        pose[:3, :3] = q * np.sign(np.diag(r)) * np.sign(np.linalg.det(q * np.sign(np.diag(r))))
+        pose[:3, 3] = c
+        scene.add_object(mesh, pose)
+    return scene
+
+
+def pixel_dirs(camera: fs.Camera) -> np.ndarray:
+    """(H*W, 3) float64 unit pixel-centre ray directions, camera frame (OpenCV)."""
+    return camera.pixel_rays(torch.float64).reshape(-1, 3).numpy()
+
+
+def world_triangles(scene: fs.Scene) -> tuple[np.ndarray, np.ndarray, int]:
+    """All objects merged: (V (n, 3) float64 world, F (m, 3) int32, faces per object)."""
+    verts, faces, offset = [], [], 0
+    for obj in scene.objects:
+        P = obj.poses[0]
+        V = np.asarray(obj.mesh.vertices) @ P[:3, :3].T + P[:3, 3]
+        verts.append(V)
+        faces.append(np.asarray(obj.mesh.faces) + offset)
+        offset += len(V)
+    return np.concatenate(verts), np.concatenate(faces).astype(np.int32), len(scene.objects[0].mesh.faces)
+
+
+class Engine:
+    """One engine, set up (first call done) and ready to time.
+
+    ``fns`` maps a timing key to a no-argument callable; ``rows`` lists (row name, level, timing key or keys
+    summed, first-call seconds); ``result`` holds its G-buffer for the agreement check (flat per pixel:
+    depth [m] float64, instance (-1 = none), unit normal, ray distance [m]).
+    """
+
+    def __init__(self, fns: dict, rows: list, info: dict, result: dict) -> None:
+        self.fns, self.rows, self.info, self.result = fns, rows, info, result
+
+
+def setup_flowsynth(scene: fs.Scene) -> Engine:
+    from flowsynth.kernels.raycast import primary_kernel
+
+    wp = wp_runtime()
+    t0 = time.perf_counter()
+    out = fs.render(scene, OUTPUTS)
+    first = time.perf_counter() - t0
+    meshes, cam_T_world, world_T_obj = scene_arrays(scene)
+    accel = SceneAccel(meshes, cam_T_world, world_T_obj)
+    cam = scene.camera
+    gb = cast_gbuffer(accel, cam, want_normals=True, want_points=False)
+    plan = make_plan(OUTPUTS)
+    # the primary kernel alone, launched into preallocated outputs: the cast without allocation or copies
+    shape = (1, cam.height, cam.width)
+    outs = [wp.zeros(shape, dtype=wp.float32), wp.zeros(shape, dtype=wp.int32), wp.zeros(shape, dtype=wp.int32),
+            wp.zeros((1, 1, 1), dtype=wp.vec3), wp.zeros(shape, dtype=wp.vec3)]
+    K = cam.K
+    inputs = [accel.bvh.id, accel.roots, accel.item_mesh, accel.obj_T_ref, accel.ref_T_obj,
+              wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), 1e9]
+    kernel = primary_kernel(True, False)
+    mesh = scene.objects[0].mesh
+    pts = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3)
+    idx = wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32)
+    fns = {
+        "render": lambda: fs.render(scene, OUTPUTS),
+        "cast": lambda: cast_gbuffer(accel, cam, want_normals=True, want_points=False),
+        "kernel": lambda: wp.launch(kernel, dim=shape, inputs=inputs, outputs=outs),
+        "scene_accel": lambda: SceneAccel(meshes, cam_T_world, world_T_obj),
+        "gbuffer_outputs": lambda: gbuffer_outputs(scene, gb, plan, world_T_obj),
+        "asset_bvh_build": lambda: wp.Mesh(points=pts, indices=idx),
+    }
+    rows = [("flowsynth fs.render", "full", "render", first), ("flowsynth cast_gbuffer", "cast", "cast", None),
+            ("flowsynth kernel only", "cast", "kernel", None)]
+    result = {"depth": out["depth"][0, 0].numpy().astype(np.float64).reshape(-1),
+              "instance": out["instance"][0, 0].numpy().reshape(-1).astype(np.int64) - 1,
+              "normal": out["normals"][0].numpy().reshape(3, -1).T.astype(np.float64),
+              "dist": gb.dist.reshape(-1).astype(np.float64)}
+    return Engine(fns, rows, {"first_call_s": first}, result)
+
+
+def setup_embree(scene: fs.Scene, dirs: np.ndarray) -> Engine:
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    V, F, faces_per = world_triangles(scene)
+    V32 = V.astype(np.float32)
+    origins = np.zeros((len(dirs), 3), np.float32)
+    d32 = np.ascontiguousarray(dirs, dtype=np.float32)
+    t0 = time.perf_counter()
+    esc = rtcore_scene.EmbreeScene()
+    TriangleMesh(esc, V32, F)
+    hit = esc.run(origins, d32, output=1)
+    first = time.perf_counter() - t0
+
+    def post(h: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """G-buffer from Embree's hits: depth [m], instance (-1 = none), unit camera-facing face normal."""
+        prim = h["primID"]
+        ok = prim >= 0
+        tri = V32[F[np.where(ok, prim, 0)]]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n *= (-np.sign(np.einsum("ij,ij->i", n, d32)) / np.linalg.norm(n, axis=1))[:, None]
+        n[~ok] = 0.0
+        return np.where(ok, h["tfar"] * d32[:, 2], 0.0), np.where(ok, prim // faces_per, -1), n
+
+    depth, inst, normal = post(hit)
+    fns = {"embree_cast": lambda: esc.run(origins, d32, output=1), "embree_post": lambda: post(hit)}
+    rows = [("Embree run + numpy post", "full", ("embree_cast", "embree_post"), None),
+            ("Embree run(output=1)", "cast", "embree_cast", first)]
+    result = {"depth": depth.astype(np.float64), "instance": inst.astype(np.int64),
+              "normal": normal.astype(np.float64), "dist": np.where(inst >= 0, hit["tfar"], 0.0).astype(np.float64)}
+    return Engine(fns, rows, {"first_call_s": first, "triangles": len(F)}, result)
+
+
+def setup_newton(scene: fs.Scene, dirs: np.ndarray) -> Engine:
+    wp = wp_runtime()
+    import newton
+    from newton.sensors import SensorCamera
+
+    t0 = time.perf_counter()
+    builder = newton.ModelBuilder()
+    mesh = scene.objects[0].mesh
+    nmesh = newton.Mesh(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32).reshape(-1),
+                        compute_inertia=False)
+    for obj in scene.objects:
+        P = obj.poses[0]
+        xf = wp.transform(wp.vec3(*P[:3, 3]), wp.quat_from_matrix(wp.mat33(*P[:3, :3].reshape(-1))))
+        builder.add_shape_mesh(-1, xform=xf, mesh=nmesh)
+    model = builder.finalize(device="cpu")
+    sensor = SensorCamera(model, load_textures=False)
+    state = model.state()
+    t_build = time.perf_counter() - t0
+    H, W = HEIGHT, WIDTH
+    bundle = np.zeros((H, W, 1, 2, 3), np.float32)
+    bundle[:, :, 0, 1] = (dirs * np.array([1.0, -1.0, -1.0])).reshape(H, W, 3)
+    rays = wp.array(bundle, dtype=wp.vec3f, device="cpu")
+    cam_tf = wp.array([wp.transform(wp.vec3(0.0), wp.quat(1.0, 0.0, 0.0, 0.0))], dtype=wp.transformf, device="cpu")
+    depth = sensor.allocate_image_depth(1, W, H)
+    shape = sensor.allocate_image_shape_index(1, W, H)
+    normal = sensor.allocate_image_normal(1, W, H)
+
+    def update():
+        sensor.update(state, cam_tf, rays, depth_image=depth, shape_index_image=shape, normal_image=normal)
+
+    t0 = time.perf_counter()
+    update()
+    first = time.perf_counter() - t0
+    sid = shape.numpy().reshape(-1)
+    ok = sid != NEWTON_NO_HIT
+    dist = depth.numpy().reshape(-1).astype(np.float64)
+    result = {"depth": np.where(ok, dist * dirs[:, 2], 0.0), "instance": np.where(ok, sid.astype(np.int64), -1),
+              "normal": normal.numpy().reshape(-1, 3).astype(np.float64), "dist": np.where(ok, dist, 0.0)}
+    rows = [("Newton SensorCamera.update", "cast", "newton_update", t_build + first)]
+    return Engine({"newton_update": update}, rows, {"model_build_s": t_build, "first_update_s": first}, result)
+
+
+def _row(engine: str, level: str, t: dict, first: float | None = None) -> dict:
+    rays = WIDTH * HEIGHT
+    return {"engine": engine, "level": level, "first_s": first, "wall_ms": 1e3 * t["wall_s"],
+            "cpu_ms": 1e3 * t["cpu_s"], "Mrays_s": rays / t["cpu_s"] / 1e6, "Mrays_s_wall": rays / t["wall_s"] / 1e6}
+
+
+def compare(ref: dict, other: dict, dirs: np.ndarray) -> dict:
+    """Hit-mask, id, depth and normal agreement of ``other`` against flowsynth's ``ref``."""
+    h0, h1 = ref["instance"] >= 0, other["instance"] >= 0
+    both = h0 & h1
+    same = both & (ref["instance"] == other["instance"])
+    rel = np.abs(other["depth"][same] - ref["depth"][same]) / ref["depth"][same]
+    n0, n1 = ref["normal"][same], other["normal"][same]
+    angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(n0, n1), axis=1), np.einsum("ij,ij->i", n0, n1)))
+    grazing = np.abs(np.einsum("ij,ij->i", n0, dirs[same]))  # |cos| of the incidence angle
+    bad = rel > DEPTH_REL_TOL
+    return {
+        "hit_pixels_flowsynth": int(h0.sum()), "hit_pixels_other": int(h1.sum()),
+        "hit_mask_mismatch": int((h0 != h1).sum()), "instance_mismatch": int((both & ~same).sum()),
+        "depth_rel_err_max": float(rel.max()), "depth_rel_err_p999": float(np.quantile(rel, 0.999)),
+        "depth_rel_err_over_tol": int(bad.sum()),
+        "over_tol_max_abs_cos_incidence": float(grazing[bad].max()) if bad.any() else None,
+        "normal_angle_p999_deg": float(np.quantile(angle, 0.999)), "normal_angle_max_deg": float(angle.max()),
+        "normal_angle_over_0.01deg": int((angle > 0.01).sum()),
+    }
+
+
+def _fmt_items(d: dict) -> str:
+    return ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in d.items())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="3 timed rounds instead of 9")
+    ap.add_argument("--skip", nargs="*", default=[], choices=["embree", "newton"], help="engines to leave out")
+    ap.add_argument("--cold-cache", action="store_true",
+                    help="compile Warp kernels into an empty kernel cache, so first_s includes compilation")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    if args.cold_cache:
+        import atexit
+        import shutil
+        import tempfile
+
+        import warp
+
+        warp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="warp-cache-")
+        atexit.register(shutil.rmtree, warp.config.kernel_cache_dir, ignore_errors=True)
+    repeat = 3 if args.quick else 9
+    t_start = time.perf_counter()
+    scene = make_scene()
+    dirs = pixel_dirs(scene.camera)
+    engines, rows, errors = {}, [], {}
+    setups = {"flowsynth": lambda: setup_flowsynth(scene), "embree": lambda: setup_embree(scene, dirs),
+              "newton": lambda: setup_newton(scene, dirs)}
+    for name, setup in setups.items():
+        if name in args.skip:
+            continue
+        try:
+            engines[name] = setup()
+        except Exception as exc:  # noqa: BLE001 -- keep the other engines' rows; the error goes in the table and JSON
+            errors[name] = f"{type(exc).__name__}: {exc}"
+            rows.append({"engine": name, "note": f"failed: {errors[name]}"})
+    fns = {k: f for e in engines.values() for k, f in e.fns.items()}
+    times = time_round_robin(fns, repeat=repeat, warmup=1)
+    for e in engines.values():
+        for engine, level, keys, first in e.rows:
+            keys = keys if isinstance(keys, tuple) else (keys,)
+            rows.insert(len(rows) - len(errors), _row(engine, level, {c: sum(times[k][c] for k in keys)
+                                                                      for c in ("wall_s", "cpu_s")}, first))
+        e.info.update({f"{k}_cpu_ms": 1e3 * times[k]["cpu_s"] for k in e.fns})
+
+    # Ratios compare like with like: "full" rows end in depth/instance/normal arrays ready to use, "cast"
+    # rows in raw hits (distance, primitive or shape id, normal). Newton's update is a cast-level row.
+    ref = {(r["level"], r["engine"].split()[0]): r["Mrays_s"] for r in rows if r.get("Mrays_s")}
+    newton_rate = ref.get(("cast", "Newton"))
+    for r in rows:
+        if r.get("Mrays_s"):
+            embree_rate = ref.get((r["level"], "Embree"))
+            r["x_embree"] = r["Mrays_s"] / embree_rate if embree_rate else None
+            r["x_newton"] = r["Mrays_s"] / newton_rate if newton_rate else None
+    ratios = {f"{r['engine']} / {'Embree (same level)' if k == 'x_embree' else 'Newton'}": r[k]
+              for r in rows if r["engine"].startswith("flowsynth") for k in ("x_embree", "x_newton") if r.get(k)}
+    ours = engines.get("flowsynth")
+    agreement = {k: compare(ours.result, engines[k].result, dirs) for k in ("embree", "newton")
+                 if ours and k in engines}
+    hit_frac = float((ours.result["instance"] >= 0).mean()) if ours else float("nan")
+
+    info = machine_info(extra_packages=("embreex",))
+    print(f"G-buffer cast (depth + instance + normals): {NUM_SPHERES} icospheres x "
+          f"{len(scene.objects[0].mesh.faces)} faces, {WIDTH}x{HEIGHT} = {WIDTH * HEIGHT} rays, "
+          f"hit fraction {hit_frac:.3f}; medians of {repeat} round-robin rounds; Mrays/s from process CPU time")
+    print(f"{info['cpu_model']} ({info['cpu_count']} CPUs), affinity {PINNING['affinity']}, torch threads "
+          f"{torch.get_num_threads()}, warp {info['warp-lang']}, newton {info['newton']}, embreex {info['embreex']}")
+    print_table(rows, ["engine", "level", "first_s", "wall_ms", "cpu_ms", "Mrays_s", "Mrays_s_wall",
+                       "x_embree", "x_newton", "note"])
+    for name, e in engines.items():
+        print(f"{name}: {_fmt_items(e.info)}")
+    for name, a in agreement.items():
+        print(f"flowsynth vs {name}: {_fmt_items(a)}")
+    total = time.perf_counter() - t_start
+    print(f"total {total:.1f} s")
+    path = write_json("raycast", {
+        "machine": info, "pinning": PINNING, "torch_threads": torch.get_num_threads(),
+        "setup": {"width": WIDTH, "height": HEIGHT, "fov_deg": FOV_DEG, "K": scene.camera.K,
+                  "spheres": NUM_SPHERES, "faces_per_sphere": len(scene.objects[0].mesh.faces),
+                  "z_range_m": Z_RANGE, "hit_fraction": hit_frac, "repeat": repeat, "quick": args.quick,
+                  "cold_cache": args.cold_cache, "rate_clock": "process CPU time (median)"},
+        "rows": rows, "ratios": ratios, "details": {k: e.info for k, e in engines.items()}, "errors": errors,
+        "agreement": agreement, "timings": times, "total_s": total,
+    })
+    timed = [r for r in rows if r.get("Mrays_s")]
+    save_plot("raycast", [r["engine"] for r in timed], [r["Mrays_s"] for r in timed], "Mrays/s (1 core)",
+              "G-buffer cast, 640x480, 30 x 5120 triangles")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

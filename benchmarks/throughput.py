@@ -1,0 +1,132 @@
+"""Streaming throughput: samples/s per output set and worker count, what each plan skip saves, memory.
+
+    python benchmarks/throughput.py [--quick]
+
+Writes benchmarks/results/throughput.json. Times are wall-clock on this machine (see "machine").
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import machine_info, print_table, write_json  # noqa: E402
+
+OUTPUT_SETS = {
+    "depth": ["depth"],
+    "flow+occ": ["flow_fw", "valid_fw", "occ_fw"],
+    "everything+direct rgb": None,  # filled from plan.OUTPUTS below
+}
+
+
+def rate(cfg, outputs, workers: int, n: int) -> float:
+    import torch
+    from torch.utils.data import DataLoader
+
+    import flowsynth as fs
+
+    ds = fs.datasets.BouncingThings(cfg, outputs=outputs, seed=0, start=1000)
+    loader = DataLoader(ds, batch_size=None, num_workers=workers, persistent_workers=False)
+    it = iter(loader)
+    next(it)  # worker start-up and first sample (kernel cache load) are not counted
+    t = time.perf_counter()
+    for _ in range(n):
+        next(it)
+    dt = time.perf_counter() - t
+    del it
+    assert not torch.cuda.is_initialized()
+    return n / dt
+
+
+def skip_savings(cfg, n: int) -> list[dict]:
+    import flowsynth as fs
+    from flowsynth.plan import OUTPUTS
+
+    full = list(OUTPUTS)
+    rows = []
+    cases = {
+        "full request": full,
+        "no rgb (no shading)": [k for k in full if k != "rgb"],
+        "no occlusion rays": [k for k in full if not k.startswith("occ_")],
+        "no flow family": [k for k in full if not k.split("_")[0] in ("flow", "valid", "occ", "oof", "motion")],
+        "no object tables": [k for k in full if not (k.startswith("object_") or k.startswith("box")
+                                                     or k in ("world_T_obj", "visible_pixels"))],
+        "depth only": ["depth"],
+    }
+    base = None
+    for name, outs in cases.items():
+        ds = fs.datasets.BouncingThings(cfg, outputs=outs, seed=0, start=2000)
+        ds.sample(0)
+        t = time.perf_counter()
+        for i in range(n):
+            ds.sample(i + 1)
+        per = (time.perf_counter() - t) / n
+        base = per if base is None else base
+        rows.append({"request": name, "s/sample": per, "vs full": per / base})
+    for motion in ("physics", "kinematic", "static"):
+        from dataclasses import replace
+
+        c = replace(cfg, motion=motion)
+        ds = fs.datasets.BouncingThings(c, outputs=["depth"], seed=0, start=3000)
+        ds.scene(0)
+        t = time.perf_counter()
+        for i in range(n):
+            ds.scene(i + 1)
+        per = (time.perf_counter() - t) / n
+        rows.append({"request": f"scene only, motion={motion}", "s/sample": per, "vs full": per / base})
+    return rows
+
+
+def memory_curve(cfg, n: int) -> list[dict]:
+    import flowsynth as fs
+
+    ds = fs.datasets.BouncingThings(cfg, outputs=["depth", "flow_fw", "occ_fw"], seed=0)
+    out = []
+    for k, _ in enumerate(ds):
+        if k % max(1, n // 10) == 0:
+            out.append({"samples": k, "max_rss_MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024})
+        if k == n:
+            break
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true")
+    args = p.parse_args()
+    import flowsynth as fs
+    from flowsynth.plan import OUTPUTS
+
+    OUTPUT_SETS["everything+direct rgb"] = list(OUTPUTS)
+    W, H = (256, 192) if args.quick else (512, 384)
+    n = 4 if args.quick else 12
+    rows = []
+    for name, outs in OUTPUT_SETS.items():
+        mode = "direct" if "rgb" in outs else "flat"
+        cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, render_mode=mode)
+        base = None
+        for workers in (0, 1, 2):
+            r = rate(cfg, outs, workers, n)
+            base = r if base is None else base
+            rows.append({"outputs": name, "workers": workers, "samples/s": r, "speed-up vs 0": r / base})
+    print(f"\nThroughput at {W}x{H}, T=2 (physics motion)")
+    print_table(rows, ["outputs", "workers", "samples/s", "speed-up vs 0"])
+    skip_cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, render_mode="direct")
+    skips = skip_savings(skip_cfg, n)
+    print("\nWhat each skip saves (one process)")
+    print_table(skips, ["request", "s/sample", "vs full"])
+    mem_n = 200 if args.quick else 1000
+    mem = memory_curve(fs.BouncingThingsConfig(width=64, height=48, num_frames=2, motion="kinematic"), mem_n)
+    print(f"\nResident memory over a {mem_n}-sample stream (64x48)")
+    print_table(mem, ["samples", "max_rss_MiB"])
+    write_json("throughput", {"machine": machine_info(), "resolution": [W, H], "throughput": rows,
+                              "skips": skips, "memory": mem})
+
+
+if __name__ == "__main__":
+    main()
