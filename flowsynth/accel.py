@@ -67,6 +67,7 @@ class SceneAccel:
 
     def __init__(self, meshes: list[trimesh.Trimesh], cam_T_world: np.ndarray, world_T_obj: np.ndarray,
                  device: str = "cpu") -> None:
+        """Build the per-frame instance boxes (camera frame), their near-to-far order and the grouped BVH."""
         wp = wp_runtime()
         F = cam_T_world.shape[0]
         N = len(meshes)
@@ -79,15 +80,22 @@ class SceneAccel:
         cam_T_obj = np.einsum("fij,fnjk->fnik", cam_T_world, world_T_obj)
         obj_T_cam = _rigid_inverse(cam_T_obj)
         self.cam_T_obj = cam_T_obj
-        lo_loc = np.stack([np.asarray(m.vertices).min(0) for m in meshes])  # (N, 3)
-        hi_loc = np.stack([np.asarray(m.vertices).max(0) for m in meshes])
-        corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
-        box = lo_loc[:, None, :] + corners[None] * (hi_loc - lo_loc)[:, None, :]  # (N, 8, 3)
-        pts = np.einsum("fnij,nkj->fnki", cam_T_obj[..., :3, :3], box) + cam_T_obj[:, :, None, :3, 3]
-        lo, hi = pts.min(2), pts.max(2)
-        pad = BOX_PAD_REL * ((hi - lo).max(-1, keepdims=True) + np.abs(pts).max((2, 3))[..., None]) + 1e-30
+        lo = np.empty((F, N, 3))
+        hi = np.empty((F, N, 3))
+        scale = np.empty((F, N, 1))
+        for n, m in enumerate(meshes):  # tight boxes: the posed hull vertices, not the posed local box
+            hull = _hull_points(m)
+            pts = np.matmul(hull, np.swapaxes(cam_T_obj[:, n, :3, :3], 1, 2)) + cam_T_obj[:, n, None, :3, 3]
+            lo[:, n], hi[:, n] = pts.min(1), pts.max(1)
+            scale[:, n, 0] = (hi[:, n] - lo[:, n]).max(-1) + np.abs(pts).max((1, 2))
+        pad = BOX_PAD_REL * scale + 1e-30
         lowers = (lo - pad).reshape(-1, 3).astype(np.float32)
         uppers = (hi + pad).reshape(-1, 3).astype(np.float32)
+        # distance from each frame's camera centre to each box, and the near-to-far visiting order
+        near = np.linalg.norm(np.maximum(lo - pad, 0.0) + np.maximum(-(hi + pad), 0.0), axis=-1)
+        order = np.argsort(near, axis=1, kind="stable") + (np.arange(F) * N)[:, None]
+        self.near = wp.array((near * (1.0 - 1e-6)).reshape(-1).astype(np.float32), dtype=wp.float32, device=device)
+        self.order = wp.array(order.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
         groups = np.repeat(np.arange(F, dtype=np.int32), N)
         self._lowers = wp.array(lowers, dtype=wp.vec3, device=device)
         self._uppers = wp.array(uppers, dtype=wp.vec3, device=device)
@@ -100,6 +108,25 @@ class SceneAccel:
         self.item_mesh = wp.array(np.tile(ids, F), dtype=wp.uint64, device=device)
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
+
+
+_HULLS: OrderedDict = OrderedDict()
+
+
+def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Vertices of the convex hull of a mesh (cached per process): its posed box is the tight box."""
+    key = _mesh_key(mesh)
+    pts = _HULLS.get(key)
+    if pts is None:
+        V = np.asarray(mesh.vertices, np.float64)
+        try:
+            pts = np.asarray(mesh.convex_hull.vertices, np.float64) if len(V) > 64 else V
+        except Exception:  # qhull fails on flat or degenerate point sets; all vertices are still exact
+            pts = V
+        _HULLS[key] = pts
+        while len(_HULLS) > MESH_CACHE_SIZE:
+            _HULLS.popitem(last=False)
+    return pts
 
 
 def _rigid_inverse(T: np.ndarray) -> np.ndarray:
@@ -120,3 +147,9 @@ def _group_roots(bvh, F: int, device: str):
     roots = wp.zeros(F, dtype=wp.int32, device=device)
     wp.launch(group_roots_kernel, dim=F, inputs=[bvh.id], outputs=[roots], device=device)
     return roots
+
+
+def camera_trace_inputs(accel: SceneAccel) -> list:
+    """Kernel inputs shared by every cast from a frame's camera centre (see raycast.trace_from_camera)."""
+    return [accel.bvh.id, accel.roots, accel.N, accel.order, accel.near, accel._lowers, accel._uppers,
+            accel.item_mesh, accel.obj_T_ref]

@@ -75,7 +75,12 @@ class Camera:
         return float(self._K[1, 2])
 
     def pixel_rays(self, dtype=torch.float64) -> torch.Tensor:
-        """Unit ray directions through every pixel centre, camera frame: (H, W, 3)."""
+        """Unit ray directions through every pixel centre, camera frame: (H, W, 3) (computed once, cached)."""
+        if getattr(self, "_rays", None) is None:
+            self._rays = self._compute_rays()
+        return self._rays.to(dtype)
+
+    def _compute_rays(self) -> torch.Tensor:
         v, u = torch.meshgrid(
             torch.arange(self.height, dtype=torch.float64), torch.arange(self.width, dtype=torch.float64),
             indexing="ij",
@@ -83,7 +88,7 @@ class Camera:
         Kinv = torch.linalg.inv(torch.from_numpy(self._K))
         pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)
         d = pix @ Kinv.T
-        return (d / d.norm(dim=-1, keepdim=True)).to(dtype)
+        return d / d.norm(dim=-1, keepdim=True)
 
     def __repr__(self) -> str:
         return (f"Camera(width={self.width}, height={self.height}, fx={self.fx:.4g}, fy={self.fy:.4g}, "

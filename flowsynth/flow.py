@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import convert_points_from_homogeneous
 
+from flowsynth.accel import camera_trace_inputs
 from flowsynth.kernels import wp_runtime
 
 __all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject"]
@@ -117,7 +118,7 @@ def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     dev = accel.device
     blocked = wp.zeros(len(X), dtype=wp.int8, device=dev)
     wp.launch(visibility_kernel, dim=len(X),
-              inputs=[accel.bvh.id, accel.roots, accel.item_mesh, accel.obj_T_ref,
+              inputs=[*camera_trace_inputs(accel),
                       wp.array(X, dtype=wp.vec3, device=dev), wp.array(r, dtype=wp.int32, device=dev),
                       VISIBILITY_REL_TOL],
               outputs=[blocked], device=dev)

@@ -68,12 +68,81 @@ def trace_any(
 
 
 @wp.func
+def box_entry(lo: wp.vec3, hi: wp.vec3, d: wp.vec3):
+    """Entry distance of the ray 0 + t d (t >= 0) into box [lo, hi]; -1 when it misses."""
+    t0 = wp.float32(0.0)
+    t1 = wp.float32(1.0e30)
+    for a in range(3):
+        if d[a] == 0.0:
+            if lo[a] > 0.0 or hi[a] < 0.0:
+                return wp.float32(-1.0)
+        else:
+            inv = 1.0 / d[a]
+            ta = lo[a] * inv
+            tb = hi[a] * inv
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+    if t0 > t1:
+        return wp.float32(-1.0)
+    return t0
+
+
+@wp.func
+def trace_from_camera(
+    bvh: wp.uint64,
+    root: wp.int32,
+    f: wp.int32,
+    n_items: wp.int32,
+    order: wp.array[wp.int32],
+    near: wp.array[wp.float32],
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
+    item_mesh: wp.array[wp.uint64],
+    obj_T_ref: wp.array[wp.mat44],
+    d: wp.vec3,
+    max_t: wp.float32,
+):
+    """``trace_closest`` for a ray leaving the camera centre of frame f, same result.
+
+    With few instances (n_items <= ORDERED_MAX) the frame's instances are visited near to far (``order``
+    sorted by ``near``, the distance from the camera to each box) and the walk stops at the first box
+    farther than the best hit: ~1.2 mesh queries per ray instead of one per box crossed.
+    """
+    if n_items > ORDERED_MAX:
+        return trace_closest(bvh, root, item_mesh, obj_T_ref, wp.vec3(0.0), d, max_t)
+    best_t = max_t
+    best_item = wp.int32(-1)
+    best_face = wp.int32(-1)
+    best_u = wp.float32(0.0)
+    best_v = wp.float32(0.0)
+    for k in range(n_items):
+        item = order[f * n_items + k]
+        if near[item] >= best_t:
+            break
+        te = box_entry(lowers[item], uppers[item], d)
+        if te >= 0.0 and te < best_t:
+            X = obj_T_ref[item]
+            hit = wp.mesh_query_ray(item_mesh[item], wp.transform_point(X, wp.vec3(0.0)),
+                                    wp.transform_vector(X, d), best_t)
+            if hit.result and hit.t < best_t:
+                best_t = hit.t
+                best_item = item
+                best_face = hit.face
+                best_u = hit.u
+                best_v = hit.v
+    return best_item, best_t, best_face, best_u, best_v
+
+
+@wp.func
 def pixel_ray(i: wp.int32, j: wp.int32, intr: wp.vec4, skew: wp.float32):
     """Unit camera-frame direction through the centre of pixel (row i, col j); intr = (fx, fy, cx, cy)."""
     y = (wp.float32(i) - intr[3]) / intr[1]
     x = (wp.float32(j) - intr[2] - skew * y) / intr[0]
     return wp.normalize(wp.vec3(x, y, 1.0))
 
+
+# Up to this many instances per frame, camera rays walk the instances near to far instead of the BVH.
+ORDERED_MAX = 64
 
 _PRIMARY: dict = {}
 
@@ -93,6 +162,11 @@ def primary_kernel(want_normals: bool, want_points: bool):
     def primary(
         bvh: wp.uint64,
         roots: wp.array[wp.int32],
+        n_items: wp.int32,
+        order: wp.array[wp.int32],
+        near: wp.array[wp.float32],
+        lowers: wp.array[wp.vec3],
+        uppers: wp.array[wp.vec3],
         item_mesh: wp.array[wp.uint64],
         obj_T_ref: wp.array[wp.mat44],
         ref_T_obj: wp.array[wp.mat44],
@@ -108,7 +182,8 @@ def primary_kernel(want_normals: bool, want_points: bool):
     ):
         f, i, j = wp.tid()
         d = pixel_ray(i, j, intr, skew)
-        item, t, face, u, v = trace_closest(bvh, roots[f], item_mesh, obj_T_ref, wp.vec3(0.0), d, max_t)
+        item, t, face, u, v = trace_from_camera(bvh, roots[f], f, n_items, order, near, lowers, uppers, item_mesh,
+                                                obj_T_ref, d, max_t)
         if item < 0:
             item_out[f, i, j] = -1
             face_out[f, i, j] = -1
@@ -137,6 +212,11 @@ def primary_kernel(want_normals: bool, want_points: bool):
 def visibility_kernel(
     bvh: wp.uint64,
     roots: wp.array[wp.int32],
+    n_items: wp.int32,
+    order: wp.array[wp.int32],
+    near: wp.array[wp.float32],
+    lowers: wp.array[wp.vec3],
+    uppers: wp.array[wp.vec3],
     item_mesh: wp.array[wp.uint64],
     obj_T_ref: wp.array[wp.mat44],
     target: wp.array[wp.vec3],
@@ -157,8 +237,10 @@ def visibility_kernel(
     if L <= 0.0:
         blocked[r] = wp.int8(1)
         return
-    hit = trace_any(bvh, roots[pair_frame[r]], item_mesh, obj_T_ref, wp.vec3(0.0), p / L, L * (1.0 - rel_tol))
-    blocked[r] = wp.int8(1) if hit else wp.int8(0)
+    f = pair_frame[r]
+    item, t, face, u, v = trace_from_camera(bvh, roots[f], f, n_items, order, near, lowers, uppers, item_mesh,
+                                            obj_T_ref, p / L, L * (1.0 - rel_tol))
+    blocked[r] = wp.int8(1) if item >= 0 else wp.int8(0)
 
 
 def empty_like_frames(F: int, H: int, W: int) -> dict[str, np.ndarray]:
