@@ -174,3 +174,38 @@ def save_plot(name: str, labels: Sequence[str], values: Sequence[float], ylabel:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def plot_curves(name: str, series: dict, xlabel: str, ylabel: str, *, logx: bool = True, logy: bool = True,
+                title: str = "") -> Path | None:
+    """Line plot of ``series`` {label: (xs, ys)} to ``benchmarks/results/<name>.png`` (None without matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    for label, (xs, ys) in series.items():
+        ax.plot(xs, ys, "o-", label=label)
+    ax.set_xscale("log" if logx else "linear")
+    ax.set_yscale("log" if logy else "linear")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = RESULTS_DIR / f"{name}.png"
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def fit_exponent(xs, ys) -> float:
+    """Slope of log(y) against log(x) (least squares): cost ~ x^slope."""
+    import numpy as np
+
+    return float(np.polyfit(np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float)), 1)[0])

@@ -1,0 +1,72 @@
+"""Run every benchmark and write benchmarks/results/SUMMARY.md.
+
+    python benchmarks/run.py [--quick] [--only raycast,scaling]
+
+Each benchmark is a script in this folder that prints its tables and writes results/<name>.json (and PNG
+plots for curves). This runner calls them one after the other (each in its own process, so kernel
+caches and memory don't leak between them), keeps their printed tables, and writes SUMMARY.md with the
+machine, versions and date. ``--quick`` is passed on to every script (all of them within ~10 min on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from _common import RESULTS_DIR, machine_info  # noqa: E402
+
+BENCHMARKS = ["raycast", "accuracy", "physics", "rgb", "throughput", "export", "scaling"]
+MAIN_TABLE = "raycast"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--only", default=None, help="comma-separated subset of " + ",".join(BENCHMARKS))
+    args = p.parse_args()
+    names = args.only.split(",") if args.only else BENCHMARKS
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    sections, status = [], []
+    for name in names:
+        script = HERE / f"{name}.py"
+        cmd = [sys.executable, str(script)] + (["--quick"] if args.quick else [])
+        print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
+        t = time.time()
+        r = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent)
+        dt = time.time() - t
+        text = "\n".join(line for line in r.stdout.splitlines() if "CUDA" not in line)
+        print(text, flush=True)
+        ok = r.returncode == 0
+        status.append((name, ok, dt))
+        (RESULTS_DIR / f"{name}.txt").write_text(text + ("" if ok else "\n" + r.stderr[-4000:]))
+        plots = sorted(x.name for x in RESULTS_DIR.glob(f"{name}*.png"))
+        body = f"## {name}\n\n`python benchmarks/{name}.py{' --quick' if args.quick else ''}` — " \
+               f"{'ok' if ok else 'FAILED (exit ' + str(r.returncode) + ')'} in {dt:.0f} s; JSON: " \
+               f"[results/{name}.json]({name}.json)\n\n```\n{text.strip()}\n```\n"
+        body += "".join(f"\n![{pl}]({pl})\n" for pl in plots)
+        if not ok:
+            body += f"\n```\n{r.stderr.strip()[-2000:]}\n```\n"
+        sections.append(body)
+    m = machine_info()
+    head = ["# Benchmark summary", "",
+            f"Date: {datetime.datetime.now().isoformat(timespec='seconds')}  ",
+            f"Machine: {m.get('cpu_model')} — {m.get('cpu_count')} CPUs, {m.get('platform')}  ",
+            f"Python {m.get('python')}; " + ", ".join(f"{k} {m.get(k)}" for k in ("torch", "warp-lang", "newton",
+                                                                               "numpy", "trimesh")) + "  ",
+            f"Mode: {'--quick' if args.quick else 'full'}", "",
+            "| benchmark | status | seconds |", "|---|---|---|"]
+    head += [f"| {n} | {'ok' if ok else 'FAILED'} | {dt:.0f} |" for n, ok, dt in status]
+    (RESULTS_DIR / "SUMMARY.md").write_text("\n".join(head) + "\n\n" + "\n".join(sections))
+    print(f"wrote {RESULTS_DIR / 'SUMMARY.md'}")
+    return 0 if all(ok for _, ok, _ in status) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
