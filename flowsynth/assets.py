@@ -25,12 +25,24 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import HalfspaceIntersection
 
 from flowsynth.errors import AssetError
 from flowsynth.scene import clean_mesh
 
-__all__ = ["BUILTIN_ASSETS", "PRIMITIVE_ASSETS", "Asset", "Collider", "get_asset", "unit_mesh",
-           "load_user_mesh", "resolve_assets", "room_mesh"]
+__all__ = [
+    "BUILTIN_ASSETS",
+    "HULL_MAX_VERTICES",
+    "PRIMITIVE_ASSETS",
+    "Asset",
+    "Collider",
+    "get_asset",
+    "load_user_mesh",
+    "resolve_assets",
+    "room_mesh",
+    "unit_hull",
+    "unit_mesh",
+]
 
 PRIMITIVE_ASSETS = ("box", "sphere", "cylinder", "capsule", "cone")
 """Built-in assets whose collider is the analytic primitive."""
@@ -39,6 +51,9 @@ BUILTIN_ASSETS = (*PRIMITIVE_ASSETS, "torus", "rock", "crystal", "star", "blob")
 """Every built-in asset name, in category order (see ``docs/scenes.md``)."""
 
 _GLOB_CHARS = "*?["
+HULL_MAX_VERTICES = 192
+"""Largest convex collider kept exact [vertices]; bigger hulls are replaced by a coarser containing
+polytope (collision cost in Newton grows with hull vertices)."""
 # Bounding-sphere radius of every unit-size asset [m]: the farthest vertex from the origin.
 _UNIT_RADIUS = 0.5
 
@@ -52,8 +67,9 @@ class Collider:
         params: box (hx, hy, hz) half extents; sphere (r,); capsule (r, half_height) of the
             cylindrical part; cylinder (r, half_height); cone (r, half_height), base at z = -half_height,
             apex at +half_height. Axes of capsule, cylinder and cone are +z. Empty for "convex".
-        hull: the convex hull (watertight) for "convex"; for primitives, the hull of the visual mesh,
-            used for mass properties only.
+        hull: watertight convex polytope containing the visual mesh: the collider for "convex"
+            (the convex hull, or a slightly larger one, see HULL_MAX_VERTICES); for primitives the convex
+            hull of the visual mesh, used for mass properties only.
     """
 
     kind: str
@@ -104,7 +120,10 @@ def resolve_assets(entries: tuple[str, ...] | list[str], field: str = "assets") 
                              "or a path to a mesh file that trimesh can load")
         for path in matches:
             path = os.path.abspath(path)
-            load_user_mesh(path)
+            try:
+                load_user_mesh(path)
+            except AssetError as e:
+                raise AssetError(f"{field}: {e}") from e
             out.append(path)
     return tuple(out)
 
@@ -151,10 +170,37 @@ def get_asset(name: str, size: float) -> Asset:
         raise AssetError(f"asset size must be a positive finite number of metres, got {size!r}")
     unit = unit_mesh(name)
     mesh = trimesh.Trimesh(vertices=unit.vertices * size, faces=unit.faces, process=False, validate=False)
-    hull = mesh.convex_hull
+    uh = unit_hull(name)
+    hull = trimesh.Trimesh(vertices=uh.vertices * size, faces=uh.faces, process=False, validate=False)
     kind, params = _PRIMITIVE_PARAMS.get(name, ("convex", ()))
     return Asset(name=name, size=float(size), mesh=mesh,
                  collider=Collider(kind=kind, params=tuple(p * size for p in params), hull=hull))
+
+
+@functools.lru_cache(maxsize=1024)
+def unit_hull(name: str) -> trimesh.Trimesh:
+    """Convex polytope containing the unit mesh (cached): its convex hull, or, when that has more than
+    HULL_MAX_VERTICES vertices, a coarser polytope whose every face plane is pushed out to the hull's
+    support (so it still contains the mesh; a few percent larger by volume)."""
+    hull = unit_mesh(name).convex_hull
+    V = np.asarray(hull.vertices, dtype=np.float64)
+    if len(V) <= HULL_MAX_VERTICES:
+        return hull
+    coarse = trimesh.convex.convex_hull(V[_farthest_points(V, max(8, HULL_MAX_VERTICES // 4))])
+    normals = np.asarray(coarse.face_normals)
+    offsets = (V @ normals.T).max(0)
+    cut = HalfspaceIntersection(np.hstack([normals, -offsets[:, None]]), V.mean(0))
+    return trimesh.convex.convex_hull(cut.intersections)
+
+
+def _farthest_points(V: np.ndarray, k: int) -> np.ndarray:
+    """Indices of k points of V (M, 3) chosen greedily, each farthest from those before (deterministic)."""
+    idx = [int(np.argmax(np.linalg.norm(V - V.mean(0), axis=1)))]
+    d = np.linalg.norm(V - V[idx[0]], axis=1)
+    for _ in range(k - 1):
+        idx.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(V - V[idx[-1]], axis=1))
+    return np.asarray(idx)
 
 
 @functools.lru_cache(maxsize=64)
@@ -193,7 +239,7 @@ def _primitive_params() -> dict[str, tuple[str, tuple[float, ...]]]:
 _PRIMITIVE_PARAMS = _primitive_params()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _builtin_unit(name: str) -> trimesh.Trimesh:
     if name == "box":
         m = trimesh.creation.box(extents=_BOX_EXTENTS)
@@ -206,11 +252,11 @@ def _builtin_unit(name: str) -> trimesh.Trimesh:
     elif name == "cone":
         m = trimesh.creation.cone(radius=_CONE_R, height=_CONE_H, sections=_SECTIONS)
     elif name == "torus":
-        m = trimesh.creation.torus(major_radius=0.35, minor_radius=0.15, major_sections=48, minor_sections=24)
+        m = trimesh.creation.torus(major_radius=0.35, minor_radius=0.15, major_sections=32, minor_sections=16)
     elif name == "rock":
-        m = _displaced_sphere(seed=1, lobes=9, amplitude=0.18, sharpness=3.0)
+        m = _displaced_sphere(seed=1, lobes=9, amplitude=0.18, sharpness=3.0, subdivisions=2)
     elif name == "blob":
-        m = _displaced_sphere(seed=2, lobes=4, amplitude=0.45, sharpness=12.0)
+        m = _displaced_sphere(seed=2, lobes=4, amplitude=0.45, sharpness=12.0, subdivisions=3)
     elif name == "star":
         m = _star()
     elif name == "crystal":
@@ -232,10 +278,11 @@ def _normalise(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
                            validate=False)
 
 
-def _displaced_sphere(seed: int, lobes: int, amplitude: float, sharpness: float) -> trimesh.Trimesh:
+def _displaced_sphere(seed: int, lobes: int, amplitude: float, sharpness: float, subdivisions: int
+                      ) -> trimesh.Trimesh:
     """Icosphere with radius 1 + amplitude * sum of smooth bumps exp(sharpness (n . d_k - 1))."""
     rng = np.random.default_rng(seed)
-    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
     n = np.asarray(sphere.vertices)
     dirs = rng.normal(size=(lobes, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -246,7 +293,7 @@ def _displaced_sphere(seed: int, lobes: int, amplitude: float, sharpness: float)
 
 def _star() -> trimesh.Trimesh:
     """Spiky ball: an icosphere with 12 cone-like spikes along the icosahedron's vertex directions."""
-    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     n = np.asarray(sphere.vertices)
     spikes = np.asarray(trimesh.creation.icosahedron().vertices)
     spikes /= np.linalg.norm(spikes, axis=1, keepdims=True)

@@ -1,0 +1,265 @@
+"""Configuration of the BouncingThings scene generator: one frozen, validated dataclass.
+
+Every field has a default; invalid values raise :class:`flowsynth.errors.ConfigError` (or
+:class:`flowsynth.errors.AssetError` for asset files) naming the field and the fix. Sequences are
+stored as tuples so a config is hashable and never mutates. Units: metres, seconds, radians
+(degrees only in ``fov_deg``). World frame: right-handed, +z up, the floor at z = 0 (docs/scenes.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from flowsynth.errors import AssetError, ConfigError
+
+__all__ = ["CAMERA_MOTIONS", "MOTIONS", "RENDER_MODES", "BouncingThingsConfig"]
+
+MOTIONS = ("physics", "kinematic", "static")
+CAMERA_MOTIONS = ("static", "moving")
+RENDER_MODES = ("flat", "direct", "path")
+# Initial placement needs free space: total bounding-sphere volume of the largest possible object set
+# may fill at most this fraction of the objects' region (random sequential packing jams near 0.38).
+MAX_PACKING_FRACTION = 0.25
+
+
+@dataclass(frozen=True)
+class BouncingThingsConfig:
+    """Rigid objects bouncing in a box-shaped room, seen by a pinhole camera (FlyingThings-like)."""
+
+    width: int = 320
+    """Image width [px], >= 1."""
+    height: int = 240
+    """Image height [px], >= 1."""
+    num_frames: int = 24
+    """Frames per clip T, >= 1."""
+    fps: float = 24.0
+    """Frame rate [1/s], > 0."""
+    fov_deg: float = 60.0
+    """Horizontal field of view [deg], in (0, 180)."""
+    num_objects: tuple[int, int] = (4, 12)
+    """(min, max) number of flying objects per scene, drawn uniformly (inclusive) [count]."""
+    assets: tuple[str, ...] = ("box", "sphere", "cylinder", "capsule", "cone", "torus", "rock", "crystal",
+                               "star", "blob")
+    """Built-in asset names (flowsynth.assets.BUILTIN_ASSETS) and/or mesh file paths or globs."""
+    object_size: tuple[float, float] = (0.4, 1.2)
+    """(min, max) bounding-sphere diameter of an object [m]; drawn log-uniformly over ``size_levels``."""
+    size_levels: int = 8
+    """Number of distinct object sizes, log-spaced over ``object_size`` [count]; sizes repeat so meshes are
+    shared between instances and samples (renderer caches). 1 means always the min size."""
+    min_speed: float = 0.5
+    """Lower bound of every object's linear speed [m/s], >= 0."""
+    max_speed: float = 2.0
+    """Upper bound of every object's linear speed [m/s], >= min_speed."""
+    angular_speed: tuple[float, float] = (0.0, 2.0)
+    """(min, max) angular speed of an object [rad/s]."""
+    motion: str = "physics"
+    """"physics" (Newton rigid bodies), "kinematic" (constant velocities, walls reflect) or "static"."""
+    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Gravity vector in the world frame [m/s^2] (physics only); (0, 0, -9.81) for a falling world."""
+    restitution: float = 1.0
+    """Coefficient of restitution of every contact, in [0, 1] (physics only)."""
+    friction: float = 0.0
+    """Coulomb friction coefficient of every contact, >= 0 (physics only)."""
+    substeps: int | None = None
+    """Physics substeps per frame [count]; None picks them from speeds and sizes (docs/scenes.md)."""
+    camera_motion: str = "static"
+    """"static" or "moving" (straight line at constant speed, reflected inside the camera zone)."""
+    camera_speed: tuple[float, float] = (0.2, 1.0)
+    """(min, max) camera speed when ``camera_motion == "moving"`` [m/s]."""
+    room_size: tuple[float, float, float] = (10.0, 8.0, 6.0)
+    """Room interior extent (x, y, z) [m]; the room spans x, y in [-size/2, size/2] and z in [0, size_z]."""
+    camera_clearance: float = 2.0
+    """Depth of the camera zone along x next to the wall x = -size_x/2 [m]; objects stay out of it."""
+    max_objects: int = 32
+    """Rows of the padded per-object tables [count]; num_objects max must be <= max_objects."""
+    render_mode: str = "flat"
+    """RGB shading: "flat" (albedo only), "direct" (lights and shadows) or "path" (path traced)."""
+    spp: int = 1
+    """Samples per pixel for RGB, >= 1 [count]."""
+    shutter: float = 0.0
+    """Shutter open time as a fraction of the frame interval, in [0, 1]; 0 disables motion blur."""
+    texture_dir: str | None = None
+    """Folder of image textures (jpg/png) for objects and walls; None uses procedural textures only."""
+    texture_families: tuple[str, ...] = ("noise", "cells", "stripes", "checks", "blend", "solid")
+    """Procedural texture families to draw from (non-empty)."""
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    @property
+    def room_bounds(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(lo, hi) corners of the room interior [m]."""
+        x, y, z = self.room_size
+        return (-x / 2, -y / 2, 0.0), (x / 2, y / 2, z)
+
+    @property
+    def object_bounds(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(lo, hi) corners of the region objects stay in [m]: the room minus the camera zone."""
+        (lx, ly, lz), hi = self.room_bounds
+        return (lx + self.camera_clearance, ly, lz), hi
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-compatible dict (tuples become lists); ``from_dict(cfg.to_dict()) == cfg``."""
+        return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> BouncingThingsConfig:
+        """Build a config from a dict such as ``to_dict()`` wrote; missing keys take defaults.
+
+        Raises ConfigError on keys that are not fields (listing the valid ones).
+        """
+        if not isinstance(d, dict):
+            raise ConfigError(f"from_dict expects a dict, got {type(d).__name__}")
+        names = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(d) - set(names))
+        if unknown:
+            raise ConfigError(f"unknown BouncingThingsConfig field(s) {unknown}; valid fields: {names}")
+        return cls(**d)
+
+
+def _plain(v: Any) -> Any:
+    return [_plain(x) for x in v] if isinstance(v, (tuple, list)) else v
+
+
+def _set(cfg: BouncingThingsConfig, name: str, value: Any) -> None:
+    object.__setattr__(cfg, name, value)
+
+
+def _is_int(v: Any) -> bool:
+    return not isinstance(v, bool) and (isinstance(v, int) or (hasattr(v, "dtype") and v.dtype.kind in "iu"))
+
+
+def _int(cfg, name: str, lo: int, hi: int | None = None) -> int:
+    v = getattr(cfg, name)
+    if not _is_int(v):
+        raise ConfigError(f"{name} must be an integer, got {v!r}")
+    v = int(v)
+    if v < lo or (hi is not None and v > hi):
+        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise ConfigError(f"{name} must be {bound}, got {v}")
+    _set(cfg, name, v)
+    return v
+
+
+def _float(cfg, name: str, value: Any = None, *, lo: float | None = None, hi: float | None = None,
+           lo_open: bool = False, hi_open: bool = False) -> float:
+    v = getattr(cfg, name) if value is None else value
+    if isinstance(v, bool) or not (isinstance(v, (int, float)) or _is_int(v)):
+        raise ConfigError(f"{name} must be a number, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise ConfigError(f"{name} must be finite, got {v}")
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise ConfigError(f"{name} must be {'>' if lo_open else '>='} {lo}, got {v}")
+    if hi is not None and (v > hi or (hi_open and v == hi)):
+        raise ConfigError(f"{name} must be {'<' if hi_open else '<='} {hi}, got {v}")
+    return v
+
+
+def _tuple(cfg, name: str, n: int) -> tuple:
+    v = getattr(cfg, name)
+    if isinstance(v, (str, bytes)) or not hasattr(v, "__len__") or len(v) != n:
+        raise ConfigError(f"{name} must be a sequence of {n} values, got {v!r}")
+    return tuple(v)
+
+
+def _range(cfg, name: str, *, lo: float, lo_open: bool = False, integer: bool = False) -> tuple:
+    a, b = _tuple(cfg, name, 2)
+    if integer:
+        for x in (a, b):
+            if not _is_int(x):
+                raise ConfigError(f"{name} must be two integers (min, max), got {getattr(cfg, name)!r}")
+        a, b = int(a), int(b)
+        if a < lo:
+            raise ConfigError(f"{name}: min must be >= {lo}, got {a}")
+    else:
+        a = _float(cfg, f"{name}[0] (min)", a, lo=lo, lo_open=lo_open)
+        b = _float(cfg, f"{name}[1] (max)", b, lo=lo, lo_open=lo_open)
+    if a > b:
+        raise ConfigError(f"{name}: min {a} > max {b}; pass (min, max) with min <= max")
+    _set(cfg, name, (a, b))
+    return a, b
+
+
+def _choice(cfg, name: str, options: tuple[str, ...]) -> None:
+    v = getattr(cfg, name)
+    if v not in options:
+        raise ConfigError(f"{name} must be one of {list(options)}, got {v!r}")
+
+
+def _validate(cfg: BouncingThingsConfig) -> None:
+    _int(cfg, "width", 1)
+    _int(cfg, "height", 1)
+    _int(cfg, "num_frames", 1)
+    _set(cfg, "fps", _float(cfg, "fps", lo=0.0, lo_open=True))
+    _set(cfg, "fov_deg", _float(cfg, "fov_deg", lo=0.0, hi=180.0, lo_open=True, hi_open=True))
+    _int(cfg, "max_objects", 1)
+    n_hi = _range(cfg, "num_objects", lo=0, integer=True)[1]
+    if n_hi > cfg.max_objects:
+        raise ConfigError(f"num_objects: max {n_hi} exceeds max_objects={cfg.max_objects}; "
+                          f"raise max_objects to at least {n_hi} or lower num_objects")
+    s_hi = _range(cfg, "object_size", lo=0.0, lo_open=True)[1]
+    _int(cfg, "size_levels", 1)
+    _set(cfg, "min_speed", _float(cfg, "min_speed", lo=0.0))
+    _set(cfg, "max_speed", _float(cfg, "max_speed", lo=0.0))
+    if cfg.min_speed > cfg.max_speed:
+        raise ConfigError(f"min_speed {cfg.min_speed} > max_speed {cfg.max_speed}; "
+                          "pass min_speed <= max_speed")
+    _range(cfg, "angular_speed", lo=0.0)
+    _choice(cfg, "motion", MOTIONS)
+    gravity = _tuple(cfg, "gravity", 3)
+    _set(cfg, "gravity", tuple(_float(cfg, f"gravity[{i}]", g) for i, g in enumerate(gravity)))
+    _set(cfg, "restitution", _float(cfg, "restitution", lo=0.0, hi=1.0))
+    _set(cfg, "friction", _float(cfg, "friction", lo=0.0))
+    if cfg.substeps is not None:
+        _int(cfg, "substeps", 1, 10_000)
+    _choice(cfg, "camera_motion", CAMERA_MOTIONS)
+    _range(cfg, "camera_speed", lo=0.0)
+    room = tuple(_float(cfg, f"room_size[{i}]", v, lo=0.0, lo_open=True)
+                 for i, v in enumerate(_tuple(cfg, "room_size", 3)))
+    _set(cfg, "room_size", room)
+    _set(cfg, "camera_clearance", _float(cfg, "camera_clearance", lo=0.0, lo_open=True))
+    if cfg.camera_clearance >= 0.5 * room[0]:
+        raise ConfigError(f"camera_clearance {cfg.camera_clearance} m must be less than half of room_size[0] "
+                          f"({room[0]} m); lower it or enlarge the room")
+    lo, hi = cfg.object_bounds
+    free = min(b - a for a, b in zip(lo, hi))
+    if s_hi >= free:
+        raise ConfigError(f"object_size: max {s_hi} m does not fit the objects' region "
+                          f"(smallest side {free:.3g} m);"
+                          " lower object_size or enlarge room_size")
+    volume = math.prod(b - a - s_hi for a, b in zip(lo, hi))
+    filled = n_hi * math.pi / 6 * s_hi**3
+    if filled > MAX_PACKING_FRACTION * volume:
+        raise ConfigError(f"num_objects/object_size: {n_hi} objects of {s_hi} m fill "
+                          f"{filled / volume:.0%} of the "
+                          f"room (max {MAX_PACKING_FRACTION:.0%}); lower num_objects or object_size, "
+                          "or enlarge room_size")
+    _choice(cfg, "render_mode", RENDER_MODES)
+    _int(cfg, "spp", 1)
+    _set(cfg, "shutter", _float(cfg, "shutter", lo=0.0, hi=1.0))
+    if cfg.texture_dir is not None and not isinstance(cfg.texture_dir, str):
+        raise ConfigError(f"texture_dir must be a folder path or None, got {cfg.texture_dir!r}")
+    fams = cfg.texture_families
+    if isinstance(fams, str) or not fams or not all(isinstance(f, str) and f for f in fams):
+        raise ConfigError(f"texture_families must be a non-empty sequence of names, got {fams!r}")
+    _set(cfg, "texture_families", tuple(fams))
+    _validate_assets(cfg)
+
+
+def _validate_assets(cfg: BouncingThingsConfig) -> None:
+    assets = cfg.assets
+    if isinstance(assets, str):
+        assets = (assets,)
+    if not hasattr(assets, "__iter__") or len(assets) == 0:
+        raise ConfigError(f"assets must be a non-empty sequence of asset names or mesh paths, got {assets!r}")
+    _set(cfg, "assets", tuple(assets))
+    from flowsynth.assets import resolve_assets
+
+    try:
+        resolve_assets(cfg.assets, field="assets")
+    except AssetError as e:
+        raise ConfigError(str(e)) from e

@@ -1,0 +1,411 @@
+"""Object motion for BouncingThings: rigid-body physics (Newton), kinematic, or static.
+
+All three return world_T_obj poses (T, N, 4, 4) float64 at the frame times t_k = k / fps, k = 0..T-1,
+with orthonormal rotations. The object origin is the centre of its bounding sphere (flowsynth.assets)
+and is also its centre of mass in the physics, so "speed" is the speed of the origin.
+
+- ``physics``: Newton's XPBD solver on the Warp CPU device. Colliders are the assets' primitives or
+  convex hulls; the walls of ``cfg.object_bounds`` are static boxes. Substeps per frame follow
+  :func:`choose_substeps`; after every substep each linear speed is clamped into
+  [min_speed, max_speed] and each angular speed into ``angular_speed`` (docs/scenes.md).
+  Newton is imported only here, on first use.
+- ``kinematic``: constant speed and angular velocity; the bounding sphere reflects specularly off the
+  walls of ``cfg.object_bounds`` (closed form). Objects may intersect each other (FlyingThings style).
+- ``static``: every pose equals the initial pose.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from flowsynth.assets import Asset, unit_hull
+from flowsynth.config import BouncingThingsConfig
+from flowsynth.errors import ConfigError, ShapeError
+
+__all__ = [
+    "InitialState",
+    "Trajectory",
+    "choose_substeps",
+    "quat_to_rotation",
+    "reflect_in_box",
+    "rotation_exp",
+    "simulate",
+    "simulate_kinematic",
+    "simulate_physics",
+    "simulate_static",
+]
+
+SUBSTEP_FRACTION = 0.05
+"""Largest approach of two object surfaces within one substep, as a fraction of the smallest object size.
+benchmarks/physics.py: the first mesh penetration above 1% of a size appears at 0.17, none at <= 0.05."""
+MIN_SUBSTEPS = 2
+"""Fewest physics substeps per frame [count]."""
+MAX_SUBSTEPS = 256
+"""Most physics substeps per frame chosen automatically [count]; cfg.substeps may exceed it."""
+MARGIN_FRACTION = 0.0025
+"""Collision margin of every object collider, as a fraction of the smallest object size: colliders are
+kept twice this far apart (and this far from walls), so residual solver penetration stays in the gap."""
+XPBD_ITERATIONS = 4
+"""XPBD constraint iterations per substep [count]."""
+DENSITY = 1000.0
+"""Density of every object [kg/m^3]; mass and inertia come from the collider's convex hull."""
+EPS_SPEED = 1e-6
+"""Speeds below this [m/s] or [rad/s] have no usable direction (float32 state)."""
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """State of N objects at t = 0, world frame.
+
+    Attributes:
+        position: (N, 3) float64 object origins [m].
+        rotation: (N, 3, 3) float64 world_R_obj.
+        velocity: (N, 3) float64 linear velocities [m/s].
+        angular_velocity: (N, 3) float64 angular velocities [rad/s], world axes.
+    """
+
+    position: np.ndarray
+    rotation: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Motion of N objects over T frames.
+
+    Attributes:
+        poses: (T, N, 4, 4) float64 world_T_obj at t_k = k / fps.
+        velocity: (T, N, 3) float64 linear velocities at t_k [m/s].
+        angular_velocity: (T, N, 3) float64 angular velocities at t_k [rad/s], world axes.
+        substeps: physics substeps per frame (0 for kinematic and static).
+    """
+
+    poses: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    substeps: int
+
+
+def simulate(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState, *,
+             num_frames: int | None = None, substeps: int | None = None) -> Trajectory:
+    """Move N objects according to ``cfg.motion``.
+
+    Args:
+        cfg: scene configuration (motion, fps, speeds, room, gravity, restitution, friction).
+        assets: the N objects' assets (colliders and sizes).
+        initial: state at t = 0.
+        num_frames: T; defaults to ``cfg.num_frames``.
+        substeps: physics substeps per frame; defaults to ``cfg.substeps``, else :func:`choose_substeps`.
+    """
+    T = cfg.num_frames if num_frames is None else int(num_frames)
+    n = len(assets)
+    for name, shape in (("position", (n, 3)), ("rotation", (n, 3, 3)), ("velocity", (n, 3)),
+                        ("angular_velocity", (n, 3))):
+        got = np.shape(getattr(initial, name))
+        if got != shape:
+            raise ShapeError(f"initial.{name} must have shape {shape} for {n} assets, got {got}")
+    if cfg.motion == "static":
+        return simulate_static(initial, T)
+    if cfg.motion == "kinematic":
+        return simulate_kinematic(cfg, assets, initial, T)
+    return simulate_physics(cfg, assets, initial, T, substeps=substeps)
+
+
+def simulate_static(initial: InitialState, num_frames: int) -> Trajectory:
+    """Every pose equals the initial pose; velocities are zero."""
+    poses = np.tile(_poses(initial.position, initial.rotation)[None], (num_frames, 1, 1, 1))
+    zeros = np.zeros((num_frames, len(initial.position), 3))
+    return Trajectory(poses, zeros, zeros.copy(), 0)
+
+
+def simulate_kinematic(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
+                       num_frames: int) -> Trajectory:
+    """Constant speed and angular velocity; bounding spheres reflect off the walls of cfg.object_bounds."""
+    t = np.arange(num_frames, dtype=np.float64) / cfg.fps
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in cfg.object_bounds)
+    r = np.array([a.size / 2.0 for a in assets], dtype=np.float64)[:, None]  # (N, 1)
+    pos, vel = reflect_in_box(initial.position[None], initial.velocity[None], t[:, None, None],
+                              lo + r, hi - r)
+    R = rotation_exp(t[:, None, None] * initial.angular_velocity[None]) @ initial.rotation[None]
+    w = np.broadcast_to(initial.angular_velocity, vel.shape).copy()
+    return Trajectory(_poses(pos, R), vel, w, 0)
+
+
+def reflect_in_box(p0: np.ndarray, v: np.ndarray, t: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Point moving at velocity ``v`` from ``p0`` at t = 0, reflected specularly inside the box [lo, hi].
+
+    Closed form: each axis folds x0 + v t into [lo, hi] with period 2 (hi - lo). Arrays broadcast;
+    the last axis is x, y, z [m], [m/s], and ``t`` [s]. Returns (position [m], velocity [m/s] at t).
+    """
+    L = hi - lo
+    if np.any(L < 0):
+        raise ConfigError("reflect_in_box: box is smaller than the moving sphere; enlarge the room")
+    L = np.maximum(L, 1e-12)
+    u = np.mod(p0 - lo + v * t, 2.0 * L)
+    back = u > L
+    return lo + np.where(back, 2.0 * L - u, u), np.where(back, -v, v) * np.ones_like(u)
+
+
+def rotation_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) [rad] (Rodrigues' formula)."""
+    theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
+    k = rotvec / np.maximum(theta[..., 0], 1e-300)
+    K = np.zeros(rotvec.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+def choose_substeps(cfg: BouncingThingsConfig, sizes: Sequence[float]) -> int:
+    """Physics substeps per frame so that no two surfaces approach by more than SUBSTEP_FRACTION times the
+    smallest object size within one substep.
+
+    The fastest relative approach of two surface points is 2 max_speed + max_angular_speed * max_size
+    (each object translates at <= max_speed and a point at distance <= size/2 from the origin rotates
+    at <= angular_speed * size / 2); walls approach at half that. Result clamped to
+    [MIN_SUBSTEPS, MAX_SUBSTEPS] and rounded up to an even number (substeps run in captured pairs).
+    """
+    if len(sizes) == 0:
+        return MIN_SUBSTEPS
+    s_min, s_max = float(min(sizes)), float(max(sizes))
+    approach = 2.0 * cfg.max_speed + cfg.angular_speed[1] * s_max  # [m/s]
+    n = math.ceil(approach / cfg.fps / (SUBSTEP_FRACTION * s_min))
+    n = min(max(n, MIN_SUBSTEPS), MAX_SUBSTEPS)
+    return int(n + n % 2)
+
+
+def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
+                     num_frames: int, *, substeps: int | None = None) -> Trajectory:
+    """Rigid-body dynamics with Newton (XPBD, Warp CPU). See the module docstring and docs/scenes.md."""
+    N = len(assets)
+    if N == 0:
+        return simulate_static(initial, num_frames)
+    sizes = [a.size for a in assets]
+    n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
+    n_sub += n_sub % 2  # substeps run in captured pairs (two state buffers, swapped every substep)
+    sim = _NewtonScene(cfg, assets, initial, n_sub)
+    poses = np.empty((num_frames, N, 4, 4))
+    vel = np.empty((num_frames, N, 3))
+    ang = np.empty((num_frames, N, 3))
+    for k in range(num_frames):
+        if k > 0:
+            sim.advance_frame()
+        poses[k], vel[k], ang[k] = sim.read()
+    return Trajectory(poses, vel, ang, n_sub)
+
+
+class _NewtonScene:
+    """A Newton model of the objects and walls, stepped one frame at a time."""
+
+    def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
+                 substeps: int) -> None:
+        import newton
+        import warp as wp
+
+        _memoise_newton_kernel_factories()
+        self.cfg, self.substeps = cfg, substeps
+        self.dt = 1.0 / (cfg.fps * substeps)
+        s_min = min(a.size for a in assets)
+        s_max = max(a.size for a in assets)
+        # Contact detection gap per shape; a pair's gaps add, so contacts are found before two surfaces can
+        # close twice the largest approach within one substep.
+        approach = (2.0 * cfg.max_speed + cfg.angular_speed[1] * s_max) * self.dt
+        b = newton.ModelBuilder(up_axis=newton.Axis.Z, gravity=tuple(cfg.gravity))
+        shape_cfg = newton.ModelBuilder.ShapeConfig(
+            mu=cfg.friction, restitution=cfg.restitution, density=DENSITY, gap=approach,
+            margin=MARGIN_FRACTION * s_min, mu_torsional=0.0, mu_rolling=0.0,
+        )
+        wall_cfg = newton.ModelBuilder.ShapeConfig(
+            mu=cfg.friction, restitution=cfg.restitution, density=0.0, gap=approach, margin=0.0,
+            mu_torsional=0.0, mu_rolling=0.0,
+        )
+        lo, hi = (np.asarray(x, dtype=np.float64) for x in cfg.object_bounds)
+        thick = max(1.0, 2.0 * s_max)  # walls thicker than anything can travel in a substep
+        centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
+        for axis in range(3):
+            for side in (-1.0, 1.0):
+                h = half + thick
+                h[axis] = thick / 2.0
+                p = centre.copy()
+                p[axis] = (lo if side < 0 else hi)[axis] + side * thick / 2.0
+                b.add_shape_box(-1, xform=wp.transform(wp.vec3(*p), wp.quat_identity()),
+                                hx=float(h[0]), hy=float(h[1]), hz=float(h[2]), cfg=wall_cfg)
+        quats = _rotation_to_quat_xyzw(initial.rotation)
+        for i, asset in enumerate(assets):
+            hull = asset.collider.hull
+            mass = DENSITY * float(hull.volume)
+            inertia = DENSITY * np.asarray(hull.moment_inertia_frame(np.eye(4)), dtype=np.float64)
+            body = b.add_body(xform=wp.transform(wp.vec3(*initial.position[i]), wp.quat(*quats[i])),
+                              com=wp.vec3(0.0, 0.0, 0.0), mass=mass, inertia=wp.mat33(*inertia.ravel()),
+                              lock_inertia=True, label=f"object_{i}")
+            _add_collider(b, body, asset, shape_cfg)
+        self.model = b.finalize(device="cpu")
+        self.state0, self.state1 = self.model.state(), self.model.state()
+        self.control = self.model.control()
+        qd = self.state0.body_qd.numpy()
+        qd[:, :3] = initial.velocity
+        qd[:, 3:] = initial.angular_velocity
+        self.state0.body_qd.assign(qd)
+        self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap")
+        self.contacts = self.pipeline.contacts()
+        self.solver = newton.solvers.SolverXPBD(self.model, iterations=XPBD_ITERATIONS,
+                                                enable_restitution=True)
+        # Last direction of motion / rotation axis, used when a speed must be raised from zero.
+        self.last_dir = wp.array(_unit_or(initial.velocity, [1.0, 0.0, 0.0]), dtype=wp.vec3, device="cpu")
+        self.last_axis = wp.array(_unit_or(initial.angular_velocity, [0.0, 0.0, 1.0]), dtype=wp.vec3,
+                                  device="cpu")
+        self.graph = None
+
+    def advance_frame(self) -> None:
+        """Advance one frame. Two substeps are captured once into a Warp CPU graph and replayed
+        substeps / 2 times: replay skips Python launch overhead (~40 launches per substep)."""
+        import warp as wp
+
+        if self.graph is None:
+            with wp.ScopedCapture(device="cpu") as capture:
+                self._substep()
+                self._substep()
+            self.graph = capture.graph
+        for _ in range(self.substeps // 2):
+            wp.capture_launch(self.graph)
+
+    def _substep(self) -> None:
+        import warp as wp
+
+        self.pipeline.collide(self.state0, self.contacts)
+        self.solver.step(self.state0, self.state1, self.control, self.contacts, self.dt)
+        self.state0, self.state1 = self.state1, self.state0
+        cfg = self.cfg
+        wp.launch(_clamp_kernel(), dim=self.model.body_count, device="cpu",
+                  inputs=[cfg.min_speed, cfg.max_speed, cfg.angular_speed[0], cfg.angular_speed[1]],
+                  outputs=[self.state0.body_qd, self.last_dir, self.last_axis])
+
+    def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = self.state0.body_q.numpy().astype(np.float64)  # (N, 7): px py pz qx qy qz qw
+        qd = self.state0.body_qd.numpy().astype(np.float64)
+        R = quat_to_rotation(q[:, 3:])
+        return _poses(q[:, :3], R), qd[:, :3], qd[:, 3:]
+
+
+@functools.cache
+def _clamp_kernel():
+    """Warp kernel that clamps each body's linear and angular speed into a band, keeping directions.
+
+    Built on first use so that importing this module never imports Warp.
+    """
+    import warp as wp
+
+    eps = float(EPS_SPEED)
+
+    @wp.func
+    def clamp_norm(x: wp.vec3, last: wp.vec3, lo: float, hi: float):
+        n = wp.length(x)
+        d = last
+        if n > eps:
+            d = x / n
+        target = wp.clamp(n, lo, hi)
+        y = x
+        if n > eps or target > 0.0:
+            y = d * target
+        return y, d
+
+    @wp.kernel(enable_backward=False)
+    def clamp_body_speeds(
+        v_lo: float,
+        v_hi: float,
+        w_lo: float,
+        w_hi: float,
+        # outputs
+        body_qd: wp.array(dtype=wp.spatial_vector),
+        last_dir: wp.array(dtype=wp.vec3),
+        last_axis: wp.array(dtype=wp.vec3),
+    ):
+        i = wp.tid()
+        qd = body_qd[i]
+        v, dv = clamp_norm(wp.spatial_top(qd), last_dir[i], v_lo, v_hi)
+        w, dw = clamp_norm(wp.spatial_bottom(qd), last_axis[i], w_lo, w_hi)
+        body_qd[i] = wp.spatial_vector(v, w)
+        last_dir[i] = dv
+        last_axis[i] = dw
+
+    return clamp_body_speeds
+
+
+# Newton's narrow phase builds fresh Warp kernels from factory functions for every CollisionPipeline;
+# Warp then re-generates and re-hashes their code on first launch (0.3-3 s per scene, measured in
+# benchmarks/physics.py), although every scene asks for the same few variants. These factories are
+# pure functions of their (hashable) arguments, so one kernel per argument tuple serves all pipelines.
+_NEWTON_KERNEL_FACTORIES = ("create_narrow_phase_primitive_kernel", "create_narrow_phase_kernel_gjk_mpr")
+
+
+@functools.cache
+def _memoise_newton_kernel_factories() -> None:
+    """Cache Newton's narrow-phase kernel factories per process (skipped if Newton renames them)."""
+    from newton._src.geometry import narrow_phase
+
+    for name in _NEWTON_KERNEL_FACTORIES:
+        factory = getattr(narrow_phase, name, None)
+        if callable(factory) and not hasattr(factory, "cache_info"):
+            setattr(narrow_phase, name, functools.cache(factory))
+
+
+def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:
+    c = asset.collider
+    if c.kind == "box":
+        b.add_shape_box(body, hx=c.params[0], hy=c.params[1], hz=c.params[2], cfg=shape_cfg)
+    elif c.kind == "sphere":
+        b.add_shape_sphere(body, radius=c.params[0], cfg=shape_cfg)
+    elif c.kind == "capsule":
+        b.add_shape_capsule(body, radius=c.params[0], half_height=c.params[1], cfg=shape_cfg)
+    elif c.kind == "cylinder":
+        b.add_shape_cylinder(body, radius=c.params[0], half_height=c.params[1], cfg=shape_cfg)
+    elif c.kind == "cone":
+        b.add_shape_cone(body, radius=c.params[0], half_height=c.params[1], cfg=shape_cfg)
+    else:
+        s = asset.size
+        b.add_shape_convex_hull(body, mesh=_newton_unit_hull(asset.name), scale=(s, s, s), cfg=shape_cfg)
+
+
+@functools.lru_cache(maxsize=1024)
+def _newton_unit_hull(name: str):
+    """newton.Mesh of the unit-size convex collider of asset ``name``, shared by every instance and scale
+    (Newton preprocesses each distinct hull once per model)."""
+    import newton
+
+    hull = unit_hull(name)
+    return newton.Mesh(np.asarray(hull.vertices, dtype=np.float32),
+                       np.asarray(hull.faces, dtype=np.int32).ravel(),
+                       compute_inertia=False)
+
+
+def _unit_or(x: np.ndarray, fallback: Sequence[float]) -> np.ndarray:
+    """Rows of x (N, 3) normalised; rows shorter than EPS_SPEED become ``fallback``."""
+    n = np.linalg.norm(x, axis=1, keepdims=True)
+    return np.where(n > EPS_SPEED, x / np.maximum(n, EPS_SPEED), np.asarray(fallback, np.float64))
+
+
+def _poses(position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    P = np.zeros(position.shape[:-1] + (4, 4))
+    P[..., :3, :3] = rotation
+    P[..., :3, 3] = position
+    P[..., 3, 3] = 1.0
+    return P
+
+
+def quat_to_rotation(q: np.ndarray) -> np.ndarray:
+    """(N, 4) quaternions (x, y, z, w), renormalised, to (N, 3, 3) float64 rotation matrices."""
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
+
+
+def _rotation_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices to (N, 4) unit quaternions (x, y, z, w), w >= 0."""
+    q = Rotation.from_matrix(R).as_quat()  # scipy order is (x, y, z, w)
+    return q * np.where(q[:, 3:] < 0, -1.0, 1.0)

@@ -1,0 +1,234 @@
+"""Deterministic BouncingThings scenes from (config, seed, index).
+
+``sample_scene(cfg, seed, index)`` draws everything from ``np.random.default_rng(SeedSequence([seed,
+index]))`` in a fixed order (below), runs the motion and returns a :class:`flowsynth.Scene`:
+
+- instances 1..n: the flying objects, category ``OBJECT_CATEGORY_OFFSET + a`` where ``a`` is the index
+  of the object's asset in ``resolve_assets(cfg.assets)`` (globs expanded);
+- instance n + 1: the room, a box seen from inside (inward-facing triangles) spanning
+  ``cfg.room_bounds``, category ``ROOM_CATEGORY``, identity pose, ``background=True`` (rendered, but no
+  row in the object tables).
+
+World frame: +z up, floor at z = 0, room centred on x = y = 0. The camera sits in the camera zone
+(the first ``cfg.camera_clearance`` metres along +x from the wall x = -room_x / 2), which objects never
+enter, and looks at a point near the centre of the objects' region; OpenCV axes (x right, y down,
+z forward) with world +z pointing up in the image. A moving camera travels in a straight line at a
+speed drawn from ``cfg.camera_speed``, reflected inside the camera zone, and keeps looking at the same
+point. Objects start inside the objects' region with disjoint bounding spheres, preferably inside the
+camera's view frustum.
+
+Draw order (changing it changes every dataset): n, asset indices, size levels, camera position,
+target, camera velocity, object positions (rejection sampling), orientations, linear velocities,
+angular velocities, texture seeds (n objects, then the room).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from flowsynth.assets import Asset, get_asset, resolve_assets, room_mesh
+from flowsynth.camera import Camera
+from flowsynth.config import BouncingThingsConfig
+from flowsynth.errors import ConfigError
+from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, reflect_in_box, simulate
+from flowsynth.scene import Scene
+
+__all__ = [
+    "OBJECT_CATEGORY_OFFSET",
+    "ROOM_CATEGORY",
+    "Layout",
+    "build_scene",
+    "look_at",
+    "make_rng",
+    "sample_layout",
+    "sample_scene",
+    "size_levels",
+]
+
+ROOM_CATEGORY = 1
+"""Category id of the room (walls, floor, ceiling)."""
+OBJECT_CATEGORY_OFFSET = 2
+"""Category of an object = OBJECT_CATEGORY_OFFSET + index of its asset in resolve_assets(cfg.assets)."""
+SPAWN_GAP_FRACTION = 0.02
+"""Initial clearance between bounding spheres (and to the walls), as a fraction of the smallest size."""
+FRUSTUM_TRIES = 200
+"""Placement attempts per object inside the camera's view before trying the whole region [count]."""
+REGION_TRIES = 5000
+"""Further placement attempts per object anywhere in the objects' region [count]."""
+VIEW_MARGIN = 0.1
+"""Fraction of the image width/height kept free at each border when aiming initial positions."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Everything drawn for one scene before motion.
+
+    Attributes:
+        asset_keys: the resolved asset list (built-in names and absolute paths).
+        asset_index: (n,) int index into ``asset_keys`` per object.
+        assets: the n objects' scaled assets.
+        initial: objects' state at t = 0.
+        world_T_cam: (T, 4, 4) float64 camera poses, OpenCV axes.
+        texture_seeds: (n + 1,) int texture seeds, objects then the room.
+    """
+
+    asset_keys: tuple[str, ...]
+    asset_index: np.ndarray
+    assets: tuple[Asset, ...]
+    initial: InitialState
+    world_T_cam: np.ndarray
+    texture_seeds: np.ndarray
+
+
+def make_rng(seed: int, index: int) -> np.random.Generator:
+    """The generator of sample ``index`` of a dataset with ``seed`` (both non-negative integers)."""
+    for name, v in (("seed", seed), ("index", index)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise ConfigError(f"{name} must be a non-negative integer, got {v!r}")
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
+
+
+def sample_scene(cfg: BouncingThingsConfig, seed: int, index: int) -> Scene:
+    """Sample, simulate and assemble scene ``index`` of the dataset ``(cfg, seed)``, bit for bit
+    reproducible."""
+    layout = sample_layout(cfg, seed, index)
+    trajectory = simulate(cfg, layout.assets, layout.initial)
+    scene = build_scene(cfg, layout, trajectory)
+    scene.meta.update(config=cfg.to_dict(), seed=int(seed), index=int(index), substeps=trajectory.substeps)
+    return scene
+
+
+def size_levels(cfg: BouncingThingsConfig) -> np.ndarray:
+    """(cfg.size_levels,) float64 object sizes [m], log-spaced from object_size min to max."""
+    lo, hi = cfg.object_size
+    if cfg.size_levels == 1:
+        return np.array([lo])
+    return np.geomspace(lo, hi, cfg.size_levels)
+
+
+def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> Layout:
+    """Draw objects, sizes, camera path, initial states and texture seeds (no motion)."""
+    rng = make_rng(seed, index)
+    keys = resolve_assets(cfg.assets)
+    n = int(rng.integers(cfg.num_objects[0], cfg.num_objects[1] + 1))
+    asset_index = rng.integers(len(keys), size=n)
+    sizes = size_levels(cfg)[rng.integers(cfg.size_levels, size=n)]
+    assets = tuple(get_asset(keys[a], float(s)) for a, s in zip(asset_index, sizes))
+    camera = Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg)
+    world_T_cam = _sample_camera_path(cfg, rng)
+    position = _place_objects(cfg, rng, sizes, camera, world_T_cam[0])
+    quat = rng.normal(size=(n, 4))
+    rotation = quat_to_rotation(quat)  # normal 4-vectors: uniform random rotations
+    velocity = _unit(rng.normal(size=(n, 3))) * rng.uniform(cfg.min_speed, cfg.max_speed, size=(n, 1))
+    w_lo, w_hi = cfg.angular_speed
+    angular = _unit(rng.normal(size=(n, 3))) * rng.uniform(w_lo, w_hi, size=(n, 1))
+    seeds = rng.integers(0, 2**31 - 1, size=n + 1)
+    return Layout(keys, asset_index, assets, InitialState(position, rotation, velocity, angular), world_T_cam,
+                  seeds)
+
+
+def build_scene(cfg: BouncingThingsConfig, layout: Layout, trajectory: Trajectory) -> Scene:
+    """Assemble a Scene: objects (ids 1..n) with ``trajectory.poses``, then the room (id n + 1, marked
+    ``background``: rendered, not in the object tables). Materials are ``{"texture_seed", "texture_families",
+    "texture_dir"}`` (see flowsynth.materials)."""
+    scene = Scene(Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg), num_frames=cfg.num_frames, fps=cfg.fps)
+    scene.set_camera_poses(layout.world_T_cam)
+    def material(i: int) -> dict:
+        return {"texture_seed": int(layout.texture_seeds[i]), "texture_families": cfg.texture_families,
+                "texture_dir": cfg.texture_dir}
+
+    for i, asset in enumerate(layout.assets):
+        scene.add_object(asset.mesh, trajectory.poses[:, i], material=material(i),
+                         category=OBJECT_CATEGORY_OFFSET + int(layout.asset_index[i]))
+    lo, hi = cfg.room_bounds
+    scene.add_object(room_mesh(lo, hi), None, category=ROOM_CATEGORY, material=material(-1), background=True)
+    return scene
+
+
+def look_at(eye: np.ndarray, target: np.ndarray,
+            up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """world_T_cam (..., 4, 4) for cameras at ``eye`` (..., 3) looking at ``target`` [m], OpenCV axes:
+    z forward, x right, y down, with ``up`` (world) pointing up in the image."""
+    eye, target = np.broadcast_arrays(np.asarray(eye, np.float64), np.asarray(target, np.float64))
+    z = _unit(target - eye)
+    x = _unit(np.cross(z, np.asarray(up, np.float64)))
+    y = np.cross(z, x)
+    T = np.zeros(eye.shape[:-1] + (4, 4))
+    T[..., :3, 0], T[..., :3, 1], T[..., :3, 2], T[..., :3, 3] = x, y, z, eye
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def _camera_box(cfg: BouncingThingsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the box the camera centre moves in: the inner 70% of the camera zone."""
+    (x0, y0, z0), (_, y1, z1) = cfg.room_bounds
+    lo = np.array([x0 + 0.15 * cfg.camera_clearance, y0 + 0.15 * (y1 - y0), z0 + 0.15 * (z1 - z0)])
+    hi = np.array([x0 + 0.85 * cfg.camera_clearance, y1 - 0.15 * (y1 - y0), z1 - 0.15 * (z1 - z0)])
+    return lo, hi
+
+
+def _sample_camera_path(cfg: BouncingThingsConfig, rng: np.random.Generator) -> np.ndarray:
+    lo, hi = _camera_box(cfg)
+    eye0 = lo + (hi - lo) * rng.uniform([0.3, 0.25, 0.25], [0.7, 0.75, 0.75])
+    olo, ohi = (np.asarray(b) for b in cfg.object_bounds)
+    target = (olo + ohi) / 2.0 + (ohi - olo) * rng.uniform(-0.1, 0.1, size=3)
+    direction = _unit(rng.normal(size=3))
+    speed = rng.uniform(*cfg.camera_speed)
+    velocity = direction * speed if cfg.camera_motion == "moving" else np.zeros(3)
+    t = np.arange(cfg.num_frames, dtype=np.float64)[:, None] / cfg.fps
+    eye, _ = reflect_in_box(eye0, velocity, t, lo, hi)
+    return look_at(eye, target)
+
+
+def _place_objects(cfg: BouncingThingsConfig, rng: np.random.Generator, sizes: np.ndarray, camera: Camera,
+                   world_T_cam: np.ndarray) -> np.ndarray:
+    """Centres (n, 3) [m] with disjoint bounding spheres inside the objects' region, largest first."""
+    n = len(sizes)
+    position = np.zeros((n, 3))
+    if n == 0:
+        return position
+    gap = SPAWN_GAP_FRACTION * float(sizes.min())
+    olo, ohi = (np.asarray(b, np.float64) for b in cfg.object_bounds)
+    K_inv = np.linalg.inv(camera.K)
+    eye, R = world_T_cam[:3, 3], world_T_cam[:3, :3]
+    placed: list[int] = []
+    for i in np.argsort(-sizes, kind="stable"):
+        r = sizes[i] / 2.0 + gap
+        lo, hi = olo + r, ohi - r
+        for attempt in range(FRUSTUM_TRIES + REGION_TRIES):
+            if attempt < FRUSTUM_TRIES:
+                u = rng.uniform(VIEW_MARGIN, 1.0 - VIEW_MARGIN, size=2)
+                u = u * [camera.width - 1, camera.height - 1]
+                ray = R @ (K_inv @ np.array([u[0], u[1], 1.0]))
+                span = _ray_box(eye, ray, lo, hi)
+                if span is None:
+                    continue
+                p = eye + ray * rng.uniform(*span)
+            else:
+                p = rng.uniform(lo, hi)
+            others = position[placed]
+            if not placed or np.all(np.linalg.norm(others - p, axis=1) >= sizes[placed] / 2 + r + gap):
+                position[i] = p
+                placed.append(int(i))
+                break
+        else:
+            raise ConfigError(f"could not place {n} objects of sizes up to {sizes.max():.3g} m "
+                              "without overlap; "
+                              "lower num_objects or object_size, or enlarge room_size")
+    return position
+
+
+def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[float, float] | None:
+    """Parameter interval (t0, t1), t0 >= 0, where o + t d lies inside the box [lo, hi]; None if empty."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, b = (lo - o) / d, (hi - o) / d
+    t0 = float(np.nanmax(np.minimum(a, b)))
+    t1 = float(np.nanmin(np.maximum(a, b)))
+    t0 = max(t0, 0.0)
+    return (t0, t1) if t1 > t0 else None
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
