@@ -7,6 +7,7 @@ u = (fx x + s y) / z + cx, v = fy y / z + cy, with skew s = K[0, 1] (usually 0).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -75,21 +76,24 @@ class Camera:
         return float(self._K[1, 2])
 
     def pixel_rays(self, dtype=torch.float64) -> torch.Tensor:
-        """Unit ray directions through every pixel centre, camera frame: (H, W, 3) (computed once, cached)."""
-        if getattr(self, "_rays", None) is None:
-            self._rays = self._compute_rays()
-        return self._rays.to(dtype)
+        """Unit ray directions through every pixel centre, camera frame: (H, W, 3)."""
+        return torch.from_numpy(self.pixel_rays_numpy().copy()).to(dtype)
 
-    def _compute_rays(self) -> torch.Tensor:
-        v, u = torch.meshgrid(
-            torch.arange(self.height, dtype=torch.float64), torch.arange(self.width, dtype=torch.float64),
-            indexing="ij",
-        )
-        Kinv = torch.linalg.inv(torch.from_numpy(self._K))
-        pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)
-        d = pix @ Kinv.T
-        return d / d.norm(dim=-1, keepdim=True)
+    def pixel_rays_numpy(self) -> np.ndarray:
+        """Read-only cached (H, W, 3) float64 unit ray directions through the pixel centres."""
+        return _pixel_rays(self._K.tobytes(), self.width, self.height)
 
     def __repr__(self) -> str:
         return (f"Camera(width={self.width}, height={self.height}, fx={self.fx:.4g}, fy={self.fy:.4g}, "
                 f"cx={self.cx:.4g}, cy={self.cy:.4g})")
+
+
+@functools.lru_cache(maxsize=16)
+def _pixel_rays(K_bytes: bytes, width: int, height: int) -> np.ndarray:
+    """(H, W, 3) float64 unit directions K^-1 (u, v, 1) / |.|, cached per intrinsics and size (read-only)."""
+    K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    d = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    d.setflags(write=False)
+    return d

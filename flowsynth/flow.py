@@ -94,7 +94,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
                 blocked = blocked_all[offset:offset + cnt]
                 offset += cnt
             else:
-                blocked = _depth_test(gb, r[inside], X[inside], uv[inside], scene.camera.pixel_rays()[..., 2].numpy())
+                blocked = _depth_test(gb, r[inside], X[inside], uv[inside], scene.camera.pixel_rays_numpy()[..., 2])
             occ = ~inside
             occ[np.nonzero(inside)[0]] = blocked
             masks["occ"][f, 0, i, j] = occ

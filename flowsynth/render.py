@@ -133,7 +133,7 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
     if "distance" in want:
         out["distance"] = torch.from_numpy(gb.dist[:, None].copy())
     if "depth" in want:
-        dz = scene.camera.pixel_rays(torch.float64)[..., 2].numpy()
+        dz = scene.camera.pixel_rays_numpy()[..., 2]
         out["depth"] = torch.from_numpy((gb.dist.astype(np.float64) * dz).astype(np.float32)[:, None])
     if "normals" in want:
         out["normals"] = torch.from_numpy(np.ascontiguousarray(gb.normal.transpose(0, 3, 1, 2)))

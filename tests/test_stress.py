@@ -179,12 +179,7 @@ def _stream_memory(n):
     return rss
 
 
-def test_stream_memory_flat():
-    rss = _stream_memory(500)
-    assert rss[-1] - rss[2] < 20, rss  # MiB, after warm-up
-
-
-@pytest.mark.slow
 def test_long_stream_memory_flat():
+    """10,000 small samples: resident memory after warm-up must not grow (asset caches are bounded)."""
     rss = _stream_memory(10_000)
-    assert rss[-1] - rss[2] < 30, rss
+    assert rss[-1] - rss[2] < 30, rss  # MiB
