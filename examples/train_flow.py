@@ -74,7 +74,7 @@ def train(steps: int = 200, *, width: int = 64, height: int = 48, batch_size: in
         opt.zero_grad()
         loss.backward()
         opt.step()
-        history.append(float(loss))
+        history.append(loss.item())
         if step % log_every == 0 or step == steps:
             print(f"step {step:5d}  loss (train EPE) {sum(history[-log_every:]) / len(history[-log_every:]):.3f} px"
                   f"  held-out EPE {evaluate():.3f} px  {step / (time.time() - t0):.1f} steps/s")
