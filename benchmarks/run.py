@@ -20,7 +20,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import RESULTS_DIR, machine_info  # noqa: E402
+from _common import RESULTS_DIR, machine_info
 
 BENCHMARKS = ["raycast", "accuracy", "physics", "rgb", "throughput", "export", "scaling"]
 MAIN_TABLE = "raycast"

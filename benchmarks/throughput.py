@@ -15,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine_info, print_table, write_json  # noqa: E402
+from _common import machine_info, print_table, write_json
 
 OUTPUT_SETS = {
     "depth": ["depth"],
@@ -53,7 +53,7 @@ def skip_savings(cfg, n: int) -> list[dict]:
         "full request": full,
         "no rgb (no shading)": [k for k in full if k != "rgb"],
         "no occlusion rays": [k for k in full if not k.startswith("occ_")],
-        "no flow family": [k for k in full if not k.split("_")[0] in ("flow", "valid", "occ", "oof", "motion")],
+        "no flow family": [k for k in full if k.split("_")[0] not in ("flow", "valid", "occ", "oof", "motion")],
         "no object tables": [k for k in full if not (k.startswith("object_") or k.startswith("box")
                                                      or k in ("world_T_obj", "visible_pixels"))],
         "depth only": ["depth"],

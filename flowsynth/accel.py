@@ -13,6 +13,7 @@ from collections import OrderedDict
 
 import numpy as np
 import trimesh
+from scipy.spatial import QhullError
 
 from flowsynth.kernels import wp_runtime
 
@@ -121,7 +122,7 @@ def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
         V = np.asarray(mesh.vertices, np.float64)
         try:
             pts = np.asarray(mesh.convex_hull.vertices, np.float64) if len(V) > 64 else V
-        except Exception:  # qhull fails on flat or degenerate point sets; all vertices are still exact
+        except (ValueError, IndexError, QhullError):  # flat/degenerate point sets: all vertices are exact too
             pts = V
         _HULLS[key] = pts
         while len(_HULLS) > MESH_CACHE_SIZE:

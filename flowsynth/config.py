@@ -20,6 +20,7 @@ __all__ = ["CAMERA_MOTIONS", "MOTIONS", "RENDER_MODES", "BouncingThingsConfig"]
 MOTIONS = ("physics", "kinematic", "static")
 CAMERA_MOTIONS = ("static", "moving")
 RENDER_MODES = ("flat", "direct", "path")
+TONEMAPS = ("clamp", "reinhard")
 # Initial placement needs free space: total bounding-sphere volume of the largest possible object set
 # may fill at most this fraction of the objects' region (random sequential packing jams near 0.38).
 MAX_PACKING_FRACTION = 0.25
@@ -76,11 +77,17 @@ class BouncingThingsConfig:
     max_objects: int = 32
     """Rows of the padded per-object tables [count]; num_objects max must be <= max_objects."""
     render_mode: str = "flat"
-    """RGB shading: "flat" (albedo only), "direct" (lights and shadows) or "path" (path traced)."""
+    """RGB shading: "flat" (lit, no shadows), "direct" (lights and shadows) or "path" (path traced)."""
     spp: int = 1
     """Samples per pixel for RGB, >= 1 [count]."""
     shutter: float = 0.0
     """Shutter open time as a fraction of the frame interval, in [0, 1]; 0 disables motion blur."""
+    bounces: int = 3
+    """Path-tracing bounces after the primary hit (render_mode "path"), in [0, 64] [count]."""
+    tonemap: str = "clamp"
+    """Linear radiance -> display: "clamp" or "reinhard", then sRGB encoding (docs/rendering.md)."""
+    exposure: float = 1.0
+    """Radiance multiplier before tone mapping, >= 0."""
     texture_dir: str | None = None
     """Folder of image textures (jpg/png) for objects and walls; None uses procedural textures only."""
     texture_families: tuple[str, ...] = ("noise", "cells", "stripes", "checks", "blend", "solid")
@@ -243,10 +250,19 @@ def _validate(cfg: BouncingThingsConfig) -> None:
     _set(cfg, "shutter", _float(cfg, "shutter", lo=0.0, hi=1.0))
     if cfg.texture_dir is not None and not isinstance(cfg.texture_dir, str):
         raise ConfigError(f"texture_dir must be a folder path or None, got {cfg.texture_dir!r}")
+    _int(cfg, "bounces", 0, 64)
+    _choice(cfg, "tonemap", TONEMAPS)
+    _set(cfg, "exposure", _float(cfg, "exposure", lo=0.0))
     fams = cfg.texture_families
     if isinstance(fams, str) or not fams or not all(isinstance(f, str) and f for f in fams):
         raise ConfigError(f"texture_families must be a non-empty sequence of names, got {fams!r}")
     _set(cfg, "texture_families", tuple(fams))
+    from flowsynth.materials import check_texture_families
+
+    try:
+        check_texture_families(cfg.texture_families, cfg.texture_dir)
+    except ConfigError as e:
+        raise ConfigError(f"texture_families/texture_dir: {e}") from None
     _validate_assets(cfg)
 
 

@@ -39,6 +39,9 @@ class Plan:
     spp: int = 1
     shutter: float = 0.0
     seed: int = 0
+    bounces: int | None = None
+    tonemap: str | None = None
+    exposure: float | None = None
 
     def _any(self, *keys: str) -> bool:
         return any(k in self.outputs for k in keys)
@@ -76,7 +79,8 @@ RENDER_MODES = ("flat", "direct", "path")
 
 
 def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None, render_mode: str = "direct",
-              spp: int = 1, shutter: float = 0.0, seed: int = 0) -> Plan:
+              spp: int = 1, shutter: float = 0.0, seed: int = 0, bounces: int | None = None,
+              tonemap: str | None = None, exposure: float | None = None) -> Plan:
     """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys."""
     if isinstance(outputs, str):
         outputs = [s for s in outputs.split(",") if s]
@@ -96,4 +100,11 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
         raise ConfigError(f"spp must be an integer >= 1, got {spp!r}")
     if not (0.0 <= float(shutter) <= 1.0):
         raise ConfigError(f"shutter must be in [0, 1] (fraction of the frame interval), got {shutter!r}")
-    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed))
+    if bounces is not None and (not isinstance(bounces, int) or not 0 <= bounces <= 64):
+        raise ConfigError(f"bounces must be an integer in [0, 64], got {bounces!r}")
+    if tonemap is not None and tonemap not in ("clamp", "reinhard"):
+        raise ConfigError(f"tonemap must be 'clamp' or 'reinhard', got {tonemap!r}")
+    if exposure is not None and not (float(exposure) >= 0.0):
+        raise ConfigError(f"exposure must be >= 0, got {exposure!r}")
+    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed), bounces,
+                tonemap, exposure)

@@ -32,6 +32,7 @@ from flowsynth.assets import Asset, get_asset, resolve_assets, room_mesh
 from flowsynth.camera import Camera
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
+from flowsynth.materials import sample_lights
 from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, reflect_in_box, simulate
 from flowsynth.scene import Scene
 
@@ -96,6 +97,8 @@ def sample_scene(cfg: BouncingThingsConfig, seed: int, index: int) -> Scene:
     layout = sample_layout(cfg, seed, index)
     trajectory = simulate(cfg, layout.assets, layout.initial)
     scene = build_scene(cfg, layout, trajectory)
+    scene.lights = sample_lights(np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 2])),
+                                 cfg.room_size)
     scene.meta.update(config=cfg.to_dict(), seed=int(seed), index=int(index), substeps=trajectory.substeps)
     return scene
 

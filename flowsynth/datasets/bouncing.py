@@ -82,7 +82,8 @@ class BouncingThings(IterableDataset):
         requested = list(outputs)
         self.plan = make_plan(
             tuple(dict.fromkeys(requested + ["K", "cam_T_world"])), occlusion=occlusion,
-            max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, shutter=cfg.shutter)
+            max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, shutter=cfg.shutter,
+            bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure)
         if cfg.num_frames < 2 and self.plan.flow_stage:
             raise ConfigError("flow outputs need num_frames >= 2")
         self.cfg, self.seed, self.length, self.start, self.device = cfg, int(seed), length, int(start), device

@@ -238,8 +238,8 @@ def visibility_kernel(
         blocked[r] = wp.int8(1)
         return
     f = pair_frame[r]
-    item, t, face, u, v = trace_from_camera(bvh, roots[f], f, n_items, order, near, lowers, uppers, item_mesh,
-                                            obj_T_ref, p / L, L * (1.0 - rel_tol))
+    item, _t, _face, _u, _v = trace_from_camera(bvh, roots[f], f, n_items, order, near, lowers, uppers,
+                                                item_mesh, obj_T_ref, p / L, L * (1.0 - rel_tol))
     blocked[r] = wp.int8(1) if item >= 0 else wp.int8(0)
 
 

@@ -1,0 +1,328 @@
+"""RGB shading: flat, direct (ray-traced shadows) and path-traced radiance with anti-aliasing and motion blur.
+
+One launch of dims (T, H, W); each thread averages ``spp`` samples of its pixel into linear radiance.
+Sample k of frame t:
+
+- sub-pixel position: x = (k + xi) / spp (one sample per column stratum) and y = reverse_bits(k) XOR r
+  (a digitally shifted van der Corput sequence), with r random per pixel. For spp = 4^m this is a
+  (0, 2m, 2)-net: exactly one sample in every cell of the sqrt(spp) x sqrt(spp) grid (a jittered grid).
+- time slice s = (k + o) mod S with o random per pixel, so every (position stratum, slice) pair is equally
+  likely; the ray is traced in group t * S + s of the acceleration structure (the scene at that time).
+- RNG: ``wp.rand_init(seed_t, pixel * spp + k)`` with seed_t a hash of (seed, t): bit-for-bit reproducible.
+
+When ``reuse`` is set (spp == 1, no motion blur) the primary hit is read from the G-buffer instead of traced.
+
+Shading model (all quantities linear RGB; ``light_irr`` already holds pi * intensity * colour):
+BRDF f = (1 - s) albedo / pi + s D G1(wi) G1(wo) / (4 (n.wi) (n.wo)), GGX with alpha = roughness^2, white
+specular of weight s. Lights: directional (``light_vec`` = unit vector towards the light, camera frame of the
+group) and point (``light_vec`` = position), both delta lights; the ambient sky radiance ``sky`` is the
+background and, in flat/direct modes, an unshadowed ambient term sky * ((1 - s) albedo + s).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from flowsynth.kernels.raycast import trace_any, trace_closest
+from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
+
+__all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel"]
+
+LIGHT_DIRECTIONAL = 0
+LIGHT_POINT = 1
+# Secondary rays (shadow and bounce) start at x + n * max(OFFSET_REL * |x|, OFFSET_ABS): mesh_query_ray has
+# no t_min, and float32 hit points carry ~1e-6 relative error in camera-frame coordinates.
+OFFSET_REL = wp.constant(1.0e-4)
+OFFSET_ABS = wp.constant(1.0e-6)
+# A bounce whose sampling pdf falls below this is ended (guards the division by the pdf).
+PDF_MIN = wp.constant(1.0e-6)
+# Russian roulette from this bounce on; survival probability max(throughput) capped at RR_MAX_SURVIVAL.
+RR_START = wp.constant(2)
+RR_MAX_SURVIVAL = wp.constant(0.95)
+# Each indirect contribution of a path sample (light reaching the pixel after >= 1 bounce) is scaled down
+# to at most this radiance (max over channels): a biased but standard clamp against fireflies (glossy
+# surfaces seen via a bounce, lit by a delta light). Direct light at the first hit is never clamped.
+INDIRECT_CLAMP = wp.constant(2.0)
+# Surfaces reached by a bounce shade with roughness at least this ("filter glossy", as in Blender Cycles):
+# a sharp highlight seen only indirectly is a rare, very bright sample (a firefly). First hits are exact.
+MIN_INDIRECT_ROUGHNESS = wp.constant(0.5)
+# Point lights closer than sqrt(this) [m] to a surface point are skipped (inverse-square singularity).
+MIN_LIGHT_DIST2 = wp.constant(1.0e-12)
+PI = wp.constant(3.14159265358979)
+
+
+@wp.struct
+class ShadeScene:
+    """Everything a shading thread reads besides its pixel's G-buffer entry."""
+
+    bvh: wp.uint64
+    roots: wp.array[wp.int32]
+    item_mesh: wp.array[wp.uint64]
+    obj_T_ref: wp.array[wp.mat44]
+    ref_T_obj: wp.array[wp.mat44]
+    n_inst: wp.int32
+    max_t: wp.float32
+    mat_f: wp.array2d[wp.float32]
+    mat_i: wp.array2d[wp.int32]
+    img_data: wp.array[wp.vec3]
+    img_info: wp.array2d[wp.int32]
+    n_lights: wp.int32
+    light_kind: wp.array[wp.int32]
+    light_vec: wp.array2d[wp.vec3]
+    light_irr: wp.array[wp.vec3]
+    sky: wp.vec3
+
+
+@wp.func
+def reverse_bits(x: wp.uint32) -> wp.uint32:
+    x = ((x >> wp.uint32(1)) & wp.uint32(0x55555555)) | ((x & wp.uint32(0x55555555)) << wp.uint32(1))
+    x = ((x >> wp.uint32(2)) & wp.uint32(0x33333333)) | ((x & wp.uint32(0x33333333)) << wp.uint32(2))
+    x = ((x >> wp.uint32(4)) & wp.uint32(0x0F0F0F0F)) | ((x & wp.uint32(0x0F0F0F0F)) << wp.uint32(4))
+    x = ((x >> wp.uint32(8)) & wp.uint32(0x00FF00FF)) | ((x & wp.uint32(0x00FF00FF)) << wp.uint32(8))
+    return (x >> wp.uint32(16)) | (x << wp.uint32(16))
+
+
+@wp.func
+def camera_ray(v: wp.float32, u: wp.float32, intr: wp.vec4, skew: wp.float32):
+    """Unit camera-frame direction through image point (u, v) [px]; intr = (fx, fy, cx, cy)."""
+    y = (v - intr[3]) / intr[1]
+    x = (u - intr[2] - skew * y) / intr[0]
+    return wp.normalize(wp.vec3(x, y, 1.0))
+
+
+@wp.func
+def offset_origin(x: wp.vec3, n: wp.vec3):
+    return x + n * wp.max(OFFSET_REL * wp.length(x), OFFSET_ABS)
+
+
+@wp.func
+def tangent_frame(n: wp.vec3):
+    """Two unit vectors completing n to an orthonormal basis (Duff et al. 2017)."""
+    s = wp.where(n[2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (s + n[2])
+    b = n[0] * n[1] * a
+    return wp.vec3(1.0 + s * n[0] * n[0] * a, s * b, -s * n[0]), wp.vec3(b, s + n[1] * n[1] * a, -n[1])
+
+
+@wp.func
+def ggx_d(nh: wp.float32, a2: wp.float32) -> wp.float32:
+    k = nh * nh * (a2 - 1.0) + 1.0
+    return a2 / wp.max(PI * k * k, 1.0e-30)
+
+
+@wp.func
+def smith_g1(nv: wp.float32, a2: wp.float32) -> wp.float32:
+    return 2.0 * nv / (nv + wp.sqrt(a2 + (1.0 - a2) * nv * nv))
+
+
+@wp.func
+def brdf(n: wp.vec3, wi: wp.vec3, wo: wp.vec3, albedo: wp.vec3, spec: wp.float32, rough: wp.float32):
+    ni = wp.dot(n, wi)
+    no = wp.dot(n, wo)
+    if ni <= 0.0 or no <= 0.0:
+        return wp.vec3(0.0)
+    f = albedo * ((1.0 - spec) / PI)
+    if spec > 0.0:
+        a = rough * rough
+        a2 = a * a
+        nh = wp.max(wp.dot(n, wp.normalize(wi + wo)), 0.0)
+        fs = spec * ggx_d(nh, a2) * smith_g1(ni, a2) * smith_g1(no, a2) / (4.0 * ni * no)
+        f = f + wp.vec3(fs)
+    return f
+
+
+@wp.func
+def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: wp.vec3):
+    """Shading normal (camera frame, facing against d), albedo, specular weight, roughness at a hit."""
+    m = wp.mesh_get(sc.item_mesh[item])
+    a = m.points[m.indices[3 * face + 0]]
+    b = m.points[m.indices[3 * face + 1]]
+    c = m.points[m.indices[3 * face + 2]]
+    n_obj = wp.normalize(wp.cross(b - a, c - a))
+    n = wp.normalize(wp.transform_vector(sc.ref_T_obj[item], n_obj))
+    if wp.dot(n, d) > 0.0:
+        n = -n
+    inst = item % sc.n_inst
+    albedo = base_color(sc.mat_f, sc.mat_i, sc.img_data, sc.img_info, inst, p_obj, n_obj)
+    return n, albedo, sc.mat_f[inst, COL_SPECULAR], sc.mat_f[inst, COL_ROUGHNESS]
+
+
+@wp.func
+def direct_light(sc: ShadeScene, g: wp.int32, x: wp.vec3, n: wp.vec3, wo: wp.vec3, albedo: wp.vec3,
+                 spec: wp.float32, rough: wp.float32, shadows: wp.bool):
+    """Radiance towards wo from the delta lights at x; with ``shadows``, one shadow ray per lit light."""
+    L = wp.vec3(0.0)
+    o = offset_origin(x, n)
+    for l in range(sc.n_lights):
+        v = sc.light_vec[g, l]
+        E = sc.light_irr[l]
+        wi = v
+        t_max = sc.max_t
+        if sc.light_kind[l] == LIGHT_POINT:
+            dv = v - x
+            r2 = wp.dot(dv, dv)
+            if r2 <= MIN_LIGHT_DIST2:
+                continue
+            r = wp.sqrt(r2)
+            wi = dv / r
+            E = E / r2
+            t_max = r
+        ci = wp.dot(n, wi)
+        if ci <= 0.0:
+            continue
+        if shadows:
+            if trace_any(sc.bvh, sc.roots[g], sc.item_mesh, sc.obj_T_ref, o, wi, t_max):
+                continue
+        L += wp.cw_mul(brdf(n, wi, wo, albedo, spec, rough), E) * ci
+    return L
+
+
+@wp.func
+def clamp_indirect(c: wp.vec3):
+    m = wp.max(c[0], wp.max(c[1], c[2]))
+    if m > INDIRECT_CLAMP:
+        return c * (INDIRECT_CLAMP / m)
+    return c
+
+
+@wp.func
+def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp.vec3, albedo0: wp.vec3,
+                  spec0: wp.float32, rough0: wp.float32, bounces: wp.int32, rng: wp.uint32):
+    """Path-traced radiance towards wo0 from hit x0: next-event estimation at every vertex, ``bounces``
+    BRDF-sampled bounces (one-sample mixture of cosine and GGX half-vector sampling), Russian roulette,
+    roughness at least MIN_INDIRECT_ROUGHNESS after a bounce, indirect contributions clamped to
+    INDIRECT_CLAMP."""
+    x = x0
+    n = n0
+    wo = wo0
+    albedo = albedo0
+    spec = spec0
+    rough = rough0
+    L = direct_light(sc, g, x, n, wo, albedo, spec, rough, True)
+    beta = wp.vec3(1.0)
+    for b in range(bounces):
+        p_spec = wp.where(spec <= 0.0, 0.0, wp.where(spec >= 1.0, 1.0, wp.clamp(spec, 0.1, 0.9)))
+        u1 = wp.randf(rng)
+        u2 = wp.randf(rng)
+        u3 = wp.randf(rng)
+        e1, e2 = tangent_frame(n)
+        phi = 2.0 * PI * u2
+        a = rough * rough
+        a2 = a * a
+        wi = wp.vec3(0.0)
+        if u3 < p_spec:
+            c2 = (1.0 - u1) / (1.0 + (a2 - 1.0) * u1)
+            st = wp.sqrt(wp.max(1.0 - c2, 0.0))
+            h = e1 * (st * wp.cos(phi)) + e2 * (st * wp.sin(phi)) + n * wp.sqrt(c2)
+            wi = 2.0 * wp.dot(wo, h) * h - wo
+        else:
+            r = wp.sqrt(u1)
+            wi = e1 * (r * wp.cos(phi)) + e2 * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(1.0 - u1, 0.0))
+        wi = wp.normalize(wi)
+        ci = wp.dot(n, wi)
+        if ci <= 0.0:
+            break
+        pdf = (1.0 - p_spec) * ci / PI
+        if p_spec > 0.0:
+            h = wp.normalize(wi + wo)
+            nh = wp.max(wp.dot(n, h), 0.0)
+            pdf += p_spec * ggx_d(nh, a2) * nh / wp.max(4.0 * wp.dot(wo, h), 1.0e-30)
+        if pdf < PDF_MIN:
+            break
+        beta = wp.cw_mul(beta, brdf(n, wi, wo, albedo, spec, rough)) * (ci / pdf)
+        if b >= RR_START:
+            q = wp.min(wp.max(beta[0], wp.max(beta[1], beta[2])), RR_MAX_SURVIVAL)
+            if wp.randf(rng) >= q:
+                break
+            beta = beta / q
+        o = offset_origin(x, n)
+        item, dist, face, bu, bv = trace_closest(sc.bvh, sc.roots[g], sc.item_mesh, sc.obj_T_ref, o, wi, sc.max_t)
+        if item < 0:
+            L += clamp_indirect(wp.cw_mul(beta, sc.sky))
+            break
+        x = o + wi * dist
+        wo = -wi
+        n, albedo, spec, rough = surface(sc, item, face, wp.mesh_eval_position(sc.item_mesh[item], face, bu, bv), wi)
+        rough = wp.max(rough, MIN_INDIRECT_ROUGHNESS)
+        L += clamp_indirect(wp.cw_mul(beta, direct_light(sc, g, x, n, wo, albedo, spec, rough, True)))
+    return L
+
+
+_SHADE: dict = {}
+
+
+def shade_kernel(mode: str):
+    """The shading kernel for render mode "flat", "direct" or "path" (other modes' code compiled out).
+
+    Launch dims (T, H, W). Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
+    """
+    if mode in _SHADE:
+        return _SHADE[mode]
+    if mode not in ("flat", "direct", "path"):
+        raise ValueError(f"unknown render mode {mode!r}")
+    path = mode == "path"
+    shadows = mode == "direct"
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def shade(
+        sc: ShadeScene,
+        gb_item: wp.array3d[wp.int32],
+        gb_face: wp.array3d[wp.int32],
+        gb_dist: wp.array3d[wp.float32],
+        gb_point: wp.array3d[wp.vec3],
+        reuse: wp.int32,
+        intr: wp.vec4,
+        skew: wp.float32,
+        spp: wp.int32,
+        slices: wp.int32,
+        seed: wp.int32,
+        bounces: wp.int32,
+        # outputs
+        radiance: wp.array3d[wp.vec3],
+    ):
+        t, i, j = wp.tid()
+        pix = wp.uint32(i * radiance.shape[2] + j)
+        seed_t = wp.int32(hash3(t, 0, seed))
+        prng = wp.rand_init(wp.int32(hash3(t, 1, seed)), wp.int32(pix))
+        scramble = wp.uint32(wp.randi(prng))
+        t_off = wp.randi(prng, 0, slices)
+        acc = wp.vec3(0.0)
+        for k in range(spp):
+            rng = wp.rand_init(seed_t, wp.int32(pix * wp.uint32(spp) + wp.uint32(k)))
+            g = t * slices + (k + t_off) % slices
+            item = wp.int32(-1)
+            face = wp.int32(-1)
+            dist = wp.float32(0.0)
+            p_obj = wp.vec3(0.0)
+            d = wp.vec3(0.0)
+            if reuse != 0:
+                d = camera_ray(wp.float32(i), wp.float32(j), intr, skew)
+                item = gb_item[t, i, j]
+                face = gb_face[t, i, j]
+                dist = gb_dist[t, i, j]
+                p_obj = gb_point[t, i, j]
+            else:
+                du = (wp.float32(k) + wp.randf(rng)) / wp.float32(spp)
+                dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
+                d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, intr, skew)
+                item, dist, face, bu, bv = trace_closest(sc.bvh, sc.roots[g], sc.item_mesh, sc.obj_T_ref,
+                                                         wp.vec3(0.0), d, sc.max_t)
+                if item >= 0:
+                    p_obj = wp.mesh_eval_position(sc.item_mesh[item], face, bu, bv)
+            if item < 0:
+                acc += sc.sky
+                continue
+            n, albedo, spec, rough = surface(sc, item, face, p_obj, d)
+            x = d * dist
+            L = wp.vec3(0.0)
+            if wp.static(path):
+                L = path_radiance(sc, g, x, n, -d, albedo, spec, rough, bounces, rng)
+            else:
+                L = wp.cw_mul(sc.sky, albedo * (1.0 - spec) + wp.vec3(spec))
+                L += direct_light(sc, g, x, n, -d, albedo, spec, rough, wp.static(shadows))
+            if wp.isfinite(L):
+                acc += L
+        radiance[t, i, j] = acc / wp.float32(spp)
+
+    _SHADE[mode] = shade
+    return shade

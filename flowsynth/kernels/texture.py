@@ -1,0 +1,212 @@
+"""Textures evaluated in object-local coordinates, so a texture moves exactly with its object.
+
+A material is one row of two packed parameter tables (see ``flowsynth.materials.pack_materials``):
+``mat_f`` (M, MAT_F) float32 and ``mat_i`` (M, MAT_I) int32. It has two texture *layers* (a, b) and
+a blend mask; a single-layer material has layer b's family set to ``FAMILY_NONE``.
+
+Triplanar projection: the object-frame hit point p [m] is projected onto the planes x = 0, y = 0,
+z = 0 as (p.y, p.z), (p.z, p.x), (p.x, p.y); the three 2-D lookups are blended with weights
+|n_i|^4 / sum_k |n_k|^4 of the object-frame face normal n. Each layer multiplies these coordinates
+by its ``scale`` [cycles / m], so a pattern period is 1 / scale metres on the object's surface.
+
+Images are stored in one atlas: ``img_data`` (sum of w*h,) vec3 linear RGB, rows top to bottom, and
+``img_info`` (K, 3) int32 (offset, width, height); they tile with period 1 in texture coordinates.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+__all__ = [
+    "FAMILIES", "FAMILY_NONE", "LAYER_F", "LAYER_I", "MAT_F", "MAT_I", "base_color",
+]
+
+# Texture families, by kernel code. "blend" is not a code: it is a material with two layers.
+FAMILIES = {"solid": 0, "noise": 1, "value": 2, "cells": 3, "stripes": 4, "checks": 5, "image": 6}
+FAMILY_NONE = -1
+F_SOLID = wp.constant(0)
+F_NOISE = wp.constant(1)
+F_VALUE = wp.constant(2)
+F_CELLS = wp.constant(3)
+F_STRIPES = wp.constant(4)
+F_CHECKS = wp.constant(5)
+F_IMAGE = wp.constant(6)
+
+# Packed layout. Per layer, floats: colour a (3, linear RGB), colour b (3), scale [1/m], angle [rad];
+# ints: family, octaves, seed, image index. Per material after the two layers, floats: mask scale [1/m],
+# roughness, specular; ints: mask seed.
+LAYER_F = 8
+LAYER_I = 4
+MAT_F = 2 * LAYER_F + 3
+MAT_I = 2 * LAYER_I + 1
+COL_MASK_SCALE = wp.constant(2 * LAYER_F)
+COL_ROUGHNESS = wp.constant(2 * LAYER_F + 1)
+COL_SPECULAR = wp.constant(2 * LAYER_F + 2)
+COL_MASK_SEED = wp.constant(2 * LAYER_I)
+
+# Gain mapping fractal noise (roughly zero-mean, std ~0.2 before gain) to a [0, 1] mix weight.
+NOISE_GAIN = wp.constant(1.6)
+# Triplanar weights below this are skipped (the largest weight is >= 1/9 for a unit normal).
+TRIPLANAR_MIN_WEIGHT = wp.constant(1.0e-3)
+
+
+@wp.func
+def hash3(x: wp.int32, y: wp.int32, seed: wp.int32) -> wp.uint32:
+    """Integer hash of a lattice cell and a seed (lowbias32 finaliser)."""
+    h = wp.uint32(seed) * wp.uint32(0x27D4EB2F) + wp.uint32(x) * wp.uint32(0x165667B1)
+    h = (h ^ wp.uint32(y) * wp.uint32(0x3C6EF372)) + wp.uint32(0x7F4A7C15)
+    h = h ^ (h >> wp.uint32(16))
+    h = h * wp.uint32(0x7FEB352D)
+    h = h ^ (h >> wp.uint32(15))
+    h = h * wp.uint32(0x68E31DA4)
+    h = h ^ (h >> wp.uint32(16))
+    return h
+
+
+@wp.func
+def unit(h: wp.uint32) -> wp.float32:
+    """Top 24 bits of a hash as a float in [0, 1)."""
+    return wp.float32(h >> wp.uint32(8)) * (1.0 / 16777216.0)
+
+
+@wp.func
+def value_noise(q: wp.vec2, seed: wp.int32) -> wp.float32:
+    """Smoothly interpolated lattice values in [0, 1)."""
+    fx = wp.floor(q[0])
+    fy = wp.floor(q[1])
+    ix = wp.int32(fx)
+    iy = wp.int32(fy)
+    tx = q[0] - fx
+    ty = q[1] - fy
+    tx = tx * tx * (3.0 - 2.0 * tx)
+    ty = ty * ty * (3.0 - 2.0 * ty)
+    a = wp.lerp(unit(hash3(ix, iy, seed)), unit(hash3(ix + 1, iy, seed)), tx)
+    b = wp.lerp(unit(hash3(ix, iy + 1, seed)), unit(hash3(ix + 1, iy + 1, seed)), tx)
+    return wp.lerp(a, b, ty)
+
+
+@wp.func
+def fractal(q: wp.vec2, seed: wp.int32, octaves: wp.int32, gradient: wp.bool) -> wp.float32:
+    """Fractal sum (lacunarity 2, gain 1/2) of Perlin gradient noise or value noise, mapped to [0, 1]."""
+    total = wp.float32(0.0)
+    norm = wp.float32(0.0)
+    amp = wp.float32(1.0)
+    freq = wp.float32(1.0)
+    for o in range(wp.max(octaves, 1)):
+        if gradient:
+            n = wp.noise(wp.rand_init(seed, o), q * freq)
+        else:
+            n = value_noise(q * freq, seed + 7919 * o) - 0.5
+        total += amp * n
+        norm += amp
+        amp *= 0.5
+        freq *= 2.0
+    return wp.clamp(0.5 + NOISE_GAIN * total / norm, 0.0, 1.0)
+
+
+@wp.func
+def cells(q: wp.vec2, seed: wp.int32) -> wp.float32:
+    """Worley cells: the random value in [0, 1) of the nearest jittered lattice feature point."""
+    fx = wp.floor(q[0])
+    fy = wp.floor(q[1])
+    ix = wp.int32(fx)
+    iy = wp.int32(fy)
+    best = wp.float32(1.0e9)
+    value = wp.float32(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            h = hash3(ix + dx, iy + dy, seed)
+            px = fx + wp.float32(dx) + unit(h)
+            py = fy + wp.float32(dy) + unit(hash3(ix + dx, iy + dy, seed + 1))
+            d2 = (q[0] - px) * (q[0] - px) + (q[1] - py) * (q[1] - py)
+            if d2 < best:
+                best = d2
+                value = unit(hash3(ix + dx, iy + dy, seed + 2))
+    return value
+
+
+@wp.func
+def image_sample(img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], k: wp.int32, q: wp.vec2):
+    """Bilinear, tiling lookup of atlas image k at texture coordinates q (period 1)."""
+    off = img_info[k, 0]
+    w = img_info[k, 1]
+    h = img_info[k, 2]
+    x = wp.frac(q[0]) * wp.float32(w) - 0.5
+    y = (1.0 - wp.frac(q[1])) * wp.float32(h) - 0.5
+    fx = wp.floor(x)
+    fy = wp.floor(y)
+    tx = x - fx
+    ty = y - fy
+    x0 = (wp.int32(fx) % w + w) % w
+    y0 = (wp.int32(fy) % h + h) % h
+    x1 = (x0 + 1) % w
+    y1 = (y0 + 1) % h
+    a = wp.lerp(img_data[off + y0 * w + x0], img_data[off + y0 * w + x1], tx)
+    b = wp.lerp(img_data[off + y1 * w + x0], img_data[off + y1 * w + x1], tx)
+    return wp.lerp(a, b, ty)
+
+
+@wp.func
+def layer_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
+                img_info: wp.array2d[wp.int32], m: wp.int32, layer: wp.int32, q: wp.vec2):
+    """Linear RGB of one texture layer at object-plane coordinates q [m]."""
+    cf = layer * LAYER_F
+    ci = layer * LAYER_I
+    fam = mat_i[m, ci]
+    ca = wp.vec3(mat_f[m, cf], mat_f[m, cf + 1], mat_f[m, cf + 2])
+    if fam == F_SOLID:
+        return ca
+    cb = wp.vec3(mat_f[m, cf + 3], mat_f[m, cf + 4], mat_f[m, cf + 5])
+    s = mat_f[m, cf + 6]
+    ang = mat_f[m, cf + 7]
+    c = wp.cos(ang)
+    sn = wp.sin(ang)
+    r = wp.vec2(c * q[0] - sn * q[1], sn * q[0] + c * q[1]) * s
+    seed = mat_i[m, ci + 2]
+    if fam == F_IMAGE:
+        return image_sample(img_data, img_info, mat_i[m, ci + 3], r)
+    v = wp.float32(0.0)
+    if fam == F_NOISE:
+        v = fractal(r, seed, mat_i[m, ci + 1], True)
+    elif fam == F_VALUE:
+        v = fractal(r, seed, mat_i[m, ci + 1], False)
+    elif fam == F_CELLS:
+        v = cells(r, seed)
+    elif fam == F_STRIPES:
+        v = wp.where(wp.frac(r[0]) < 0.5, 0.0, 1.0)
+    elif fam == F_CHECKS:
+        v = wp.float32((wp.int32(wp.floor(r[0])) + wp.int32(wp.floor(r[1]))) & 1)
+    return wp.lerp(ca, cb, v)
+
+
+@wp.func
+def planar_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
+                 img_info: wp.array2d[wp.int32], m: wp.int32, q: wp.vec2):
+    """Material colour at object-plane coordinates q [m]: layer a, or a noise-masked blend of a and b."""
+    a = layer_color(mat_f, mat_i, img_data, img_info, m, 0, q)
+    if mat_i[m, LAYER_I] == FAMILY_NONE:
+        return a
+    b = layer_color(mat_f, mat_i, img_data, img_info, m, 1, q)
+    t = fractal(q * mat_f[m, COL_MASK_SCALE], mat_i[m, COL_MASK_SEED], 3, True)
+    return wp.lerp(a, b, wp.smoothstep(0.4, 0.6, t))
+
+
+@wp.func
+def base_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
+               img_info: wp.array2d[wp.int32], m: wp.int32, p: wp.vec3, n: wp.vec3):
+    """Triplanar base colour (linear RGB) of material m at object-frame point p with object-frame normal n."""
+    w = wp.vec3(n[0] * n[0], n[1] * n[1], n[2] * n[2])
+    w = wp.cw_mul(w, w)
+    w = w / wp.max(w[0] + w[1] + w[2], 1.0e-30)
+    col = wp.vec3(0.0)
+    total = wp.float32(0.0)
+    if w[0] > TRIPLANAR_MIN_WEIGHT:
+        col += w[0] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[1], p[2]))
+        total += w[0]
+    if w[1] > TRIPLANAR_MIN_WEIGHT:
+        col += w[1] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[2], p[0]))
+        total += w[1]
+    if w[2] > TRIPLANAR_MIN_WEIGHT:
+        col += w[2] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[0], p[1]))
+        total += w[2]
+    return col / wp.max(total, 1.0e-30)

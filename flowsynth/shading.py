@@ -1,0 +1,231 @@
+"""RGB rendering: materials and lights packed for the shading kernel, motion-blur time slices, tone mapping.
+
+``render_rgb`` is called by ``flowsynth.render.render_plan`` when "rgb" is requested. The model (render
+modes, material schema, lights, time model, tone mapping, RNG) is documented in docs/rendering.md.
+
+Motion-blur time model: the shutter opens at the frame instant. Frame t integrates times
+t + shutter * (s + 1/2) / S [frame units], s = 0 .. S-1, with S = min(spp, MAX_TIME_SLICES) time slices
+(sample k of a pixel uses slice (k + o) mod S, o random per pixel); the scene at those times
+is a second ``SceneAccel`` over T * S pose sets. Poses between frames k and k+1 (fraction a): translation
+linear, rotation R(a) = exp(a log(R_{k+1} R_k^T)) R_k (slerp); after the last frame the last interval's
+motion continues (a > 1); a one-frame clip does not move.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from flowsynth.accel import SceneAccel
+from flowsynth.errors import ConfigError
+from flowsynth.kernels import wp_runtime
+from flowsynth.materials import load_texture, resolve_lights, resolve_material, srgb_to_linear
+
+__all__ = ["DEFAULT_BOUNCES", "MAX_TIME_SLICES", "TONEMAPS", "pack_materials", "poses_at", "render_radiance",
+           "render_rgb", "shutter_times", "tonemap_srgb"]
+
+# Path-tracing bounces after the first hit when neither the call nor the plan sets ``bounces``.
+DEFAULT_BOUNCES = 3
+TONEMAPS = ("clamp", "reinhard")
+# White point of the extended Reinhard operator: linear radiance that maps to 1.
+REINHARD_WHITE = 4.0
+# Motion blur uses min(spp, MAX_TIME_SLICES) time slices per frame (samples share slices beyond that).
+MAX_TIME_SLICES = 64
+# Rays end at this distance [m] (beyond any scene).
+MAX_RAY_DIST = 1.0e9
+
+
+def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu", *, bounces: int | None = None,
+               tonemap: str | None = None, exposure: float | None = None) -> torch.Tensor:
+    """Render ``rgb``: (T, 3, H, W) float32 sRGB-encoded colour in [0, 1].
+
+    Args:
+        scene: the scene (objects' ``material`` dicts, ``lights``; empty means defaults).
+        accel: the G-buffer's acceleration structure (one group per frame).
+        gb: the G-buffer of the pixel-centre rays; reused as the primary hit when spp == 1 and shutter == 0.
+        plan: ``render_mode``, ``spp``, ``shutter``, ``seed`` (and ``bounces``, ``tonemap``, ``exposure``
+            where the plan has them).
+        device: Warp device.
+        bounces: path-tracing bounces (overrides the plan; default ``DEFAULT_BOUNCES``).
+        tonemap: "clamp" (default) or "reinhard".
+        exposure: linear radiance scale before tone mapping (default 1).
+    """
+    tonemap = _option(plan, "tonemap", "clamp") if tonemap is None else tonemap
+    exposure = _option(plan, "exposure", 1.0) if exposure is None else exposure
+    tonemap_srgb(np.zeros((1, 3)), tonemap, exposure)  # validate before the (costly) render
+    radiance = render_radiance(scene, accel, gb, plan, device=device, bounces=bounces)
+    return torch.from_numpy(np.ascontiguousarray(tonemap_srgb(radiance, tonemap, exposure).transpose(0, 3, 1, 2)))
+
+
+def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu", *,
+                    bounces: int | None = None) -> np.ndarray:
+    """Linear radiance of every pixel, (T, H, W, 3) float32, finite and >= 0 (before tone mapping)."""
+    wp = wp_runtime()
+    from flowsynth.kernels.shade import ShadeScene, shade_kernel
+
+    T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
+    bounces = _option(plan, "bounces", DEFAULT_BOUNCES) if bounces is None else bounces
+    if not (isinstance(bounces, (int, np.integer)) and 0 <= bounces <= 64):
+        raise ConfigError(f"bounces must be an integer in [0, 64], got {bounces!r}")
+    hits = gb.dist[0][gb.item[0] >= 0]
+    lights = resolve_lights(scene.lights, scene.world_T_cam[0], float(np.median(hits)) if hits.size else 1.0)
+    sky = sum((np.asarray(x.color) * x.intensity for x in lights if x.kind == "ambient"), np.zeros(3))
+    if accel.empty:
+        return np.broadcast_to(sky.astype(np.float32), (T, H, W, 3)).copy()
+
+    spp, shutter = int(plan.spp), float(plan.shutter)
+    slices = min(spp, MAX_TIME_SLICES) if shutter > 0 else 1
+    reuse = spp == 1 and shutter == 0 and gb.point is not None
+    cam_T_world = scene.cam_T_world
+    if shutter > 0:
+        times = shutter_times(T, shutter, slices).reshape(-1)
+        world_T_cam = poses_at(scene.world_T_cam, times)
+        cam_T_world = np.linalg.inv(world_T_cam)
+        world_T_obj = np.stack([poses_at(o.poses, times) for o in scene.objects], 1)
+        accel = SceneAccel([o.mesh for o in scene.objects], cam_T_world, world_T_obj, device=device)
+
+    sc = ShadeScene()
+    sc.bvh, sc.roots, sc.item_mesh = accel.bvh.id, accel.roots, accel.item_mesh
+    sc.obj_T_ref, sc.ref_T_obj = accel.obj_T_ref, accel.ref_T_obj
+    sc.n_inst, sc.max_t = accel.N, MAX_RAY_DIST
+    mat_f, mat_i, img_data, img_info = pack_materials(scene)
+    sc.mat_f = wp.array(mat_f, dtype=wp.float32, device=device)
+    sc.mat_i = wp.array(mat_i, dtype=wp.int32, device=device)
+    sc.img_data = wp.array(img_data, dtype=wp.vec3, device=device)
+    sc.img_info = wp.array(img_info, dtype=wp.int32, device=device)
+    delta = [light for light in lights if light.kind != "ambient"]
+    kind, vec, irr = _light_tables(delta, cam_T_world)
+    sc.n_lights = len(delta)
+    sc.light_kind = wp.array(kind, dtype=wp.int32, device=device)
+    sc.light_vec = wp.array(vec, dtype=wp.vec3, device=device)
+    sc.light_irr = wp.array(irr, dtype=wp.vec3, device=device)
+    sc.sky = wp.vec3(*sky.astype(np.float32))
+
+    def gbuf(a, dtype, fill):
+        if reuse:
+            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+        return wp.full((1, 1, 1), fill, dtype=dtype, device=device)
+
+    K = scene.camera.K
+    radiance = wp.zeros((T, H, W), dtype=wp.vec3, device=device)
+    wp.launch(shade_kernel(plan.render_mode), dim=(T, H, W), device=device, inputs=[
+        sc, gbuf(gb.item, wp.int32, -1), gbuf(gb.face, wp.int32, -1), gbuf(gb.dist, wp.float32, 0.0),
+        gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
+        float(K[0, 1]), spp, slices, _seed32(plan.seed), int(bounces)], outputs=[radiance])
+    out = radiance.numpy()
+    return np.nan_to_num(np.maximum(out, 0.0), nan=0.0, posinf=0.0)
+
+
+def _light_tables(delta: list, cam_T_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kernel tables of the directional and point lights: kind (L,), per-group camera-frame vector (G, L, 3)
+    (unit vector towards a directional light, position of a point light) and irradiance scale pi I c (L, 3).
+    One dummy entry when there are none."""
+    from flowsynth.kernels.shade import LIGHT_DIRECTIONAL, LIGHT_POINT
+
+    L = max(len(delta), 1)
+    kind = np.zeros(L, np.int32)
+    vec = np.zeros((len(cam_T_world), L, 3))
+    irr = np.zeros((L, 3), np.float32)
+    R, t = cam_T_world[:, :3, :3], cam_T_world[:, :3, 3]
+    for n, light in enumerate(delta):
+        if light.kind == "directional":
+            kind[n] = LIGHT_DIRECTIONAL
+            vec[:, n] = R @ -np.asarray(light.direction)
+        else:
+            kind[n] = LIGHT_POINT
+            vec[:, n] = R @ np.asarray(light.position) + t
+        irr[n] = np.pi * light.intensity * np.asarray(light.color)
+    return kind, vec.astype(np.float32), irr
+
+
+def shutter_times(num_frames: int, shutter: float, slices: int) -> np.ndarray:
+    """(T, S) sample times [frame units]: t + shutter * (s + 1/2) / S (the shutter opens at the frame instant)."""
+    s = (np.arange(slices) + 0.5) / slices
+    return np.arange(num_frames)[:, None] + shutter * s[None, :]
+
+
+def poses_at(poses: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Rigid poses (T, 4, 4) at fractional frame times (K,): slerp + linear translation, extrapolated past
+    the last frame with the last interval's motion, held before frame 0. Returns (K, 4, 4) float64."""
+    poses = np.asarray(poses, np.float64)
+    times = np.asarray(times, np.float64)
+    if len(poses) == 1:
+        return np.repeat(poses, len(times), 0)
+    k = np.clip(np.floor(times).astype(np.int64), 0, len(poses) - 2)
+    a = np.maximum(times - k, 0.0)[:, None]
+    A, B = poses[k], poses[k + 1]
+    rel = Rotation.from_matrix(B[:, :3, :3] @ np.swapaxes(A[:, :3, :3], 1, 2)).as_rotvec()
+    out = np.zeros((len(times), 4, 4))
+    out[:, :3, :3] = Rotation.from_rotvec(a * rel).as_matrix() @ A[:, :3, :3]
+    out[:, :3, 3] = (1.0 - a) * A[:, :3, 3] + a * B[:, :3, 3]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def tonemap_srgb(radiance: np.ndarray, method: str = "clamp", exposure: float = 1.0) -> np.ndarray:
+    """Linear radiance (..., 3) -> sRGB-encoded float32 in [0, 1].
+
+    "clamp": c = min(exposure * L, 1). "reinhard" (extended, per channel): c = x (1 + x / w^2) / (1 + x),
+    x = exposure * L, w = REINHARD_WHITE, then clamped. Then the sRGB transfer function (IEC 61966-2-1).
+    """
+    if method not in TONEMAPS:
+        raise ConfigError(f"tonemap must be one of {TONEMAPS}, got {method!r}")
+    if not (np.isfinite(exposure) and exposure >= 0):
+        raise ConfigError(f"exposure must be finite and >= 0, got {exposure!r}")
+    x = np.nan_to_num(np.asarray(radiance, np.float64) * exposure, nan=0.0, posinf=1e30, neginf=0.0)
+    x = np.maximum(x, 0.0)
+    if method == "reinhard":
+        x = x * (1.0 + x / REINHARD_WHITE**2) / (1.0 + x)
+    x = np.minimum(x, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    return np.clip(srgb, 0.0, 1.0).astype(np.float32)
+
+
+def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Kernel tables of the objects' materials (layout in ``flowsynth.kernels.texture``).
+
+    Returns mat_f (N, MAT_F) float32, mat_i (N, MAT_I) int32, img_data (P, 3) float32 linear RGB atlas,
+    img_info (K, 3) int32 (offset, width, height); dummy one-entry atlas when no object uses an image.
+    """
+    from flowsynth.kernels.texture import FAMILIES, FAMILY_NONE, LAYER_F, LAYER_I, MAT_F, MAT_I
+
+    N = len(scene.objects)
+    mat_f = np.zeros((max(N, 1), MAT_F), np.float32)
+    mat_i = np.zeros((max(N, 1), MAT_I), np.int32)
+    images: dict[str, int] = {}
+    for n, obj in enumerate(scene.objects):
+        V = np.asarray(obj.mesh.vertices)
+        size = float(np.ptp(V, axis=0).max()) or 1.0
+        mat = resolve_material(obj.material, instance=obj.instance, size=size)
+        layers = mat["layers"] if mat["texture"] == "blend" else [mat]
+        mat_i[n, LAYER_I] = FAMILY_NONE
+        for li, layer in enumerate(layers):
+            cf, ci = li * LAYER_F, li * LAYER_I
+            mat_f[n, cf:cf + 6] = srgb_to_linear(np.asarray(layer["colors"])).reshape(-1)
+            mat_f[n, cf + 6] = layer["scale"]
+            mat_f[n, cf + 7] = layer["angle"]
+            mat_i[n, ci:ci + 3] = FAMILIES[layer["texture"]], layer["octaves"], _seed32(layer["seed"])
+            if layer["image"] is not None:
+                mat_i[n, ci + 3] = images.setdefault(layer["image"], len(images))
+        mat_f[n, 2 * LAYER_F:] = mat.get("mask_scale", 0.0), mat["roughness"], mat["specular"]
+        mat_i[n, 2 * LAYER_I] = _seed32(mat["seed"])
+    pics = [load_texture(p) for p in images]
+    if not pics:
+        return mat_f, mat_i, np.zeros((1, 3), np.float32), np.array([[0, 1, 1]], np.int32)
+    sizes = np.array([p.shape[0] * p.shape[1] for p in pics])
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    info = np.array([[o, p.shape[1], p.shape[0]] for o, p in zip(offsets, pics)], np.int32)
+    return mat_f, mat_i, np.concatenate([p.reshape(-1, 3) for p in pics]).astype(np.float32), info
+
+
+def _option(plan, name: str, default):
+    """``plan.<name>`` where the plan has it and it is set, else the default."""
+    value = getattr(plan, name, None)
+    return default if value is None else value
+
+
+def _seed32(seed: int) -> int:
+    """Any integer seed folded into int32 range (deterministically)."""
+    x = int(seed) % (1 << 32)
+    return x - (1 << 32) if x >= (1 << 31) else x
