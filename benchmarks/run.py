@@ -22,7 +22,7 @@ sys.path.insert(0, str(HERE))
 
 from _common import RESULTS_DIR, machine_info
 
-BENCHMARKS = ["raycast", "accuracy", "physics", "rgb", "throughput", "export", "scaling"]
+BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "scaling"]
 MAIN_TABLE = "raycast"
 
 
