@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from flowsynth.kernels import wp_runtime
 from flowsynth.assets import Asset, unit_hull
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError, ShapeError
@@ -207,6 +208,7 @@ class _NewtonScene:
 
     def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
                  substeps: int) -> None:
+        wp_runtime()  # quiet Warp initialisation before Newton's import initialises it loudly
         import newton
         import warp as wp
 
@@ -378,6 +380,7 @@ def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:
 def _newton_unit_hull(name: str):
     """newton.Mesh of the unit-size convex collider of asset ``name``, shared by every instance and scale
     (Newton preprocesses each distinct hull once per model)."""
+    wp_runtime()
     import newton
 
     hull = unit_hull(name)
