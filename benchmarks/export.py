@@ -30,7 +30,7 @@ def main() -> None:
     from flowsynth.export import export
 
     W, H = (256, 192) if args.quick else (512, 384)
-    num = 4 if args.quick else 12
+    num = 12 if args.quick else 32
     cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, render_mode="direct")
     rows, sizes = [], defaultdict(list)
     tmp = Path(tempfile.mkdtemp(prefix="fs-export-bench-"))
@@ -51,7 +51,8 @@ def main() -> None:
     per_format = [{"file": k, "bytes/sample": sum(v) / num} for k, v in sorted(sizes.items())]
     total = sum(r["bytes/sample"] for r in per_format)
     per_format.append({"file": "total", "bytes/sample": total})
-    print(f"Export throughput at {W}x{H}, T=2, render_mode=direct, outputs={','.join(OUTPUTS)}")
+    print(f"Export throughput at {W}x{H}, T=2, render_mode=direct, outputs={','.join(OUTPUTS)}; wall time "
+          "includes starting the worker processes (spawn: each imports torch, Warp and Newton)")
     print_table(rows, ["workers", "samples", "seconds", "samples/s"])
     print("\nBytes per sample per file kind (T=2: 2 frames, 1 pair)")
     print_table(per_format, ["file", "bytes/sample"])
