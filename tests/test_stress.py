@@ -183,3 +183,21 @@ def test_long_stream_memory_flat():
     """10,000 small samples: resident memory after warm-up must not grow (asset caches are bounded)."""
     rss = _stream_memory(10_000)
     assert rss[-1] - rss[2] < 30, rss  # MiB
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(motion=st.sampled_from(["physics", "kinematic", "static"]), size=st.sampled_from([(1, 1), (9, 7), (24, 18)]),
+       frames=st.integers(2, 4), speed=st.floats(0.0, 6.0), fov=st.floats(20.0, 120.0),
+       camera=st.sampled_from(["static", "moving"]), obj=st.tuples(st.floats(0.1, 0.5), st.floats(0.0, 0.6)),
+       mode=st.sampled_from(["flat", "direct"]), seed=st.integers(0, 2**31 - 1), index=st.integers(0, 10**6))
+def test_fuzz_configs(motion, size, frames, speed, fov, camera, obj, mode, seed, index):
+    cfg = fs.BouncingThingsConfig(width=size[0], height=size[1], num_frames=frames, motion=motion,
+                                  min_speed=speed, max_speed=speed * 1.5, fov_deg=fov, camera_motion=camera,
+                                  object_size=(obj[0], obj[0] + obj[1]), num_objects=(1, 5), max_objects=5,
+                                  render_mode=mode)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb"] + ALL, seed=seed)
+    out = ds.sample(index)
+    check_invariants(out)
+    assert ((out["rgb"] >= 0) & (out["rgb"] <= 1)).all()
+    again = ds.sample(index)
+    assert all(torch.equal(out[k], again[k]) for k in out)
