@@ -206,7 +206,7 @@ def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, i
             _init_worker(cfg, outputs, seed, occlusion)
             results = map(_write_one, jobs)
         else:
-            pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn"),
+            pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=_mp_context(),
                                        initializer=_init_worker, initargs=(cfg, outputs, seed, occlusion))
             results = pool.map(_write_one, jobs, chunksize=1)
         for n, (i, digests) in enumerate(results, 1):
@@ -219,6 +219,12 @@ def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, i
             pool.shutdown(cancel_futures=True)
         bar.close()
         _write_manifest(root, identity, num, samples)
+
+
+def _mp_context():
+    """fork where the platform has it (like DataLoader's default: workers inherit loaded Warp modules,
+    2x faster start-up than spawn on 2 cores), spawn elsewhere."""
+    return mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
 
 
 def _clear(root: Path) -> None:
