@@ -6,55 +6,30 @@ import torch
 import trimesh
 
 import flowsynth as fs
+import oracle
 
-BARY_EPS = 1e-9
 GB = ["depth", "distance", "normals", "position", "instance", "category", "asset"]
 
 
 def brute_force(cam: fs.Camera, cam_T_world: np.ndarray, meshes, world_T_objs, dirs=None):
-    """Closest hit of every pixel-centre ray over all triangles (Moller-Trumbore, float64).
+    """Closest hit of every pixel-centre ray over all triangles (tests/oracle.py, float64), camera frame.
 
-    Returns t (H,W) [inf = miss], instance index (H,W) [-1 = miss], unit normal (H,W,3) camera frame.
+    Returns t (H,W) [inf = miss], instance index (H,W) [-1 = miss], unit normal (H,W,3) facing the
+    camera, and the ray directions (H,W,3).
     """
-    H, W = cam.height, cam.width
     if dirs is None:
-        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-        d = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(cam.K).T
-        dirs = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    D = dirs.reshape(-1, 3)
-    best_t = np.full(len(D), np.inf)
-    best_k = np.full(len(D), -1)
-    best_n = np.zeros((len(D), 3))
-    for k, (mesh, P) in enumerate(zip(meshes, world_T_objs)):
-        M = cam_T_world @ P
-        tri = np.asarray(mesh.vertices)[mesh.faces] @ M[:3, :3].T + M[:3, 3]  # (F,3,3) camera frame
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        for s in range(0, len(D), 4096):
-            d = D[s:s + 4096, None, :]
-            p = np.cross(d, e2[None])
-            det = np.einsum("rfi,fi->rf", p, e1)
-            ok = np.abs(det) > 1e-300
-            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-            tv = -tri[None, :, 0]
-            uu = np.einsum("rfi,rfi->rf", np.broadcast_to(tv, p.shape), p) * inv
-            q = np.cross(np.broadcast_to(tv, p.shape), e1[None])
-            vv = np.einsum("rfi,rfi->rf", np.broadcast_to(d, q.shape), q) * inv
-            tt = np.einsum("rfi,fi->rf", q, e2) * inv
-            # edge-inclusive with a 1e-9 slack: exact float64 tests miss some rays aimed at shared vertices
-            hit = ok & (uu >= -BARY_EPS) & (vv >= -BARY_EPS) & (uu + vv <= 1 + BARY_EPS) & (tt > 0)
-            tt = np.where(hit, tt, np.inf)
-            f = tt.argmin(1)
-            tmin = tt[np.arange(len(f)), f]
-            better = tmin < best_t[s:s + 4096]
-            idx = np.arange(s, s + len(f))[better]
-            best_t[idx] = tmin[better]
-            best_k[idx] = k
-            n = np.cross(e1[f[better]], e2[f[better]])
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-            n *= -np.sign(np.einsum("ri,ri->r", n, D[idx]))[:, None]
-            best_n[idx] = n
+        dirs = oracle.pixel_rays(cam.K, cam.width, cam.height)
+    cam_T_obj = np.stack([cam_T_world @ P for P in world_T_objs])
+    res = oracle.ray_cast(np.zeros(3), dirs.reshape(-1, 3), meshes, cam_T_obj)
+    n = np.zeros((len(res["t"]), 3))
+    for k, mesh in enumerate(meshes):
+        sel = res["obj"] == k
+        tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)[res["face"][sel]]] @ cam_T_obj[k, :3, :3].T
+        nk = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        nk /= np.linalg.norm(nk, axis=1, keepdims=True)
+        n[sel] = nk * -np.sign(np.einsum("ri,ri->r", nk, dirs.reshape(-1, 3)[sel]))[:, None]
     shape = dirs.shape[:-1]
-    return best_t.reshape(shape), best_k.reshape(shape), best_n.reshape(*shape, 3), dirs
+    return res["t"].reshape(shape), res["obj"].reshape(shape), n.reshape(*shape, 3), dirs
 
 
 def near_silhouette(cam, cam_T_world, meshes, poses, eps_px=1e-3):
