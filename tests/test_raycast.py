@@ -56,24 +56,11 @@ def random_pose(rng, center, scale=1.0):
     return P
 
 
-def look_at(eye, target, up=(0, -1, 0)):
-    """world_T_cam with OpenCV axes (z toward target, y down)."""
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up) * -1.0
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    P = np.eye(4)
-    P[:3, :3] = np.stack([x, y, z], 1)
-    P[:3, 3] = eye
-    return P
-
-
 def build_scene(seed=0, offset=np.zeros(3), T=2, W=48, H=36):
     rng = np.random.default_rng(seed)
     cam = fs.Camera.from_fov(W, H, 60)
     scene = fs.Scene(cam, T)
-    cams = np.stack([look_at(offset + [0.1 * t, 0.05 * t, -6.0], offset) for t in range(T)])
+    cams = np.stack([oracle.look_at(offset + [0.1 * t, 0.05 * t, -6.0], offset) for t in range(T)])
     scene.set_camera_poses(cams)
     meshes = [trimesh.creation.box((1.0, 0.6, 0.8)), trimesh.creation.icosphere(2, radius=0.7),
               trimesh.creation.box((6.0, 6.0, 0.05)), trimesh.creation.box((1.5, 0.3, 1.0))]
