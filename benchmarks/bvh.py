@@ -52,10 +52,10 @@ import trimesh
 from raycast import FOV_DEG, HEIGHT, WIDTH, make_scene
 from scipy.spatial.transform import Rotation
 
-from flowsynth.accel import SceneAccel, camera_trace_inputs
+from flowsynth.accel import ORDERED_MAX, SceneAccel, primary_trace_inputs
 from flowsynth.camera import Camera
 from flowsynth.kernels import wp_runtime
-from flowsynth.kernels.raycast import ORDERED_MAX, primary_kernel
+from flowsynth.kernels.raycast import primary_kernel
 
 SUBDIVISIONS = {1280: 3, 5120: 4, 20480: 5, 81920: 6}  # icosphere faces -> subdivisions
 FLOOR_SUBDIVISIONS = {20: 0}  # the icosahedron, for the cast time that does not depend on the BVH
@@ -119,7 +119,7 @@ def measure(wp, scene_name: str, faces: int, poses, variants, camera: Camera, re
         built[key] = make()
         build_s[key] = build_times(make, build_repeat) if build_repeat else None
         accel.item_mesh = wp.array(np.full(accel.F * N, built[key].id, np.uint64), dtype=wp.uint64)
-        inputs = [*camera_trace_inputs(accel), accel.ref_T_obj, wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
+        inputs = [*primary_trace_inputs(accel, camera), accel.ref_T_obj, wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
                   float(K[0, 1]), 1e9]
         fns[key] = lambda inputs=inputs: wp.launch(kernel, dim=shape, inputs=inputs,
                                                    outputs=[dist, item, face, point, normal])

@@ -9,6 +9,7 @@ ever see camera-relative coordinates: precision does not depend on the distance 
 from __future__ import annotations
 
 import hashlib
+import weakref
 from collections import OrderedDict
 
 import numpy as np
@@ -16,6 +17,11 @@ import trimesh
 from scipy.spatial import QhullError
 
 from flowsynth.kernels import wp_runtime
+
+# Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH.
+ORDERED_MAX = 64
+# Primary rays take their candidate list from their TILE x TILE pixel screen tile.
+TILE = 16
 
 __all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh"]
 
@@ -28,11 +34,18 @@ BOX_PAD_REL = 1e-4
 _MESHES: OrderedDict = OrderedDict()
 
 
+_KEYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
-    h = hashlib.blake2b(digest_size=16)
-    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float32).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int32).tobytes())
-    return h.digest()
+    """Content hash of a mesh, computed once per mesh object (meshes are not modified after Scene cleaning)."""
+    key = _KEYS.get(mesh)
+    if key is None:
+        h = hashlib.blake2b(digest_size=16)
+        h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float32).tobytes())
+        h.update(np.ascontiguousarray(mesh.faces, dtype=np.int32).tobytes())
+        key = _KEYS[mesh] = h.digest()
+    return key
 
 
 def asset_mesh(mesh: trimesh.Trimesh, device: str = "cpu"):
@@ -96,7 +109,11 @@ class SceneAccel:
         near = np.linalg.norm(np.maximum(lo - pad, 0.0) + np.maximum(-(hi + pad), 0.0), axis=-1)
         order = np.argsort(near, axis=1, kind="stable") + (np.arange(F) * N)[:, None]
         self.near = wp.array((near * (1.0 - 1e-6)).reshape(-1).astype(np.float32), dtype=wp.float32, device=device)
-        self.order = wp.array(order.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
+        self._order_np, self._lo, self._hi = order, lo - pad, hi + pad
+        self.frame_start = wp.array(np.arange(F + 1, dtype=np.int32) * N, dtype=wp.int32, device=device)
+        self.frame_items = wp.array(order.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
+        self.use_bvh = int(N > ORDERED_MAX)
+        self._tiles: dict = {}
         groups = np.repeat(np.arange(F, dtype=np.int32), N)
         self._lowers = wp.array(lowers, dtype=wp.vec3, device=device)
         self._uppers = wp.array(uppers, dtype=wp.vec3, device=device)
@@ -109,6 +126,21 @@ class SceneAccel:
         self.item_mesh = wp.array(np.tile(ids, F), dtype=wp.uint64, device=device)
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
+
+    def tile_lists(self, camera):
+        """(start, items) Warp arrays and (tiles_x, tiles_y) of the primary cast's per-tile candidate lists."""
+        wp = wp_runtime()
+        key = (camera.width, camera.height, camera.K.tobytes())
+        if key not in self._tiles:
+            if self.use_bvh:
+                start, items, tx, ty = np.zeros(2, np.int32), np.zeros(1, np.int32), 1, 1
+            else:
+                start, items, tx, ty = _tile_lists(self._lo, self._hi, self._order_np, camera.K, camera.width,
+                                                   camera.height, TILE)
+            self._tiles[key] = (wp.array(start, dtype=wp.int32, device=self.device),
+                                wp.array(items if len(items) else np.zeros(1, np.int32), dtype=wp.int32,
+                                         device=self.device), tx, ty)
+        return self._tiles[key]
 
 
 _HULLS: OrderedDict = OrderedDict()
@@ -128,6 +160,38 @@ def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
         while len(_HULLS) > MESH_CACHE_SIZE:
             _HULLS.popitem(last=False)
     return pts
+
+
+def _tile_lists(lo: np.ndarray, hi: np.ndarray, order: np.ndarray, K: np.ndarray, W: int, H: int,
+                tile: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """CSR lists (start, items) of the instances whose camera-frame box [lo, hi] (F, N, 3) can be seen by
+    a pixel-centre ray of each screen tile, in near-to-far ``order`` (F, N) of global item indices."""
+    F, N, _ = lo.shape
+    tx, ty = -(-W // tile), -(-H // tile)
+    corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
+    P = lo[:, :, None] + corners * (hi - lo)[:, :, None]  # (F, N, 8, 3)
+    front = P[..., 2].min(-1) > 1e-9
+    z = np.where(front[..., None], P[..., 2], 1.0)
+    u = (K[0, 0] * P[..., 0] + K[0, 1] * P[..., 1]) / z + K[0, 2]
+    v = K[1, 1] * P[..., 1] / z + K[1, 2]
+    # a box with a corner at or behind the camera plane may project anywhere: give it every tile
+    j0 = np.where(front, np.floor(u.min(-1)) - 1, 0).clip(0, W - 1).astype(np.int64) // tile
+    j1 = np.where(front, np.ceil(u.max(-1)) + 1, W - 1).clip(0, W - 1).astype(np.int64) // tile
+    i0 = np.where(front, np.floor(v.min(-1)) - 1, 0).clip(0, H - 1).astype(np.int64) // tile
+    i1 = np.where(front, np.ceil(v.max(-1)) + 1, H - 1).clip(0, H - 1).astype(np.int64) // tile
+    offscreen = front & ((u.max(-1) < -1) | (u.min(-1) > W) | (v.max(-1) < -1) | (v.min(-1) > H))
+    local = order - (np.arange(F) * N)[:, None]  # (F, N) instance index, near to far
+    i0, i1, j0, j1, offscreen = (np.take_along_axis(a, local, axis=1)[..., None, None]
+                                 for a in (i0, i1, j0, j1, offscreen))
+    ti = np.arange(ty)[None, None, :, None]
+    tj = np.arange(tx)[None, None, None, :]
+    mask = (ti >= i0) & (ti <= i1) & (tj >= j0) & (tj <= j1) & ~offscreen  # (F, N near to far, ty, tx)
+    f, y, x, k = np.nonzero(mask.transpose(0, 2, 3, 1))  # row-major: near to far within each tile
+    items = order[f, k].astype(np.int32)
+    counts = np.bincount((f * ty + y) * tx + x, minlength=F * ty * tx)
+    start = np.zeros(F * ty * tx + 1, np.int32)
+    start[1:] = np.cumsum(counts)
+    return start, items, tx, ty
 
 
 def _rigid_inverse(T: np.ndarray) -> np.ndarray:
@@ -151,6 +215,15 @@ def _group_roots(bvh, F: int, device: str):
 
 
 def camera_trace_inputs(accel: SceneAccel) -> list:
-    """Kernel inputs shared by every cast from a frame's camera centre (see raycast.trace_from_camera)."""
-    return [accel.bvh.id, accel.roots, accel.N, accel.order, accel.near, accel._lowers, accel._uppers,
-            accel.item_mesh, accel.obj_T_ref]
+    """Kernel inputs of casts from a frame's camera centre in any direction: one candidate list per frame
+    (see raycast.trace_from_camera)."""
+    return [accel.bvh.id, accel.roots, accel.use_bvh, accel.frame_start, accel.frame_items, accel.near,
+            accel._lowers, accel._uppers, accel.item_mesh, accel.obj_T_ref]
+
+
+def primary_trace_inputs(accel: SceneAccel, camera) -> list:
+    """Kernel inputs of the primary cast: one candidate list per (frame, TILE x TILE screen tile) holding
+    the instances whose box projects onto the tile, near to far; then tiles_x, tiles_y, tile size."""
+    start, items, tx, ty = accel.tile_lists(camera)
+    return [accel.bvh.id, accel.roots, accel.use_bvh, start, items, accel.near, accel._lowers, accel._uppers,
+            accel.item_mesh, accel.obj_T_ref, tx, ty, TILE]

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from flowsynth.accel import SceneAccel, camera_trace_inputs
+from flowsynth.accel import SceneAccel, primary_trace_inputs
 from flowsynth.kernels import wp_runtime
 from flowsynth.plan import Plan, make_plan
 from flowsynth.scene import Scene
@@ -65,7 +65,7 @@ def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: 
     K = camera.K
     wp.launch(
         primary_kernel(want_normals, want_points), dim=(F, H, W),
-        inputs=[*camera_trace_inputs(accel), accel.ref_T_obj,
+        inputs=[*primary_trace_inputs(accel, camera), accel.ref_T_obj,
                 wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), float(max_dist)],
         outputs=[dist, item, face, point, normal], device=dev,
     )

@@ -91,9 +91,10 @@ def box_entry(lo: wp.vec3, hi: wp.vec3, d: wp.vec3):
 def trace_from_camera(
     bvh: wp.uint64,
     root: wp.int32,
-    f: wp.int32,
-    n_items: wp.int32,
-    order: wp.array[wp.int32],
+    use_bvh: wp.int32,
+    lst: wp.int32,
+    list_start: wp.array[wp.int32],
+    list_items: wp.array[wp.int32],
     near: wp.array[wp.float32],
     lowers: wp.array[wp.vec3],
     uppers: wp.array[wp.vec3],
@@ -102,21 +103,22 @@ def trace_from_camera(
     d: wp.vec3,
     max_t: wp.float32,
 ):
-    """``trace_closest`` for a ray leaving the camera centre of frame f, same result.
+    """``trace_closest`` for a ray leaving the camera centre of a frame, same result.
 
-    With few instances (n_items <= ORDERED_MAX) the frame's instances are visited near to far (``order``
-    sorted by ``near``, the distance from the camera to each box) and the walk stops at the first box
-    farther than the best hit: ~1.2 mesh queries per ray instead of one per box crossed.
+    With few instances (``use_bvh`` = 0) the candidates of list ``lst`` (all the frame's instances, or
+    those whose box projects onto the ray's screen tile) are visited near to far (sorted by ``near``, the
+    distance from the camera to each box) and the walk stops at the first box farther than the best
+    hit: ~1.2 mesh queries per ray instead of one per box crossed.
     """
-    if n_items > ORDERED_MAX:
+    if use_bvh != 0:
         return trace_closest(bvh, root, item_mesh, obj_T_ref, wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
     best_u = wp.float32(0.0)
     best_v = wp.float32(0.0)
-    for k in range(n_items):
-        item = order[f * n_items + k]
+    for k in range(list_start[lst], list_start[lst + 1]):
+        item = list_items[k]
         if near[item] >= best_t:
             break
         te = box_entry(lowers[item], uppers[item], d)
@@ -141,8 +143,6 @@ def pixel_ray(i: wp.int32, j: wp.int32, intr: wp.vec4, skew: wp.float32):
     return wp.normalize(wp.vec3(x, y, 1.0))
 
 
-# Up to this many instances per frame, camera rays walk the instances near to far instead of the BVH.
-ORDERED_MAX = 64
 
 _PRIMARY: dict = {}
 
@@ -162,13 +162,17 @@ def primary_kernel(want_normals: bool, want_points: bool):
     def primary(
         bvh: wp.uint64,
         roots: wp.array[wp.int32],
-        n_items: wp.int32,
-        order: wp.array[wp.int32],
+        use_bvh: wp.int32,
+        list_start: wp.array[wp.int32],
+        list_items: wp.array[wp.int32],
         near: wp.array[wp.float32],
         lowers: wp.array[wp.vec3],
         uppers: wp.array[wp.vec3],
         item_mesh: wp.array[wp.uint64],
         obj_T_ref: wp.array[wp.mat44],
+        tiles_x: wp.int32,
+        tiles_y: wp.int32,
+        tile: wp.int32,
         ref_T_obj: wp.array[wp.mat44],
         intr: wp.vec4,
         skew: wp.float32,
@@ -182,8 +186,9 @@ def primary_kernel(want_normals: bool, want_points: bool):
     ):
         f, i, j = wp.tid()
         d = pixel_ray(i, j, intr, skew)
-        item, t, face, u, v = trace_from_camera(bvh, roots[f], f, n_items, order, near, lowers, uppers, item_mesh,
-                                                obj_T_ref, d, max_t)
+        lst = (f * tiles_y + i // tile) * tiles_x + j // tile
+        item, t, face, u, v = trace_from_camera(bvh, roots[f], use_bvh, lst, list_start, list_items, near, lowers,
+                                                uppers, item_mesh, obj_T_ref, d, max_t)
         if item < 0:
             item_out[f, i, j] = -1
             face_out[f, i, j] = -1
@@ -212,8 +217,9 @@ def primary_kernel(want_normals: bool, want_points: bool):
 def visibility_kernel(
     bvh: wp.uint64,
     roots: wp.array[wp.int32],
-    n_items: wp.int32,
-    order: wp.array[wp.int32],
+    use_bvh: wp.int32,
+    list_start: wp.array[wp.int32],
+    list_items: wp.array[wp.int32],
     near: wp.array[wp.float32],
     lowers: wp.array[wp.vec3],
     uppers: wp.array[wp.vec3],
@@ -238,8 +244,8 @@ def visibility_kernel(
         blocked[r] = wp.int8(1)
         return
     f = pair_frame[r]
-    item, _t, _face, _u, _v = trace_from_camera(bvh, roots[f], f, n_items, order, near, lowers, uppers,
-                                                item_mesh, obj_T_ref, p / L, L * (1.0 - rel_tol))
+    item, _t, _face, _u, _v = trace_from_camera(bvh, roots[f], use_bvh, f, list_start, list_items, near, lowers,
+                                                uppers, item_mesh, obj_T_ref, p / L, L * (1.0 - rel_tol))
     blocked[r] = wp.int8(1) if item >= 0 else wp.int8(0)
 
 
