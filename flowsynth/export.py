@@ -41,6 +41,9 @@ __all__ = ["LAYOUTS", "MANIFEST", "export"]
 LAYOUTS = ("native", "flyingchairs")
 MANIFEST = "manifest.json"
 _FC_OUTPUTS = ("rgb", "flow_fw")
+# native layout default: images, flow both ways with occlusion, ids, and what boxes_coco.json needs
+DEFAULT_OUTPUTS = ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "instance", "box2d_visible",
+                   "visible_pixels", "object_valid", "object_category")
 
 
 def _versions() -> dict:
@@ -140,8 +143,7 @@ def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None
     if not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
     if outputs is None:
-        outputs = _FC_OUTPUTS if layout == "flyingchairs" else ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw",
-                                                                 "occ_bw", "instance", "box2d_visible")
+        outputs = _FC_OUTPUTS if layout == "flyingchairs" else DEFAULT_OUTPUTS
     outputs = make_plan(outputs).outputs
     if layout == "flyingchairs":
         missing = [k for k in _FC_OUTPUTS if k not in outputs]
