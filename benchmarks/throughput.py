@@ -98,13 +98,14 @@ def memory_curve(cfg, n: int) -> list[dict]:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--samples", type=int, default=None, help="samples per measurement (default 24 quick, 64 full)")
     args = p.parse_args()
     import flowsynth as fs
     from flowsynth.plan import OUTPUTS
 
     OUTPUT_SETS["everything+direct rgb"] = list(OUTPUTS)
     W, H = (256, 192) if args.quick else (512, 384)
-    n = 24 if args.quick else 64  # long enough that the DataLoader's prefetch buffer does not flatter workers
+    n = args.samples or (24 if args.quick else 64)  # long enough that the prefetch buffer does not flatter workers
     rows = []
     for name, outs in OUTPUT_SETS.items():
         mode = "direct" if "rgb" in outs else "flat"
@@ -117,14 +118,15 @@ def main() -> None:
     print(f"\nThroughput at {W}x{H}, T=2 (physics motion)")
     print_table(rows, ["outputs", "workers", "samples/s", "speed-up vs 0"])
     skip_cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, render_mode="direct")
-    skips = skip_savings(skip_cfg, 4 if args.quick else 12)
+    skips = skip_savings(skip_cfg, 4 if args.quick else min(n, 12))
     print("\nWhat each skip saves (one process)")
     print_table(skips, ["request", "s/sample", "vs full"])
     mem_n = 200 if args.quick else 1000
     mem = memory_curve(fs.BouncingThingsConfig(width=64, height=48, num_frames=2, motion="kinematic"), mem_n)
     print(f"\nResident memory over a {mem_n}-sample stream (64x48)")
     print_table(mem, ["samples", "max_rss_MiB"])
-    write_json("throughput", {"machine": machine_info(), "resolution": [W, H], "throughput": rows,
+    name = "throughput" if args.quick else "throughput_512x384"
+    write_json(name, {"machine": machine_info(), "resolution": [W, H], "throughput": rows,
                               "skips": skips, "memory": mem})
 
 
