@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 from trimesh.collision import CollisionManager
 
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import DENSITY, _NewtonScene, choose_substeps
+from flowsynth.motion import DENSITY, _NewtonScene, choose_substeps, wall_boxes
 from flowsynth.sampling import sample_layout
 
 SETS = {"primitives": ("box", "sphere", "cylinder", "capsule", "cone"),
@@ -96,22 +96,6 @@ def max_wall_excursion(cfg: BouncingThingsConfig, assets, poses: np.ndarray) -> 
         V = np.einsum("tij,vj->tvi", poses[:, i, :3, :3], a.mesh.vertices) + poses[:, i, None, :3, 3]
         worst = max(worst, float(max((lo - V).max(), (V - hi).max())) / a.size)
     return worst
-
-
-def wall_boxes(cfg: BouncingThingsConfig, s_max: float) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(centre, half extents) [m] of the six static wall boxes, as flowsynth.motion builds them."""
-    lo, hi = (np.asarray(x, dtype=np.float64) for x in cfg.object_bounds)
-    thick = max(1.0, 2.0 * s_max)
-    centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
-    boxes = []
-    for axis in range(3):
-        for side in (-1.0, 1.0):
-            h = half + thick
-            h[axis] = thick / 2.0
-            p = centre.copy()
-            p[axis] = (lo if side < 0 else hi)[axis] + side * thick / 2.0
-            boxes.append((p, h))
-    return boxes
 
 
 class BulletScene:

@@ -40,6 +40,7 @@ __all__ = [
     "simulate_kinematic",
     "simulate_physics",
     "simulate_static",
+    "wall_boxes",
 ]
 
 SUBSTEP_FRACTION = 0.05
@@ -203,6 +204,23 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     return Trajectory(poses, vel, ang, n_sub)
 
 
+def wall_boxes(cfg: BouncingThingsConfig, s_max: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, half extents) [m] of the six static wall boxes around ``cfg.object_bounds``, each thicker
+    than anything of size ``s_max`` can travel in a substep."""
+    lo, hi = (np.asarray(x, dtype=np.float64) for x in cfg.object_bounds)
+    thick = max(1.0, 2.0 * s_max)
+    centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
+    boxes = []
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            h = half + thick
+            h[axis] = thick / 2.0
+            p = centre.copy()
+            p[axis] = (lo if side < 0 else hi)[axis] + side * thick / 2.0
+            boxes.append((p, h))
+    return boxes
+
+
 class _NewtonScene:
     """A Newton model of the objects and walls, stepped one frame at a time."""
 
@@ -229,17 +247,9 @@ class _NewtonScene:
             mu=cfg.friction, restitution=cfg.restitution, density=0.0, gap=approach, margin=0.0,
             mu_torsional=0.0, mu_rolling=0.0,
         )
-        lo, hi = (np.asarray(x, dtype=np.float64) for x in cfg.object_bounds)
-        thick = max(1.0, 2.0 * s_max)  # walls thicker than anything can travel in a substep
-        centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
-        for axis in range(3):
-            for side in (-1.0, 1.0):
-                h = half + thick
-                h[axis] = thick / 2.0
-                p = centre.copy()
-                p[axis] = (lo if side < 0 else hi)[axis] + side * thick / 2.0
-                b.add_shape_box(-1, xform=wp.transform(wp.vec3(*p), wp.quat_identity()),
-                                hx=float(h[0]), hy=float(h[1]), hz=float(h[2]), cfg=wall_cfg)
+        for p, h in wall_boxes(cfg, s_max):
+            b.add_shape_box(-1, xform=wp.transform(wp.vec3(*p), wp.quat_identity()),
+                            hx=float(h[0]), hy=float(h[1]), hz=float(h[2]), cfg=wall_cfg)
         quats = _rotation_to_quat_xyzw(initial.rotation)
         for i, asset in enumerate(assets):
             hull = asset.collider.hull
