@@ -10,6 +10,7 @@ import json
 import math
 import textwrap
 
+import numpy as np
 import pytest
 import trimesh
 
@@ -35,9 +36,11 @@ def test_every_field_has_a_default_and_a_docstring():
         assert f.name in documented, f"{f.name} has no docstring"
 
 
-def test_dict_round_trip_through_json():
+def test_dict_round_trip_through_json(tmp_path):
+    from PIL import Image
+    Image.fromarray(np.full((8, 8, 3), 128, np.uint8)).save(tmp_path / "tex.png")
     cfg = BouncingThingsConfig(width=64, height=48, num_objects=(2, 3), gravity=(0.0, 0.0, -9.81),
-                               camera_motion="moving", substeps=6, texture_dir="/tmp")
+                               camera_motion="moving", substeps=6, texture_dir=str(tmp_path))
     d = json.loads(json.dumps(cfg.to_dict()))
     assert BouncingThingsConfig.from_dict(d) == cfg
     assert isinstance(d["num_objects"], list)

@@ -1,0 +1,39 @@
+"""The suite is hermetic: tests build what they need under tmp_path and never read machine paths."""
+
+from __future__ import annotations
+
+import ast
+import os
+import pathlib
+import tempfile
+
+import pytest
+
+TESTS = pathlib.Path(__file__).parent
+# Absolute locations whose content depends on the machine, not on the test.
+MACHINE_PATHS = ("/tmp", "/var/tmp", "/home", "/root", "/opt", "/usr/share", "/mnt", "/media", "~/")
+
+
+def _string_constants(path: pathlib.Path):
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            yield node.lineno, node.value
+
+
+def test_no_test_names_a_machine_path():
+    offenders = [f"{p.name}:{line}: {s!r}" for p in sorted(TESTS.glob("*.py")) if p.name != pathlib.Path(__file__).name
+                 for line, s in _string_constants(p) if s.startswith(MACHINE_PATHS)]
+    assert not offenders, "tests must build their inputs under tmp_path:\n" + "\n".join(offenders)
+
+
+@pytest.mark.skipif(os.environ.get("FLOWSYNTH_HERMETIC") != "1", reason="only under scripts/test.sh")
+def test_harness_gives_fresh_tmp_and_home():
+    # scripts/test.sh (what .ci/run calls) points TMPDIR and HOME at fresh folders under .cache/run.*;
+    # the Warp kernel cache lives in the repository, not under HOME.
+    root = pathlib.Path(__file__).resolve().parents[1]
+    tmp = pathlib.Path(tempfile.gettempdir()).resolve()
+    home = pathlib.Path(os.environ["HOME"]).resolve()
+    assert tmp.parent.parent == root / ".cache" and tmp.name == "tmp"
+    assert home.parent == tmp.parent and home.name == "home"
+    assert not any(home.iterdir()) or all(p.name.startswith(".") for p in home.iterdir())
+    assert pathlib.Path(os.environ["WARP_CACHE_PATH"]).resolve().is_relative_to(root)
