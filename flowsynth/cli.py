@@ -1,4 +1,4 @@
-"""The ``flowsynth`` command: ``flowsynth export`` and ``flowsynth preview``.
+"""The ``flowsynth`` command: ``flowsynth export``, ``flowsynth preview`` and ``flowsynth stats``.
 
 Every BouncingThingsConfig field is also a flag (``--num-frames 8``, ``--object-size 0.3,1.0``,
 ``--texture-dir none``); flags override values from ``--config FILE`` (JSON, TOML or YAML).
@@ -102,7 +102,13 @@ def _parser() -> argparse.ArgumentParser:
     pv.add_argument("--out", required=True, help="PNG file to write")
     pv.add_argument("--index", type=int, default=0)
     pv.add_argument("--seed", type=int, default=0)
-    for sp in (ex, pv):
+    st = sub.add_parser("stats", help="measure flow, occlusion, texture and timing statistics of N samples")
+    st.add_argument("--num", type=int, default=16, help="number of samples")
+    st.add_argument("--seed", type=int, default=0)
+    st.add_argument("--start", type=int, default=0, help="first sample index")
+    st.add_argument("--dis", action="store_true", help="also compare OpenCV DIS flow with zero flow (needs opencv)")
+    st.add_argument("--json", default=None, help="also write the statistics to this JSON file")
+    for sp in (ex, pv, st):
         sp.add_argument("--config", default=None, help="config file (.json, .toml, .yaml)")
         grp = sp.add_argument_group("scene configuration (BouncingThingsConfig fields)")
         for f in _config_fields():
@@ -125,6 +131,17 @@ def _preview(args, cfg) -> None:
     print(f"wrote {args.out} ({img.shape[1]}x{img.shape[0]})")
 
 
+def _stats(args, cfg) -> None:
+    from flowsynth.io import write_json
+    from flowsynth.stats import dataset_stats, format_stats
+
+    st = dataset_stats(cfg, args.num, seed=args.seed, start=args.start, dis=args.dis)
+    print(format_stats(st))
+    if args.json:
+        write_json(Path(args.json), dict(st, config=cfg.to_dict()))
+        print(f"wrote {args.json}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
@@ -136,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
                           layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
                           progress=not args.no_progress)
             print(f"exported {args.num} samples to {root}")
+        elif args.command == "stats":
+            _stats(args, cfg)
         else:
             _preview(args, cfg)
     except (FlowsynthError, ValueError) as e:

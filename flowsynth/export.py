@@ -5,7 +5,8 @@ Layouts:
 native (one folder per sample, see flowsynth/sampleio.py for the files)::
 
     DIR/
-      manifest.json            config, seed, outputs, layout, versions, per-sample checksums
+      manifest.json            config, seed, outputs, layout, versions, per-sample checksums, stats
+                               (flowsynth.stats over the samples the last run generated)
       00000/  rgb_0000.png  flow_fw_0000.exr  instance_0000.png ...  meta.json
       00001/  ...
 
@@ -29,6 +30,7 @@ import multiprocessing as mp
 import os
 import shutil
 import tempfile
+import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -86,23 +88,30 @@ def _init_worker(cfg, outputs, seed, occlusion) -> None:
     from flowsynth.datasets import BouncingThings
 
     torch.set_num_threads(1)
-    _WORKER["ds"] = BouncingThings(cfg, outputs=outputs, seed=seed, occlusion=occlusion)
+    from flowsynth.stats import cheap_stats_outputs
+
+    _WORKER["ds"] = BouncingThings(cfg, outputs=cheap_stats_outputs(outputs), seed=seed, occlusion=occlusion)
+    _WORKER["keep"] = set(outputs) | {"index", "seed", "K", "cam_T_world"}
 
 
-def _write_one(args) -> tuple[int, dict]:
-    """Generate sample i and write it; returns (i, {file: sha256})."""
+def _write_one(args) -> tuple[int, dict, dict]:
+    """Generate sample i and write it; returns (i, {file: sha256}, flowsynth.stats.sample_record)."""
     from flowsynth.sampleio import file_digest, write_sample
+    from flowsynth.stats import sample_record
 
     i, root, layout = args
     root = Path(root)
+    t = time.perf_counter()
     sample = _WORKER["ds"].sample(i)
+    record = sample_record(sample, time.perf_counter() - t)
+    sample = {k: v for k, v in sample.items() if k in _WORKER["keep"]}
     try:
         if layout == "native":
             tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{i:05d}-", dir=root))
             names = write_sample(sample, tmp)
             digests = {n: file_digest(tmp / n) for n in names}
             os.replace(tmp, root / f"{i:05d}")
-            return i, digests
+            return i, digests, record
         from flowsynth.io import write_flo, write_ppm
 
         stem = root / "data" / f"{i + 1:05d}"
@@ -113,16 +122,20 @@ def _write_one(args) -> tuple[int, dict]:
         for name, write in files.items():
             write(stem.parent / name)
             digests[name] = file_digest(stem.parent / name)
-        return i, digests
+        return i, digests, record
     except OSError as e:
         raise ExportError(f"could not write sample {i} under {root}: {e}") from e
 
 
-def _write_manifest(root: Path, identity: dict, num: int, samples: dict) -> None:
+def _write_manifest(root: Path, identity: dict, num: int, samples: dict, stats: dict | None = None) -> None:
     from flowsynth.io import write_json
 
     body = dict(identity, num=num, versions=_versions(),
                 samples={f"{i:05d}": samples[i] for i in sorted(samples)})
+    if stats is None and (root / MANIFEST).is_file():  # a run that generated nothing keeps the last stats
+        stats = json.loads((root / MANIFEST).read_text()).get("stats")
+    if stats is not None:  # flowsynth.stats.summarize over the samples the last run generated
+        body["stats"] = stats
     write_json(root / MANIFEST, body)
 
 
@@ -202,6 +215,7 @@ def _digests_on_disk(root: Path, i: int, layout: str) -> dict:
 def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples) -> None:
     bar = tqdm(total=num, initial=num - len(todo), unit="sample", disable=not progress, dynamic_ncols=True)
     jobs = [(i, str(root), layout) for i in todo]
+    records: list[dict] = []
     pool = None
     try:
         if workers == 1 or len(jobs) <= 1:
@@ -211,8 +225,9 @@ def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, i
             pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=_mp_context(),
                                        initializer=_init_worker, initargs=(cfg, outputs, seed, occlusion))
             results = pool.map(_write_one, jobs, chunksize=1)
-        for n, (i, digests) in enumerate(results, 1):
+        for n, (i, digests, record) in enumerate(results, 1):
             samples[i] = digests
+            records.append(record)
             bar.update(1)
             if n % 16 == 0:
                 _write_manifest(root, identity, num, samples)
@@ -220,7 +235,9 @@ def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, i
         if pool is not None:
             pool.shutdown(cancel_futures=True)
         bar.close()
-        _write_manifest(root, identity, num, samples)
+        from flowsynth.stats import summarize
+
+        _write_manifest(root, identity, num, samples, summarize(records, cfg) if records else None)
 
 
 def _mp_context():
