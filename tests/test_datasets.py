@@ -151,3 +151,18 @@ def test_flow_pairs_adapter_matches_torchvision_convention():
     np.testing.assert_array_equal(flow, s["flow_fw"][0].numpy())
     with pytest.raises(IndexError):
         pairs[4]
+
+
+def test_flow_pairs_masks_valid_includes_occluded_and_visible_excludes_it():
+    pytest.importorskip("flowsynth.shading")
+    cfg = fs.BouncingThingsConfig(width=48, height=32, num_frames=2, motion="kinematic", num_objects=(8, 10),
+                                  camera_motion="moving")
+    s = BouncingThings(cfg, outputs=["valid_fw", "occ_fw"], seed=0).sample(2)
+    valid, occ = s["valid_fw"][0, 0].numpy(), s["occ_fw"][0, 0].numpy()
+    assert (valid & occ).any(), "the check needs a sample with occluded pixels"
+    *_, default = fs.datasets.FlowPairs(cfg, seed=0, length=4)[2]
+    *_, visible = fs.datasets.FlowPairs(cfg, seed=0, length=4, mask="visible")[2]
+    np.testing.assert_array_equal(default, valid)
+    np.testing.assert_array_equal(visible, valid & ~occ)
+    with pytest.raises(fs.ConfigError):
+        fs.datasets.FlowPairs(cfg, mask="noc")

@@ -11,7 +11,10 @@ from torch.utils.data import Dataset
 from flowsynth.datasets.bouncing import BouncingThings
 from flowsynth.errors import ConfigError
 
-__all__ = ["FlowPairs"]
+__all__ = ["MASKS", "FlowPairs"]
+
+MASKS = ("valid", "visible")
+"""FlowPairs masks: flow defined (occluded pixels included), or defined and visible in both frames."""
 
 
 class FlowPairs(Dataset):
@@ -23,19 +26,32 @@ class FlowPairs(Dataset):
     is given it is called as ``transforms(img1, img2, flow, valid)`` and its result returned, as in
     torchvision.
 
+    Which mask. ``mask="valid"`` (default) is ``valid_fw``: every pixel whose flow is defined, occluded
+    and out-of-frame pixels included. This is what torchvision-style training expects: FlyingChairs,
+    FlyingThings3D and Sintel supervise every pixel (torchvision returns no mask for them, meaning all
+    valid), KITTI's ``flow_occ`` ground truth that ``torchvision.datasets.KittiFlow`` reads includes
+    occluded pixels, and torchvision's RAFT reference recipe drops only invalid pixels and |flow| above
+    ``max_flow``. ``mask="visible"`` is ``valid_fw & ~occ_fw``: the pixels whose surface is seen in both
+    frames, for evaluation in the style of KITTI "noc" or Sintel "matched" EPE, or to train on matched
+    pixels only. It costs the visibility rays of exact occlusion.
+
     Args:
         cfg: BouncingThingsConfig with num_frames >= 2 (default config when None).
         seed: dataset seed.
         length: number of pairs (len()).
         transforms: optional callable (img1, img2, flow, valid) -> anything.
+        mask: "valid" (flow defined, occluded included) or "visible" (defined and not occluded).
     """
 
     def __init__(self, cfg=None, seed: int = 0, length: int = 10000,
-                 transforms: Callable | None = None) -> None:
-        self.stream = BouncingThings(cfg, outputs=("rgb", "flow_fw", "valid_fw"), seed=seed, length=length)
+                 transforms: Callable | None = None, *, mask: str = "valid") -> None:
+        if mask not in MASKS:
+            raise ConfigError(f"mask must be one of {list(MASKS)}, got {mask!r}")
+        outputs = ("rgb", "flow_fw", "valid_fw") + (("occ_fw",) if mask == "visible" else ())
+        self.stream = BouncingThings(cfg, outputs=outputs, seed=seed, length=length)
         if self.stream.cfg.num_frames < 2:
             raise ConfigError("FlowPairs needs num_frames >= 2")
-        self.transforms = transforms
+        self.transforms, self.mask = transforms, mask
 
     def __len__(self) -> int:
         return self.stream.length
@@ -48,6 +64,8 @@ class FlowPairs(Dataset):
             (s["rgb"][t].permute(1, 2, 0).numpy() * 255.0 + 0.5).clip(0, 255).astype(np.uint8))) for t in (0, 1)]
         flow = s["flow_fw"][0].numpy()
         valid = s["valid_fw"][0, 0].numpy()
+        if self.mask == "visible":
+            valid = valid & ~s["occ_fw"][0, 0].numpy()
         if self.transforms is not None:
             return self.transforms(imgs[0], imgs[1], flow, valid)
         return imgs[0], imgs[1], flow, valid
