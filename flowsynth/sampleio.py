@@ -12,6 +12,9 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 | valid_*, occ_*, oof_*, motion         | KEY_TTTT.png            | 16-bit greyscale PNG, 0/1           |
 | K, cam_T_world, object tables, index  | meta.json               | JSON (float32 values, exact)        |
 | box2d_visible (when requested)        | boxes_coco.json         | COCO-style detection boxes          |
+
+A key that is in none of these rows raises :class:`flowsynth.errors.ExportError`: a new output needs its
+own row here (a file format, or a place in ``META_KEYS``) before it can be exported.
 """
 
 from __future__ import annotations
@@ -34,13 +37,16 @@ from flowsynth.io import (
     write_tensor_exr,
     write_u16_png,
 )
-from flowsynth.plan import FLOW_KEYS, GBUFFER_KEYS
+from flowsynth.errors import ExportError
+from flowsynth.plan import CAMERA_KEYS, FLOW_KEYS, GBUFFER_KEYS, TABLE_KEYS
 
-__all__ = ["file_digest", "read_sample", "write_sample"]
+__all__ = ["META_KEYS", "file_digest", "read_sample", "write_sample"]
 
 _EXR = {"depth": "depth", "distance": "distance", "normals": "normals", "position": "position",
         "flow_fw": "flow", "flow_bw": "flow"}
 _U16 = ("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.startswith("flow_"))
+# Keys stored as JSON arrays in meta.json: cameras, object tables, and the sample's index and seed.
+META_KEYS = CAMERA_KEYS + TABLE_KEYS + ("index", "seed")
 
 
 def file_digest(path: Path) -> str:
@@ -49,8 +55,15 @@ def file_digest(path: Path) -> str:
 
 
 def write_sample(sample: dict[str, torch.Tensor], folder: Path) -> list[str]:
-    """Write every key of ``sample`` into ``folder`` (which must exist). Returns the file names written."""
+    """Write every key of ``sample`` into ``folder`` (which must exist). Returns the file names written.
+
+    Raises ExportError, before writing anything, when a key has no file format (see the module table).
+    """
     folder = Path(folder)
+    unknown = [k for k in sample if k != "rgb" and k not in _EXR and k not in _U16 and k not in META_KEYS]
+    if unknown:
+        raise ExportError(f"no export format for key(s) {unknown}; known keys are rgb, {', '.join(_EXR)}, "
+                          f"{', '.join(_U16)}, {', '.join(META_KEYS)} (add a format in flowsynth/sampleio.py)")
     names: list[str] = []
     meta: dict = {"keys": list(sample)}
     for key, value in sample.items():
@@ -67,7 +80,7 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path) -> list[str]:
             for t in range(a.shape[0]):
                 names.append(f"{key}_{t:04d}.png")
                 write_u16_png(folder / names[-1], a[t, 0].astype(np.int64))
-        else:
+        else:  # META_KEYS
             meta[key] = {"shape": list(a.shape), "dtype": str(value.dtype).replace("torch.", ""),
                          "data": a.reshape(-1).tolist()}
     if "box2d_visible" in sample and "visible_pixels" in sample and "object_category" in sample:
