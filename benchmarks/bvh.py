@@ -120,7 +120,7 @@ def measure(wp, scene_name: str, faces: int, poses, variants, camera: Camera, re
         build_s[key] = build_times(make, build_repeat) if build_repeat else None
         accel.item_mesh = wp.array(np.full(accel.F * N, built[key].id, np.uint64), dtype=wp.uint64)
         inputs = [*primary_trace_inputs(accel, camera), accel.ref_T_obj, wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
-                  float(K[0, 1]), 1e9]
+                  float(K[0, 1]), 1e9, 0]
         fns[key] = lambda inputs=inputs: wp.launch(kernel, dim=shape, inputs=inputs,
                                                    outputs=[dist, item, face, point, normal])
         fns[key]()

@@ -130,7 +130,7 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
             wp.zeros((1, 1, 1), dtype=wp.vec3), wp.zeros(shape, dtype=wp.vec3)]
     K = cam.K
     inputs = [*primary_trace_inputs(accel, cam), accel.ref_T_obj,
-              wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), 1e9]
+              wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), 1e9, 0]
     kernel = primary_kernel(True, False)
     mesh = scene.objects[0].mesh
     pts = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3)

@@ -94,6 +94,14 @@ def _init_worker(cfg, outputs, seed, occlusion) -> None:
     _WORKER["keep"] = set(outputs) | {"index", "seed", "K", "cam_T_world"}
 
 
+def _init_pool_worker(cfg, outputs, seed, occlusion) -> None:
+    """``_init_worker`` in one of several worker processes: ray launches use one thread (flowsynth.parallel)."""
+    from flowsynth.parallel import set_worker_process
+
+    set_worker_process()
+    _init_worker(cfg, outputs, seed, occlusion)
+
+
 def _write_one(args) -> tuple[int, dict, dict]:
     """Generate sample i and write it; returns (i, {file: sha256}, flowsynth.stats.sample_record)."""
     from flowsynth.sampleio import file_digest, write_sample
@@ -223,7 +231,7 @@ def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, i
             results = map(_write_one, jobs)
         else:
             pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=_mp_context(),
-                                       initializer=_init_worker, initargs=(cfg, outputs, seed, occlusion))
+                                       initializer=_init_pool_worker, initargs=(cfg, outputs, seed, occlusion))
             results = pool.map(_write_one, jobs, chunksize=1)
         for n, (i, digests, record) in enumerate(results, 1):
             samples[i] = digests

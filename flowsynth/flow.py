@@ -21,6 +21,7 @@ from kornia.geometry.conversions import convert_points_from_homogeneous
 
 from flowsynth.accel import camera_trace_inputs
 from flowsynth.kernels import wp_runtime
+from flowsynth.parallel import BAND0, launch_bands
 
 __all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject"]
 
@@ -85,7 +86,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
         jobs.append((name, f, i, j, r, X, uv, inside, flow, masks))
         if f"occ_{name}" in want and plan.occlusion == "exact":
             rays.append((X[inside], r[inside]))
-    blocked_all = _visibility(accel, rays) if rays else None
+    blocked_all = _visibility(accel, rays, plan.threads) if rays else None
     offset = 0
     for name, f, i, j, r, X, uv, inside, flow, masks in jobs:
         if f"occ_{name}" in want:
@@ -106,8 +107,8 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
     return {k: v for k, v in out.items() if k in want}
 
 
-def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Blocked flag per point: (X in camera frame r, r) lists -> one visibility-kernel launch."""
+def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int | None) -> np.ndarray:
+    """Blocked flag per point: (X in camera frame r, r) lists -> one visibility-kernel launch (in bands)."""
     X = np.concatenate([x for x, _ in rays]).astype(np.float32)
     r = np.concatenate([f for _, f in rays]).astype(np.int32)
     if len(X) == 0 or accel.empty:
@@ -117,11 +118,10 @@ def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
 
     dev = accel.device
     blocked = wp.zeros(len(X), dtype=wp.int8, device=dev)
-    wp.launch(visibility_kernel, dim=len(X),
-              inputs=[*camera_trace_inputs(accel),
-                      wp.array(X, dtype=wp.vec3, device=dev), wp.array(r, dtype=wp.int32, device=dev),
-                      VISIBILITY_REL_TOL],
-              outputs=[blocked], device=dev)
+    launch_bands(visibility_kernel, (len(X),), 0,
+                 [*camera_trace_inputs(accel), wp.array(X, dtype=wp.vec3, device=dev),
+                  wp.array(r, dtype=wp.int32, device=dev), VISIBILITY_REL_TOL, BAND0],
+                 [blocked], dev, threads)
     return blocked.numpy().astype(bool)
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from flowsynth.errors import ConfigError
+from flowsynth.parallel import resolve_threads
 
 __all__ = ["FLOW_KEYS", "GBUFFER_KEYS", "OUTPUTS", "TABLE_KEYS", "Plan", "make_plan"]
 
@@ -42,6 +43,7 @@ class Plan:
     bounces: int | None = None
     tonemap: str | None = None
     exposure: float | None = None
+    threads: int | None = None
 
     def _any(self, *keys: str) -> bool:
         return any(k in self.outputs for k in keys)
@@ -80,8 +82,11 @@ RENDER_MODES = ("flat", "direct", "path")
 
 def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None, render_mode: str = "direct",
               spp: int = 1, shutter: float = 0.0, seed: int = 0, bounces: int | None = None,
-              tonemap: str | None = None, exposure: float | None = None) -> Plan:
-    """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys."""
+              tonemap: str | None = None, exposure: float | None = None, threads: int | None = None) -> Plan:
+    """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys.
+
+    ``threads``: threads of every ray launch (None = all cores the process may use, 1 inside DataLoader and
+    export workers; flowsynth.parallel). Results do not depend on it."""
     if isinstance(outputs, str):
         outputs = [s for s in outputs.split(",") if s]
     outputs = tuple(dict.fromkeys(outputs))
@@ -106,5 +111,7 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
         raise ConfigError(f"tonemap must be 'clamp' or 'reinhard', got {tonemap!r}")
     if exposure is not None and not (float(exposure) >= 0.0):
         raise ConfigError(f"exposure must be >= 0, got {exposure!r}")
+    if threads is not None:
+        resolve_threads(threads)
     return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed), bounces,
-                tonemap, exposure)
+                tonemap, exposure, threads)

@@ -12,6 +12,7 @@ import torch
 
 from flowsynth.accel import SceneAccel, primary_trace_inputs
 from flowsynth.kernels import wp_runtime
+from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.plan import Plan, make_plan
 from flowsynth.scene import Scene
 
@@ -44,8 +45,9 @@ class GBuffer:
 
 
 def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: bool,
-                 max_dist: float = 1e9) -> GBuffer:
-    """One primary ray per pixel centre for each of the accel's F frames, in a single kernel launch."""
+                 max_dist: float = 1e9, threads: int | None = None) -> GBuffer:
+    """One primary ray per pixel centre for each of the accel's F frames: one kernel launch, cut into row
+    bands over ``threads`` threads (``flowsynth.parallel``; None = all cores)."""
     F, H, W = accel.F, camera.height, camera.width
     if accel.empty:
         return GBuffer(np.zeros((F, H, W), np.float32), np.full((F, H, W), -1, np.int32),
@@ -63,11 +65,11 @@ def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: 
     point = wp.zeros(shape3, dtype=wp.vec3, device=dev)
     normal = wp.zeros((F, H, W) if want_normals else (1, 1, 1), dtype=wp.vec3, device=dev)
     K = camera.K
-    wp.launch(
-        primary_kernel(want_normals, want_points), dim=(F, H, W),
-        inputs=[*primary_trace_inputs(accel, camera), accel.ref_T_obj,
-                wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), float(max_dist)],
-        outputs=[dist, item, face, point, normal], device=dev,
+    launch_bands(
+        primary_kernel(want_normals, want_points), (F, H, W), 1,
+        [*primary_trace_inputs(accel, camera), accel.ref_T_obj,
+         wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), float(max_dist), BAND0],
+        [dist, item, face, point, normal], dev, threads,
     )
     return GBuffer(dist.numpy(), item.numpy(), face.numpy(), point.numpy() if want_points else None,
                    normal.numpy() if want_normals else None, accel.N)
@@ -90,6 +92,8 @@ def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, d
         outputs: keys from ``flowsynth.plan.OUTPUTS`` (see docs/conventions.md for shapes and units).
         device: Warp device for the kernels ("cpu", or "cuda" where available). Results are CPU tensors.
         occlusion: "exact" (visibility rays) or "depth" (cheaper depth-buffer comparison).
+        options: further ``flowsynth.plan.make_plan`` options, e.g. ``threads`` (ray-launch threads; None =
+            every core the process may use, 1 inside DataLoader and export workers; see flowsynth.parallel).
 
     Returns:
         dict mapping each requested key to a CPU tensor.
@@ -102,7 +106,7 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
     """Run the stages of ``plan`` on ``scene``."""
     meshes, cam_T_world, world_T_obj = scene_arrays(scene)
     accel = SceneAccel(meshes, cam_T_world, world_T_obj, device=device)
-    gb = cast_gbuffer(accel, scene.camera, want_normals=plan.normals, want_points=plan.points)
+    gb = cast_gbuffer(accel, scene.camera, want_normals=plan.normals, want_points=plan.points, threads=plan.threads)
     out: dict[str, torch.Tensor] = {}
     out.update(gbuffer_outputs(scene, gb, plan, world_T_obj))
     if plan.flow_stage:

@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 from flowsynth.accel import SceneAccel
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
+from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.materials import load_texture, resolve_lights, resolve_material, srgb_to_linear
 
 __all__ = ["DEFAULT_BOUNCES", "MAX_TIME_SLICES", "TONEMAPS", "pack_materials", "poses_at", "render_radiance",
@@ -109,10 +110,11 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu", *,
 
     K = scene.camera.K
     radiance = wp.zeros((T, H, W), dtype=wp.vec3, device=device)
-    wp.launch(shade_kernel(plan.render_mode), dim=(T, H, W), device=device, inputs=[
+    launch_bands(shade_kernel(plan.render_mode), (T, H, W), 1, [
         sc, gbuf(gb.item, wp.int32, -1), gbuf(gb.face, wp.int32, -1), gbuf(gb.dist, wp.float32, 0.0),
         gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
-        float(K[0, 1]), spp, slices, _seed32(plan.seed), int(bounces)], outputs=[radiance])
+        float(K[0, 1]), spp, slices, _seed32(plan.seed), int(bounces), BAND0], [radiance], device,
+        _option(plan, "threads", None))
     out = radiance.numpy()
     return np.nan_to_num(np.maximum(out, 0.0), nan=0.0, posinf=0.0)
 

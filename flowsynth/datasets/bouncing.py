@@ -60,6 +60,8 @@ class BouncingThings(IterableDataset):
         start: first index of the stream.
         occlusion: "exact" or "depth" (see flowsynth.flow).
         device: Warp device for the kernels ("cpu"; "cuda" where available).
+        threads: threads of each ray launch (None = every core the process may use, and 1 inside a
+            DataLoader worker, so workers x threads never exceed the cores; see flowsynth.parallel).
 
     Each item is a dict of tensors with fixed shapes, so ``default_collate`` batches it: per-frame
     keys (T, C, H, W), per-pair keys (T-1, C, H, W), object tables padded to ``cfg.max_objects``,
@@ -68,7 +70,7 @@ class BouncingThings(IterableDataset):
 
     def __init__(self, cfg=None, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
                  length: int | None = None, *, start: int = 0, occlusion: str = "exact",
-                 device: str = "cpu") -> None:
+                 device: str = "cpu", threads: int | None = None) -> None:
         from flowsynth.config import BouncingThingsConfig
 
         cfg = BouncingThingsConfig() if cfg is None else cfg
@@ -83,7 +85,7 @@ class BouncingThings(IterableDataset):
         self.plan = make_plan(
             tuple(dict.fromkeys(requested + ["K", "cam_T_world"])), occlusion=occlusion,
             max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, shutter=cfg.shutter,
-            bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure)
+            bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure, threads=threads)
         if cfg.num_frames < 2 and self.plan.flow_stage:
             raise ConfigError("flow outputs need num_frames >= 2")
         self.cfg, self.seed, self.length, self.start, self.device = cfg, int(seed), length, int(start), device

@@ -150,7 +150,8 @@ _PRIMARY: dict = {}
 def primary_kernel(want_normals: bool, want_points: bool):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
 
-    Launch dims (F, H, W). Outputs per pixel: ``dist`` ray length [m] (0 = no hit), ``item``
+    Launch dims (F, rows, W) from row ``band0`` (``flowsynth.parallel``).
+    Outputs per pixel: ``dist`` ray length [m] (0 = no hit), ``item``
     (-1 = no hit), ``face``, and when requested ``point`` (object-frame hit point [m]) and
     ``normal`` (unit, reference/camera frame, facing the camera; 0 = no hit).
     """
@@ -177,6 +178,7 @@ def primary_kernel(want_normals: bool, want_points: bool):
         intr: wp.vec4,
         skew: wp.float32,
         max_t: wp.float32,
+        band0: wp.int32,
         # outputs
         dist: wp.array3d[wp.float32],
         item_out: wp.array3d[wp.int32],
@@ -185,6 +187,7 @@ def primary_kernel(want_normals: bool, want_points: bool):
         normal: wp.array3d[wp.vec3],
     ):
         f, i, j = wp.tid()
+        i += band0
         d = pixel_ray(i, j, intr, skew)
         lst = (f * tiles_y + i // tile) * tiles_x + j // tile
         item, t, face, u, v = trace_from_camera(bvh, roots[f], use_bvh, lst, list_start, list_items, near, lowers,
@@ -228,6 +231,7 @@ def visibility_kernel(
     target: wp.array[wp.vec3],
     pair_frame: wp.array[wp.int32],
     rel_tol: wp.float32,
+    band0: wp.int32,
     # outputs
     blocked: wp.array[wp.int8],
 ):
@@ -235,9 +239,9 @@ def visibility_kernel(
 
     ``target[r]`` is the point in the camera frame of frame ``pair_frame[r]`` [m]. The ray from the
     camera centre towards it counts as blocked when it hits a surface closer than (1 - rel_tol) times
-    the point's distance.
+    the point's distance. Launch dims (rays,) from ray ``band0``.
     """
-    r = wp.tid()
+    r = wp.tid() + band0
     p = target[r]
     L = wp.length(p)
     if L <= 0.0:

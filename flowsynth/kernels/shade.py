@@ -254,7 +254,8 @@ _SHADE: dict = {}
 def shade_kernel(mode: str):
     """The shading kernel for render mode "flat", "direct" or "path" (other modes' code compiled out).
 
-    Launch dims (T, H, W). Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
+    Launch dims (T, rows, W) from row ``band0`` (``flowsynth.parallel``).
+    Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
     """
     if mode in _SHADE:
         return _SHADE[mode]
@@ -277,10 +278,12 @@ def shade_kernel(mode: str):
         slices: wp.int32,
         seed: wp.int32,
         bounces: wp.int32,
+        band0: wp.int32,
         # outputs
         radiance: wp.array3d[wp.vec3],
     ):
         t, i, j = wp.tid()
+        i += band0
         pix = wp.uint32(i * radiance.shape[2] + j)
         seed_t = wp.int32(hash3(t, 0, seed))
         prng = wp.rand_init(wp.int32(hash3(t, 1, seed)), wp.int32(pix))
