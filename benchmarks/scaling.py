@@ -1,24 +1,48 @@
-"""How cost grows: time per sample against pixels, objects, triangles per object and frames per clip.
+"""Samples/s on one core and on all cores: thread scaling, and throughput against resolution, objects,
+triangles per object and frames per clip.
 
     python benchmarks/scaling.py [--quick]
 
-Hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid motion) rendered with
-the ground-truth request depth + flow_fw + occ_fw + instance. Each curve is fitted with cost ~ x^k and
-the exponent k reported. Writes benchmarks/results/scaling.json and scaling_<axis>.png.
+Part 1, threads (``fs.render(..., threads=k)``, flowsynth/parallel.py), for k = 1, 2, ... up to the CPUs
+this process may use:
+
+- the primary G-buffer cast alone (``cast_gbuffer``, depth + instance + normals) of benchmarks/raycast.py's
+  scene (30 icospheres x 5120 faces, 640x480): Mrays/s;
+- the issue-13 full sample: ``BouncingThings`` 512x384, T=2, 20 objects, physics, direct RGB, with depth,
+  normals, instance, flow and occlusion both ways (scene sampling and physics included): samples/s.
+
+Part 2, curves: hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid
+motion) rendered with depth + flow_fw + occ_fw + instance, at threads 1 and all; each curve fitted
+with cost ~ x^k.
+
+Clock: wall time (threads only show in wall time), medians over round-robin rounds so load from other
+processes hits every thread count alike. The machine is shared: the load average (``os.getloadavg``)
+before and after is printed and saved; a speed-up is only meaningful when the load leaves the cores
+free. numpy/torch/OpenMP pools are held at one thread (only the ray launches are threaded). Writes
+benchmarks/results/scaling.json and scaling_<axis>.png.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+HERE = Path(__file__).resolve().parent
+sys.path[:0] = [str(HERE), str(HERE.parent)]
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ[_var] = "1"
 
-from _common import fit_exponent, machine_info, pin_single_core, plot_curves, print_table, write_json
+from _common import fit_exponent, machine_info, plot_curves, print_table, time_round_robin, write_json
 
 OUTPUTS = ["depth", "flow_fw", "occ_fw", "instance"]
+FULL_OUTPUTS = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "occ_fw", "occ_bw"]
+
+
+def load() -> str:
+    return "load average %.2f %.2f %.2f" % os.getloadavg()
 
 
 def make_scene(W: int, H: int, n_obj: int, faces: int, T: int, seed: int = 0):
@@ -46,33 +70,58 @@ def make_scene(W: int, H: int, n_obj: int, faces: int, T: int, seed: int = 0):
     return scene, len(mesh.faces)
 
 
-def time_render(scene, repeat: int) -> float:
+def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
+    """Mrays/s of the primary cast and samples/s of the full sample for each thread count."""
+    import torch
+
+    import flowsynth as fs
+    from flowsynth.accel import SceneAccel
+    from flowsynth.render import cast_gbuffer, scene_arrays
+
+    allowed = os.sched_getaffinity(0)
+    from raycast import make_scene as raycast_scene  # importing raycast pins this process to one core: undo
+
+    os.sched_setaffinity(0, allowed)
+    torch.set_num_threads(1)
+    scene = raycast_scene()
+    accel = SceneAccel(*scene_arrays(scene))
+    cam = scene.camera
+    fns = {("cast", k): (lambda k=k: cast_gbuffer(accel, cam, want_normals=True, want_points=False, threads=k))
+           for k in counts}
+    cfg = fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
+                                  max_objects=32)
+    sets = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in counts}
+    index = iter(range(10**6))
+
+    def full(k: int) -> None:
+        sets[k].sample(next(index) % 4)  # the same four scenes for every thread count
+
+    fns.update({("sample", k): (lambda k=k: full(k)) for k in counts})
+    times = time_round_robin(fns, repeat=repeat, warmup=1)
+    rays = cam.width * cam.height
+    rows = []
+    for k in counts:
+        cast, sample = times[("cast", k)]["wall_s"], times[("sample", k)]["wall_s"]
+        rows.append({"threads": k, "cast_ms": 1e3 * cast, "cast_Mrays_s": rays / cast / 1e6,
+                     "sample_s": sample, "samples_s": 1.0 / sample})
+    for r in rows:
+        r["cast_speedup"] = rows[0]["cast_ms"] / r["cast_ms"]
+        r["sample_speedup"] = rows[0]["sample_s"] / r["sample_s"]
+    return rows
+
+
+def curves(quick: bool, counts: list[int], repeat: int) -> tuple[dict, list]:
     import flowsynth as fs
 
-    fs.render(scene, OUTPUTS)
-    best = float("inf")
-    for _ in range(repeat):
-        t = time.process_time()
-        fs.render(scene, OUTPUTS)
-        best = min(best, time.process_time() - t)
-    return best
-
-
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--quick", action="store_true")
-    args = p.parse_args()
-    pin = pin_single_core()
-    rep = 2 if args.quick else 3
     axes = {
-        "pixels": [(w, h) for w, h in [(64, 48), (128, 96), (256, 192), (512, 384), (1024, 768)]],
+        "pixels": [(64, 48), (128, 96), (256, 192), (512, 384), (1024, 768)],
         "objects": [5, 10, 20, 40, 80, 160],
         "triangles": [80, 320, 1280, 5120, 20480, 81920],
         "frames": [2, 4, 8, 16, 32],
     }
-    if args.quick:
-        axes["pixels"] = axes["pixels"][:4]
-        axes["frames"] = axes["frames"][:4]
+    if quick:
+        axes = {"pixels": axes["pixels"][:4], "objects": [5, 20, 80], "triangles": [80, 1280, 20480],
+                "frames": [2, 4, 8]}
     base = dict(W=256, H=192, n_obj=20, faces=1280, T=2)
     results, fits = {}, []
     for axis, values in axes.items():
@@ -89,21 +138,51 @@ def main() -> None:
             else:
                 kw["T"] = x = v
             scene, faces = make_scene(**kw)
-            if axis == "triangles":
-                x = faces
-            s = time_render(scene, rep)
-            rows.append({"axis": axis, "x": x, "s/sample": s, "ms/frame": 1e3 * s / kw["T"]})
-        k = fit_exponent([r["x"] for r in rows], [r["s/sample"] for r in rows])
-        fits.append({"axis": axis, "exponent": k, "range": f"{rows[0]['x']}..{rows[-1]['x']}"})
+            x = faces if axis == "triangles" else x
+            times = time_round_robin({k: (lambda k=k: fs.render(scene, OUTPUTS, threads=k)) for k in counts},
+                                     repeat=repeat, warmup=1)
+            row = {"axis": axis, "x": x}
+            for k in counts:
+                row[f"samples/s t{k}"] = 1.0 / times[k]["wall_s"]
+            row["speed-up"] = row[f"samples/s t{counts[-1]}"] / row[f"samples/s t{counts[0]}"]
+            rows.append(row)
+        xs = [r["x"] for r in rows]
+        series = {f"{k} thread{'s' if k > 1 else ''}": (xs, [r[f"samples/s t{k}"] for r in rows]) for k in counts}
+        for k in counts:
+            fits.append({"axis": axis, "threads": k, "exponent": fit_exponent(xs, [1 / r[f"samples/s t{k}"]
+                                                                                  for r in rows]),
+                         "range": f"{xs[0]}..{xs[-1]}"})
         results[axis] = rows
-        print_table(rows, ["axis", "x", "s/sample", "ms/frame"])
-        plot_curves(f"scaling_{axis}", {"depth+flow_fw+occ_fw": ([r["x"] for r in rows],
-                                                                   [r["s/sample"] for r in rows])},
-                    axis, "CPU s per sample", title=f"cost vs {axis} (exponent {k:.2f})")
-    print("\nFitted exponents (cost ~ x^k), others at 256x192, 20 objects, 1280 faces, T=2:")
-    print_table(fits, ["axis", "exponent", "range"])
-    write_json("scaling", {"machine": machine_info(), "pinning": pin, "base": base, "curves": results,
-                           "exponents": fits})
+        print_table(rows, ["axis", "x", *[f"samples/s t{k}" for k in counts], "speed-up"])
+        plot_curves(f"scaling_{axis}", series, axis, "samples/s (wall)",
+                    title=f"depth+flow_fw+occ_fw+instance vs {axis}")
+    return results, fits
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true")
+    args = p.parse_args()
+    cpus = len(os.sched_getaffinity(0))
+    counts = sorted({1, 2, cpus} & set(range(1, cpus + 1)))
+    before = load()
+    print(f"{cpus} CPUs allowed; {before}")
+    threads = thread_scaling(counts, 3 if args.quick else 7)
+    print("\nThreads: primary cast (30 icospheres x 5120 faces, 640x480) and full sample (512x384, T=2, 20 objects, "
+          "direct RGB, depth/normals/instance/flow+occ both ways); wall-clock medians")
+    print_table(threads, ["threads", "cast_ms", "cast_Mrays_s", "cast_speedup", "sample_s", "samples_s",
+                          "sample_speedup"])
+    print(load())
+    print("\nSamples/s (wall) at threads " + ", ".join(map(str, counts)) + "; others at 256x192, 20 objects, "
+          "1280 faces, T=2")
+    results, fits = curves(args.quick, counts, 2 if args.quick else 3)
+    print("\nFitted exponents (cost ~ x^k):")
+    print_table(fits, ["axis", "threads", "exponent", "range"])
+    after = load()
+    print(after)
+    write_json("scaling", {"machine": machine_info(), "load_before": before, "load_after": after,
+                           "threads": threads, "curves": results, "exponents": fits,
+                           "base": dict(W=256, H=192, n_obj=20, faces=1280, T=2)})
 
 
 if __name__ == "__main__":
