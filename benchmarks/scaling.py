@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -42,7 +41,7 @@ FULL_OUTPUTS = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "oc
 
 
 def load() -> str:
-    return "load average %.2f %.2f %.2f" % os.getloadavg()
+    return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def make_scene(W: int, H: int, n_obj: int, faces: int, T: int, seed: int = 0):
@@ -139,7 +138,7 @@ def curves(quick: bool, counts: list[int], repeat: int) -> tuple[dict, list]:
                 kw["T"] = x = v
             scene, faces = make_scene(**kw)
             x = faces if axis == "triangles" else x
-            times = time_round_robin({k: (lambda k=k: fs.render(scene, OUTPUTS, threads=k)) for k in counts},
+            times = time_round_robin({k: (lambda k=k: fs.render(scene, OUTPUTS, threads=k))  # noqa: B023 for k in counts},
                                      repeat=repeat, warmup=1)
             row = {"axis": axis, "x": x}
             for k in counts:
