@@ -138,8 +138,8 @@ def curves(quick: bool, counts: list[int], repeat: int) -> tuple[dict, list]:
                 kw["T"] = x = v
             scene, faces = make_scene(**kw)
             x = faces if axis == "triangles" else x
-            times = time_round_robin({k: (lambda k=k: fs.render(scene, OUTPUTS, threads=k))  # noqa: B023 for k in counts},
-                                     repeat=repeat, warmup=1)
+            fns = {k: (lambda k=k, scene=scene: fs.render(scene, OUTPUTS, threads=k)) for k in counts}
+            times = time_round_robin(fns, repeat=repeat, warmup=1)
             row = {"axis": axis, "x": x}
             for k in counts:
                 row[f"samples/s t{k}"] = 1.0 / times[k]["wall_s"]
