@@ -14,13 +14,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from flowsynth.errors import AssetError, ConfigError
+from flowsynth.plan import DEFAULT_BOUNCES, DEFAULT_RENDER_MODE, DEFAULT_TONEMAP, MAX_BOUNCES, RENDER_MODES, TONEMAPS
 
 __all__ = ["CAMERA_MOTIONS", "MOTIONS", "RENDER_MODES", "BouncingThingsConfig"]
 
 MOTIONS = ("physics", "kinematic", "static")
 CAMERA_MOTIONS = ("static", "moving")
-RENDER_MODES = ("flat", "direct", "path")
-TONEMAPS = ("clamp", "reinhard")
 # Initial placement needs free space: total bounding-sphere volume of the largest possible object set
 # may fill at most this fraction of the objects' region (random sequential packing jams near 0.38).
 MAX_PACKING_FRACTION = 0.25
@@ -76,15 +75,15 @@ class BouncingThingsConfig:
     """Depth of the camera zone along x next to the wall x = -size_x/2 [m]; objects stay out of it."""
     max_objects: int = 32
     """Rows of the padded per-object tables [count]; num_objects max must be <= max_objects."""
-    render_mode: str = "flat"
+    render_mode: str = DEFAULT_RENDER_MODE
     """RGB shading: "flat" (lit, no shadows), "direct" (lights and shadows) or "path" (path traced)."""
     spp: int = 1
     """Samples per pixel for RGB, >= 1 [count]."""
     shutter: float = 0.0
     """Shutter open time as a fraction of the frame interval, in [0, 1]; 0 disables motion blur."""
-    bounces: int = 3
-    """Path-tracing bounces after the primary hit (render_mode "path"), in [0, 64] [count]."""
-    tonemap: str = "clamp"
+    bounces: int = DEFAULT_BOUNCES
+    """Path-tracing bounces after the primary hit (render_mode "path"), in [0, MAX_BOUNCES = 64] [count]."""
+    tonemap: str = DEFAULT_TONEMAP
     """Linear radiance -> display: "clamp" or "reinhard", then sRGB encoding (docs/rendering.md)."""
     exposure: float = 1.0
     """Radiance multiplier before tone mapping, >= 0."""
@@ -250,7 +249,7 @@ def _validate(cfg: BouncingThingsConfig) -> None:
     _set(cfg, "shutter", _float(cfg, "shutter", lo=0.0, hi=1.0))
     if cfg.texture_dir is not None and not isinstance(cfg.texture_dir, str):
         raise ConfigError(f"texture_dir must be a folder path or None, got {cfg.texture_dir!r}")
-    _int(cfg, "bounces", 0, 64)
+    _int(cfg, "bounces", 0, MAX_BOUNCES)
     _choice(cfg, "tonemap", TONEMAPS)
     _set(cfg, "exposure", _float(cfg, "exposure", lo=0.0))
     fams = cfg.texture_families

@@ -13,12 +13,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from flowsynth.errors import ConfigError
 from flowsynth.parallel import resolve_threads
 
-__all__ = ["FLOW_KEYS", "GBUFFER_KEYS", "OUTPUTS", "TABLE_KEYS", "Plan", "make_plan"]
+__all__ = ["DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FLOW_KEYS", "GBUFFER_KEYS", "MAX_BOUNCES",
+           "OUTPUTS", "RENDER_MODES", "TABLE_KEYS", "TONEMAPS", "Plan", "make_plan"]
 
 GBUFFER_KEYS = ("depth", "distance", "normals", "position", "instance", "category", "asset")
 FLOW_KEYS = ("flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw", "motion")
@@ -27,6 +29,14 @@ TABLE_KEYS = ("object_valid", "object_category", "object_asset", "world_T_obj", 
 CAMERA_KEYS = ("K", "cam_T_world")
 OUTPUTS = ("rgb",) + GBUFFER_KEYS + FLOW_KEYS + TABLE_KEYS + CAMERA_KEYS
 OCCLUSION_METHODS = ("exact", "depth")
+# RGB options: the one definition of their choices, ranges and defaults (config, Plan and shading use these;
+# the models are in docs/rendering.md).
+RENDER_MODES = ("flat", "direct", "path")
+DEFAULT_RENDER_MODE = "flat"
+TONEMAPS = ("clamp", "reinhard")
+DEFAULT_TONEMAP = "clamp"
+MAX_BOUNCES = 64  # path-tracing bounces after the first hit lie in [0, MAX_BOUNCES]
+DEFAULT_BOUNCES = 3
 
 
 @dataclass(frozen=True)
@@ -36,13 +46,13 @@ class Plan:
     outputs: tuple[str, ...]
     occlusion: str = "exact"
     max_objects: int | None = None
-    render_mode: str = "direct"
+    render_mode: str = DEFAULT_RENDER_MODE
     spp: int = 1
     shutter: float = 0.0
     seed: int = 0
-    bounces: int | None = None
-    tonemap: str | None = None
-    exposure: float | None = None
+    bounces: int = DEFAULT_BOUNCES
+    tonemap: str = DEFAULT_TONEMAP
+    exposure: float = 1.0
     threads: int | None = None
 
     def _any(self, *keys: str) -> bool:
@@ -77,12 +87,10 @@ class Plan:
         return self._any(*TABLE_KEYS)
 
 
-RENDER_MODES = ("flat", "direct", "path")
-
-
-def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None, render_mode: str = "direct",
-              spp: int = 1, shutter: float = 0.0, seed: int = 0, bounces: int | None = None,
-              tonemap: str | None = None, exposure: float | None = None, threads: int | None = None) -> Plan:
+def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
+              render_mode: str = DEFAULT_RENDER_MODE, spp: int = 1, shutter: float = 0.0, seed: int = 0,
+              bounces: int = DEFAULT_BOUNCES, tonemap: str = DEFAULT_TONEMAP, exposure: float = 1.0,
+              threads: int | None = None) -> Plan:
     """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys.
 
     ``threads``: threads of every ray launch (None = all cores the process may use, 1 inside DataLoader and
@@ -105,13 +113,13 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
         raise ConfigError(f"spp must be an integer >= 1, got {spp!r}")
     if not (0.0 <= float(shutter) <= 1.0):
         raise ConfigError(f"shutter must be in [0, 1] (fraction of the frame interval), got {shutter!r}")
-    if bounces is not None and (not isinstance(bounces, int) or not 0 <= bounces <= 64):
-        raise ConfigError(f"bounces must be an integer in [0, 64], got {bounces!r}")
-    if tonemap is not None and tonemap not in ("clamp", "reinhard"):
-        raise ConfigError(f"tonemap must be 'clamp' or 'reinhard', got {tonemap!r}")
-    if exposure is not None and not (float(exposure) >= 0.0):
-        raise ConfigError(f"exposure must be >= 0, got {exposure!r}")
+    if isinstance(bounces, bool) or not isinstance(bounces, int) or not 0 <= bounces <= MAX_BOUNCES:
+        raise ConfigError(f"bounces must be an integer in [0, {MAX_BOUNCES}], got {bounces!r}")
+    if tonemap not in TONEMAPS:
+        raise ConfigError(f"tonemap must be one of {TONEMAPS}, got {tonemap!r}")
+    if not (math.isfinite(float(exposure)) and float(exposure) >= 0.0):
+        raise ConfigError(f"exposure must be finite and >= 0, got {exposure!r}")
     if threads is not None:
         resolve_threads(threads)
-    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed), bounces,
-                tonemap, exposure, threads)
+    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed), int(bounces),
+                tonemap, float(exposure), threads)

@@ -22,13 +22,11 @@ from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.materials import load_texture, resolve_lights, resolve_material, srgb_to_linear
+from flowsynth.plan import TONEMAPS
 
-__all__ = ["DEFAULT_BOUNCES", "MAX_TIME_SLICES", "TONEMAPS", "pack_materials", "poses_at", "render_radiance",
-           "render_rgb", "shutter_times", "tonemap_srgb"]
+__all__ = ["MAX_TIME_SLICES", "pack_materials", "poses_at", "render_radiance", "render_rgb", "shutter_times",
+           "tonemap_srgb"]
 
-# Path-tracing bounces after the first hit when neither the call nor the plan sets ``bounces``.
-DEFAULT_BOUNCES = 3
-TONEMAPS = ("clamp", "reinhard")
 # White point of the extended Reinhard operator: linear radiance that maps to 1.
 REINHARD_WHITE = 4.0
 # Motion blur uses min(spp, MAX_TIME_SLICES) time slices per frame (samples share slices beyond that).
@@ -37,38 +35,28 @@ MAX_TIME_SLICES = 64
 MAX_RAY_DIST = 1.0e9
 
 
-def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu", *, bounces: int | None = None,
-               tonemap: str | None = None, exposure: float | None = None) -> torch.Tensor:
+def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch.Tensor:
     """Render ``rgb``: (T, 3, H, W) float32 sRGB-encoded colour in [0, 1].
 
     Args:
         scene: the scene (objects' ``material`` dicts, ``lights``; empty means defaults).
         accel: the G-buffer's acceleration structure (one group per frame).
         gb: the G-buffer of the pixel-centre rays; reused as the primary hit when spp == 1 and shutter == 0.
-        plan: ``render_mode``, ``spp``, ``shutter``, ``seed`` (and ``bounces``, ``tonemap``, ``exposure``
-            where the plan has them).
+        plan: a validated ``flowsynth.plan.Plan``: ``render_mode``, ``spp``, ``shutter``, ``seed``, ``bounces``,
+            ``tonemap``, ``exposure``.
         device: Warp device.
-        bounces: path-tracing bounces (overrides the plan; default ``DEFAULT_BOUNCES``).
-        tonemap: "clamp" (default) or "reinhard".
-        exposure: linear radiance scale before tone mapping (default 1).
     """
-    tonemap = _option(plan, "tonemap", "clamp") if tonemap is None else tonemap
-    exposure = _option(plan, "exposure", 1.0) if exposure is None else exposure
-    tonemap_srgb(np.zeros((1, 3)), tonemap, exposure)  # validate before the (costly) render
-    radiance = render_radiance(scene, accel, gb, plan, device=device, bounces=bounces)
-    return torch.from_numpy(np.ascontiguousarray(tonemap_srgb(radiance, tonemap, exposure).transpose(0, 3, 1, 2)))
+    radiance = render_radiance(scene, accel, gb, plan, device=device)
+    rgb = tonemap_srgb(radiance, plan.tonemap, plan.exposure)
+    return torch.from_numpy(np.ascontiguousarray(rgb.transpose(0, 3, 1, 2)))
 
 
-def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu", *,
-                    bounces: int | None = None) -> np.ndarray:
+def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> np.ndarray:
     """Linear radiance of every pixel, (T, H, W, 3) float32, finite and >= 0 (before tone mapping)."""
     wp = wp_runtime()
     from flowsynth.kernels.shade import ShadeScene, shade_kernel
 
     T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
-    bounces = _option(plan, "bounces", DEFAULT_BOUNCES) if bounces is None else bounces
-    if not (isinstance(bounces, (int, np.integer)) and 0 <= bounces <= 64):
-        raise ConfigError(f"bounces must be an integer in [0, 64], got {bounces!r}")
     hits = gb.dist[0][gb.item[0] >= 0]
     lights = resolve_lights(scene.lights, scene.world_T_cam[0], float(np.median(hits)) if hits.size else 1.0)
     sky = sum((np.asarray(x.color) * x.intensity for x in lights if x.kind == "ambient"), np.zeros(3))
@@ -113,8 +101,8 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu", *,
     launch_bands(shade_kernel(plan.render_mode), (T, H, W), 1, [
         sc, gbuf(gb.item, wp.int32, -1), gbuf(gb.face, wp.int32, -1), gbuf(gb.dist, wp.float32, 0.0),
         gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
-        float(K[0, 1]), spp, slices, _seed32(plan.seed), int(bounces), BAND0], [radiance], device,
-        _option(plan, "threads", None))
+        float(K[0, 1]), spp, slices, _seed32(plan.seed), int(plan.bounces), BAND0], [radiance], device,
+        plan.threads)
     out = radiance.numpy()
     return np.nan_to_num(np.maximum(out, 0.0), nan=0.0, posinf=0.0)
 
@@ -219,12 +207,6 @@ def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     info = np.array([[o, p.shape[1], p.shape[0]] for o, p in zip(offsets, pics)], np.int32)
     return mat_f, mat_i, np.concatenate([p.reshape(-1, 3) for p in pics]).astype(np.float32), info
-
-
-def _option(plan, name: str, default):
-    """``plan.<name>`` where the plan has it and it is set, else the default."""
-    value = getattr(plan, name, None)
-    return default if value is None else value
 
 
 def _seed32(seed: int) -> int:
