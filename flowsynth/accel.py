@@ -93,7 +93,6 @@ class SceneAccel:
         # cam_T_obj per (frame, instance), float64
         cam_T_obj = np.einsum("fij,fnjk->fnik", cam_T_world, world_T_obj)
         obj_T_cam = _rigid_inverse(cam_T_obj)
-        self.cam_T_obj = cam_T_obj
         lo = np.empty((F, N, 3))
         hi = np.empty((F, N, 3))
         scale = np.empty((F, N, 1))

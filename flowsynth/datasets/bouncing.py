@@ -92,7 +92,6 @@ class BouncingThings(IterableDataset):
         self.outputs = self.plan.outputs
         self._epoch = 0
         self._pos = 0  # samples this shard has produced in the current epoch (endless: ever)
-        self._active_epoch = 0
 
     def __len__(self) -> int:
         if self.length is None:
@@ -139,7 +138,6 @@ class BouncingThings(IterableDataset):
             torch.set_num_threads(1)
         g, G = _shard()
         epoch = self._epoch
-        self._active_epoch = epoch
         for i, next_pos in self._indices(g, G, epoch, self._pos):
             item = self.sample(i)
             self._pos = next_pos

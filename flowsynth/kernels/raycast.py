@@ -11,7 +11,6 @@ Item index of instance n in frame f is ``f * N + n``.
 
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 
 __all__ = ["primary_kernel", "trace_any", "trace_closest", "visibility_kernel"]
@@ -251,17 +250,6 @@ def visibility_kernel(
     item, _t, _face, _u, _v = trace_from_camera(bvh, roots[f], use_bvh, f, list_start, list_items, near, lowers,
                                                 uppers, item_mesh, obj_T_ref, p / L, L * (1.0 - rel_tol))
     blocked[r] = wp.int8(1) if item >= 0 else wp.int8(0)
-
-
-def empty_like_frames(F: int, H: int, W: int) -> dict[str, np.ndarray]:
-    """G-buffer arrays for frames with nothing in them."""
-    return {
-        "dist": np.zeros((F, H, W), np.float32),
-        "item": np.full((F, H, W), -1, np.int32),
-        "face": np.full((F, H, W), -1, np.int32),
-        "point": np.zeros((F, H, W, 3), np.float32),
-        "normal": np.zeros((F, H, W, 3), np.float32),
-    }
 
 
 @wp.kernel(enable_backward=False)
