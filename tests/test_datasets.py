@@ -1,15 +1,22 @@
 """Streaming dataset: determinism across workers/start methods, resume, shapes, sharding."""
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 from torch.utils.data import DataLoader
+from torchdata.stateful_dataloader import StatefulDataLoader
 
 import flowsynth as fs
 from flowsynth.datasets.bouncing import BouncingThings
 
 CFG = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 4),
                               max_objects=4)
+ROOT = Path(__file__).resolve().parents[1]
 OUTS = ["depth", "flow_fw", "valid_fw", "occ_fw", "instance", "box2d_visible", "object_valid"]
 
 
@@ -85,20 +92,19 @@ def test_unknown_output_and_bad_arguments():
 
 
 def test_resume_with_stateful_dataloader():
-    tdl = pytest.importorskip("torchdata.stateful_dataloader")
     ds = BouncingThings(CFG, outputs=["depth", "instance"], seed=2)
     kw = dict(batch_size=2, num_workers=2)
-    full = tdl.StatefulDataLoader(ds, **kw)
+    full = StatefulDataLoader(ds, **kw)
     it = iter(full)
     reference = [next(it) for _ in range(5)]
     del it
-    first = tdl.StatefulDataLoader(BouncingThings(CFG, outputs=["depth", "instance"], seed=2), **kw)
+    first = StatefulDataLoader(BouncingThings(CFG, outputs=["depth", "instance"], seed=2), **kw)
     it = iter(first)
     for _ in range(2):
         next(it)
     state = first.state_dict()
     del it
-    resumed = tdl.StatefulDataLoader(BouncingThings(CFG, outputs=["depth", "instance"], seed=2), **kw)
+    resumed = StatefulDataLoader(BouncingThings(CFG, outputs=["depth", "instance"], seed=2), **kw)
     resumed.load_state_dict(state)
     it = iter(resumed)
     for ref in reference[2:]:
@@ -133,15 +139,64 @@ def test_shards_cover_every_index_once():
         assert got == list(range(50, 100))
 
 
+CUDA_SPY = """
+import sys
+import torch
+import warp._src.context as wc
+
+calls = []
+
+def spy(mod, name):
+    orig = getattr(mod, name)
+    def wrapped(*a, **k):
+        calls.append(f"torch.cuda.{name}")
+        return orig(*a, **k)
+    setattr(mod, name, wrapped)
+
+# Every way into torch's CUDA runtime goes through one of these (tensor creation on "cuda" calls _lazy_init).
+for name in ("_lazy_init", "init", "is_available", "device_count", "current_device", "set_device"):
+    spy(torch.cuda, name)
+get_device = wc.Runtime.get_device
+
+def warp_device(self, ident=None):
+    if str(ident).startswith("cuda"):
+        calls.append(f"warp {ident}")
+    d = get_device(self, ident)
+    if d.is_cuda:
+        calls.append(f"warp {d}")
+    return d
+
+wc.Runtime.get_device = warp_device
+import flowsynth as fs
+
+cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, num_objects=(2, 3), render_mode="direct")
+fs.datasets.BouncingThings(cfg, outputs=["rgb", "depth", "flow_fw", "occ_fw", "box2d_visible"]).sample(0)
+print("run", sorted(set(calls)))
+calls.clear()
+for make in (lambda: torch.zeros(1, device="cuda"), lambda: wc.runtime.get_device("cuda:0")):
+    try:
+        make()
+    except Exception:
+        pass
+print("control", sorted(set(calls)))
+"""
+
+
 def test_cpu_run_never_initialises_cuda():
-    BouncingThings(CFG, outputs=["depth", "flow_fw"]).sample(0)
-    assert not torch.cuda.is_initialized()
+    # A fresh interpreter spies on every entry into torch's CUDA runtime and on every Warp device that is
+    # resolved, then runs a physics sample with RGB, flow, occlusion and boxes. The control shows that the
+    # spies do see a CUDA request (on a CPU-only machine the request fails, but is still recorded).
+    out = subprocess.run([sys.executable, "-c", CUDA_SPY], capture_output=True, text=True, timeout=600,
+                         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = dict(line.split(" ", 1) for line in out.stdout.splitlines() if line.startswith(("run ", "control ")))
+    assert lines["run"] == "[]", f"a CPU run touched CUDA: {lines['run']}"
+    assert "torch.cuda._lazy_init" in lines["control"] and "warp cuda:0" in lines["control"], lines["control"]
 
 
 def test_flow_pairs_adapter_matches_torchvision_convention():
     from PIL import Image
 
-    pytest.importorskip("flowsynth.shading")
     pairs = fs.datasets.FlowPairs(CFG, seed=0, length=4)
     img1, img2, flow, valid = pairs[1]
     assert isinstance(img1, Image.Image) and img1.size == (CFG.width, CFG.height) and img1.mode == "RGB"
@@ -154,7 +209,6 @@ def test_flow_pairs_adapter_matches_torchvision_convention():
 
 
 def test_flow_pairs_masks_valid_includes_occluded_and_visible_excludes_it():
-    pytest.importorskip("flowsynth.shading")
     cfg = fs.BouncingThingsConfig(width=48, height=32, num_frames=2, motion="kinematic", num_objects=(8, 10),
                                   camera_motion="moving")
     s = BouncingThings(cfg, outputs=["valid_fw", "occ_fw"], seed=0).sample(2)

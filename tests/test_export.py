@@ -8,8 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
-import pytest
 import torch
 
 import flowsynth as fs
@@ -55,7 +55,6 @@ def test_exported_equals_stream(tmp_path):
 
 
 def test_exported_rgb_within_quantisation(tmp_path):
-    pytest.importorskip("flowsynth.shading")
     from flowsynth.export import export
 
     root = export(CFG, tmp_path / "ds", 1, outputs=["rgb", "flow_fw"], progress=False)
@@ -93,8 +92,6 @@ def test_two_workers_match_one(tmp_path):
 
 
 def test_flyingchairs_layout_loads_like_torchvision(tmp_path):
-    pytest.importorskip("flowsynth.shading")
-    cv2 = pytest.importorskip("cv2")
     from PIL import Image
 
     root = tmp_path / "fc"
@@ -146,7 +143,6 @@ def test_cli_entry_point_exit_codes(tmp_path):
 
 
 def test_preview_writes_png(tmp_path):
-    pytest.importorskip("flowsynth.shading")
     out = tmp_path / "p.png"
     assert main(["preview", "--out", str(out), *SMALL]) == 0
     from PIL import Image

@@ -8,6 +8,7 @@ import struct
 import zlib
 from pathlib import Path
 
+import cv2
 import numpy as np
 import OpenEXR
 import pytest
@@ -110,7 +111,6 @@ def test_exr_rejects_bad_input(tmp_path: Path) -> None:
 
 
 def test_flo_round_trip_and_opencv(tmp_path: Path, rng: np.random.Generator) -> None:
-    cv2 = pytest.importorskip("cv2")
     flow = _special_floats(rng, (2, H, W))
     path = tmp_path / "a.flo"
     write_flo(path, flow)
@@ -163,7 +163,6 @@ def test_kitti_round_trip_and_opencv(tmp_path: Path, rng: np.random.Generator) -
     assert np.abs(back[:, m] - clipped[:, m]).max() <= 1 / 128 + 1e-6
     assert back[0, 0, 0] == KITTI_FLOW_MAX and back[1, 0, 1] == KITTI_FLOW_MIN
     assert (back[:, ~m] == 0).all()
-    cv2 = pytest.importorskip("cv2")
     bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     assert bgr.dtype == np.uint16 and bgr.shape == (H, W, 3)
     np.testing.assert_array_equal(bgr[..., 0], expected_valid)
@@ -225,7 +224,6 @@ def test_u16_png_round_trip_and_opencv(tmp_path: Path, rng: np.random.Generator)
     back = read_u16_png(path)
     assert back.dtype == np.int32
     np.testing.assert_array_equal(back, ids)
-    cv2 = pytest.importorskip("cv2")
     theirs = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     assert theirs.dtype == np.uint16 and theirs.shape == (H, W)
     np.testing.assert_array_equal(theirs, ids)
