@@ -1,6 +1,6 @@
 """``fs.render``: one primary ray cast per frame -> G-buffer -> requested ground truth, as torch tensors.
 
-Output keys, shapes and meaning are those of docs/conventions.md (DESIGN.md section 3).
+Output keys, shapes and meaning are those of docs/conventions.md.
 """
 
 from __future__ import annotations

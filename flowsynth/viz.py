@@ -1,7 +1,7 @@
 """Visualisation: flow colour wheel, depth / id / normal colouring, boxes, labelled contact sheets.
 
 Inputs are numpy arrays or torch tensors (any device; converted with ``.detach().cpu()``), in the
-layouts of a flowsynth sample (DESIGN.md section 3). Every function returns an (H, W, 3) uint8 RGB
+layouts of a flowsynth sample (docs/conventions.md). Every function returns an (H, W, 3) uint8 RGB
 numpy image. Drawing and saving use Pillow; there is no matplotlib dependency.
 """
 

@@ -1,7 +1,7 @@
 """OpenEXR files: named float32 channels, ZIP-compressed (lossless), bit-exact round trip.
 
 Uses the ``OpenEXR`` Python package (3.x API: ``OpenEXR.File(header, channels)``). Three traps of that
-API are handled here (DESIGN.md section 6):
+API are handled here:
 
 - a non-contiguous array (a slice, a transpose) is written silently wrong (openexr #1929), so every
   channel is copied to a C-contiguous 2-D array first;
