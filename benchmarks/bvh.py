@@ -52,7 +52,7 @@ import trimesh
 from raycast import FOV_DEG, HEIGHT, WIDTH, make_scene
 from scipy.spatial.transform import Rotation
 
-from flowsynth.accel import ORDERED_MAX, SceneAccel, primary_trace_inputs
+from flowsynth.accel import ORDERED_MAX, SceneAccel, pinhole
 from flowsynth.camera import Camera
 from flowsynth.kernels import wp_runtime
 from flowsynth.kernels.raycast import primary_kernel
@@ -107,7 +107,6 @@ def measure(wp, scene_name: str, faces: int, poses, variants, camera: Camera, re
     N = world_T_obj.shape[1]
     assert N <= ORDERED_MAX
     accel = SceneAccel([mesh] * N, cam_T_world, world_T_obj)
-    K = camera.K
     shape = (1, camera.height, camera.width)
     dist, item, face = (wp.zeros(shape, dtype=t) for t in (wp.float32, wp.int32, wp.int32))
     point, normal = wp.zeros((1, 1, 1), dtype=wp.vec3), wp.zeros(shape, dtype=wp.vec3)
@@ -119,8 +118,7 @@ def measure(wp, scene_name: str, faces: int, poses, variants, camera: Camera, re
         built[key] = make()
         build_s[key] = build_times(make, build_repeat) if build_repeat else None
         accel.item_mesh = wp.array(np.full(accel.F * N, built[key].id, np.uint64), dtype=wp.uint64)
-        inputs = [*primary_trace_inputs(accel, camera), accel.ref_T_obj, wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
-                  float(K[0, 1]), 1e9, 0]
+        inputs = [accel.instances(), accel.tile_lists(camera), pinhole(camera), 1e9, 0]
         fns[key] = lambda inputs=inputs: wp.launch(kernel, dim=shape, inputs=inputs,
                                                    outputs=[dist, item, face, point, normal])
         fns[key]()

@@ -46,7 +46,7 @@ import torch
 import trimesh
 
 import flowsynth as fs
-from flowsynth.accel import SceneAccel, primary_trace_inputs
+from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.plan import make_plan
 from flowsynth.render import cast_gbuffer, gbuffer_outputs, scene_arrays
@@ -128,9 +128,7 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
     shape = (1, cam.height, cam.width)
     outs = [wp.zeros(shape, dtype=wp.float32), wp.zeros(shape, dtype=wp.int32), wp.zeros(shape, dtype=wp.int32),
             wp.zeros((1, 1, 1), dtype=wp.vec3), wp.zeros(shape, dtype=wp.vec3)]
-    K = cam.K
-    inputs = [*primary_trace_inputs(accel, cam), accel.ref_T_obj,
-              wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), 1e9, 0]
+    inputs = [accel.instances(), accel.tile_lists(cam), pinhole(cam), 1e9, 0]
     kernel = primary_kernel(True, False)
     mesh = scene.objects[0].mesh
     pts = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3)

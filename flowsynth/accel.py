@@ -23,7 +23,7 @@ ORDERED_MAX = 64
 # Primary rays take their candidate list from their TILE x TILE pixel screen tile.
 TILE = 16
 
-__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh"]
+__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh", "pinhole"]
 
 # Maximum number of asset BVHs kept per process (least recently used are dropped).
 MESH_CACHE_SIZE = 512
@@ -126,8 +126,24 @@ class SceneAccel:
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
 
+    def instances(self):
+        """The kernels' ``Instances`` struct (flowsynth.kernels.raycast) over this accel's arrays (no copy):
+        every tracing kernel reads the scene from it."""
+        from flowsynth.kernels.raycast import Instances
+
+        inst = Instances()
+        inst.bvh, inst.roots, inst.use_bvh = self.bvh.id, self.roots, self.use_bvh
+        inst.frame_start, inst.frame_items, inst.near = self.frame_start, self.frame_items, self.near
+        inst.lowers, inst.uppers = self._lowers, self._uppers
+        inst.item_mesh, inst.obj_T_ref, inst.ref_T_obj, inst.n_inst = (self.item_mesh, self.obj_T_ref,
+                                                                       self.ref_T_obj, self.N)
+        return inst
+
     def tile_lists(self, camera):
-        """(start, items) Warp arrays and (tiles_x, tiles_y) of the primary cast's per-tile candidate lists."""
+        """The primary cast's per-(frame, screen tile) candidate lists: a ``TileLists`` struct
+        (flowsynth.kernels.raycast) holding the instances whose box projects onto each tile, near to far."""
+        from flowsynth.kernels.raycast import TileLists
+
         wp = wp_runtime()
         key = (camera.width, camera.height, camera.K.tobytes())
         if key not in self._tiles:
@@ -136,9 +152,11 @@ class SceneAccel:
             else:
                 start, items, tx, ty = _tile_lists(self._lo, self._hi, self._order_np, camera.K, camera.width,
                                                    camera.height, TILE)
-            self._tiles[key] = (wp.array(start, dtype=wp.int32, device=self.device),
-                                wp.array(items if len(items) else np.zeros(1, np.int32), dtype=wp.int32,
-                                         device=self.device), tx, ty)
+            t = TileLists()
+            t.start = wp.array(start, dtype=wp.int32, device=self.device)
+            t.items = wp.array(items if len(items) else np.zeros(1, np.int32), dtype=wp.int32, device=self.device)
+            t.tiles_x, t.tiles_y, t.tile = tx, ty, TILE
+            self._tiles[key] = t
         return self._tiles[key]
 
 
@@ -213,16 +231,13 @@ def _group_roots(bvh, F: int, device: str):
     return roots
 
 
-def camera_trace_inputs(accel: SceneAccel) -> list:
-    """Kernel inputs of casts from a frame's camera centre in any direction: one candidate list per frame
-    (see raycast.trace_from_camera)."""
-    return [accel.bvh.id, accel.roots, accel.use_bvh, accel.frame_start, accel.frame_items, accel.near,
-            accel._lowers, accel._uppers, accel.item_mesh, accel.obj_T_ref]
+def pinhole(camera):
+    """The kernels' ``Pinhole`` struct of a camera's K."""
+    from flowsynth.kernels.raycast import Pinhole
 
-
-def primary_trace_inputs(accel: SceneAccel, camera) -> list:
-    """Kernel inputs of the primary cast: one candidate list per (frame, TILE x TILE screen tile) holding
-    the instances whose box projects onto the tile, near to far; then tiles_x, tiles_y, tile size."""
-    start, items, tx, ty = accel.tile_lists(camera)
-    return [accel.bvh.id, accel.roots, accel.use_bvh, start, items, accel.near, accel._lowers, accel._uppers,
-            accel.item_mesh, accel.obj_T_ref, tx, ty, TILE]
+    wp = wp_runtime()
+    K = camera.K
+    p = Pinhole()
+    p.intr = wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    p.skew = float(K[0, 1])
+    return p

@@ -19,7 +19,6 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import convert_points_from_homogeneous
 
-from flowsynth.accel import camera_trace_inputs
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 
@@ -119,7 +118,7 @@ def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int |
     dev = accel.device
     blocked = wp.zeros(len(X), dtype=wp.int8, device=dev)
     launch_bands(visibility_kernel, (len(X),), 0,
-                 [*camera_trace_inputs(accel), wp.array(X, dtype=wp.vec3, device=dev),
+                 [accel.instances(), wp.array(X, dtype=wp.vec3, device=dev),
                   wp.array(r, dtype=wp.int32, device=dev), VISIBILITY_REL_TOL, BAND0],
                  [blocked], dev, threads)
     return blocked.numpy().astype(bool)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from flowsynth.accel import SceneAccel, primary_trace_inputs
+from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.plan import Plan, make_plan
@@ -58,17 +58,15 @@ def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: 
     from flowsynth.kernels.raycast import primary_kernel
 
     dev = accel.device
-    dist = wp.zeros((F, H, W), dtype=wp.float32, device=dev)
-    item = wp.zeros((F, H, W), dtype=wp.int32, device=dev)
-    face = wp.zeros((F, H, W), dtype=wp.int32, device=dev)
+    dist = wp.empty((F, H, W), dtype=wp.float32, device=dev)  # the kernel writes every pixel
+    item = wp.empty((F, H, W), dtype=wp.int32, device=dev)
+    face = wp.empty((F, H, W), dtype=wp.int32, device=dev)
     shape3 = (F, H, W) if want_points else (1, 1, 1)
-    point = wp.zeros(shape3, dtype=wp.vec3, device=dev)
-    normal = wp.zeros((F, H, W) if want_normals else (1, 1, 1), dtype=wp.vec3, device=dev)
-    K = camera.K
+    point = wp.empty(shape3, dtype=wp.vec3, device=dev)
+    normal = wp.empty((F, H, W) if want_normals else (1, 1, 1), dtype=wp.vec3, device=dev)
     launch_bands(
         primary_kernel(want_normals, want_points), (F, H, W), 1,
-        [*primary_trace_inputs(accel, camera), accel.ref_T_obj,
-         wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]), float(K[0, 1]), float(max_dist), BAND0],
+        [accel.instances(), accel.tile_lists(camera), pinhole(camera), float(max_dist), BAND0],
         [dist, item, face, point, normal], dev, threads,
     )
     return GBuffer(dist.numpy(), item.numpy(), face.numpy(), point.numpy() if want_points else None,

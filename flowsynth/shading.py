@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from flowsynth.accel import SceneAccel
+from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
@@ -75,9 +75,7 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
         accel = SceneAccel([o.mesh for o in scene.objects], cam_T_world, world_T_obj, device=device)
 
     sc = ShadeScene()
-    sc.bvh, sc.roots, sc.item_mesh = accel.bvh.id, accel.roots, accel.item_mesh
-    sc.obj_T_ref, sc.ref_T_obj = accel.obj_T_ref, accel.ref_T_obj
-    sc.n_inst, sc.max_t = accel.N, MAX_RAY_DIST
+    sc.inst, sc.max_t = accel.instances(), MAX_RAY_DIST
     mat_f, mat_i, img_data, img_info = pack_materials(scene)
     sc.mat_f = wp.array(mat_f, dtype=wp.float32, device=device)
     sc.mat_i = wp.array(mat_i, dtype=wp.int32, device=device)
@@ -93,16 +91,14 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
 
     def gbuf(a, dtype, fill):
         if reuse:
-            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=device != "cpu")
         return wp.full((1, 1, 1), fill, dtype=dtype, device=device)
 
-    K = scene.camera.K
-    radiance = wp.zeros((T, H, W), dtype=wp.vec3, device=device)
+    radiance = wp.empty((T, H, W), dtype=wp.vec3, device=device)  # the kernel writes every pixel
     launch_bands(shade_kernel(plan.render_mode), (T, H, W), 1, [
         sc, gbuf(gb.item, wp.int32, -1), gbuf(gb.face, wp.int32, -1), gbuf(gb.dist, wp.float32, 0.0),
-        gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2]),
-        float(K[0, 1]), spp, slices, _seed32(plan.seed), int(plan.bounces), BAND0], [radiance], device,
-        plan.threads)
+        gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), pinhole(scene.camera), spp, slices, _seed32(plan.seed),
+        int(plan.bounces), BAND0], [radiance], device, plan.threads)
     out = radiance.numpy()
     return np.nan_to_num(np.maximum(out, 0.0), nan=0.0, posinf=0.0)
 

@@ -6,37 +6,72 @@ object frame. A ray (origin o, unit direction d, reference frame) visits the ins
 crosses, is mapped into each object's frame with ``obj_T_ref`` (float32, composed in float64 on the
 host) and tested against that asset's mesh. Nothing is rebuilt when objects move.
 
-Item index of instance n in frame f is ``f * N + n``.
+Item index of instance n in frame f is ``f * N + n``. Kernels receive the scene as one ``Instances``
+struct (filled by ``flowsynth.accel.SceneAccel.instances``): a new per-instance field is one new struct
+member, read wherever it is needed.
+
+Closest hit only for primary and path rays; visibility and shadow rays ask "is anything in the way"
+(any hit: the first blocker ends the ray, ``trace_any`` / ``any_from_camera``).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-__all__ = ["primary_kernel", "trace_any", "trace_closest", "visibility_kernel"]
+__all__ = ["Instances", "Pinhole", "TileLists", "primary_kernel", "trace_any", "trace_closest",
+           "visibility_kernel"]
+
+
+@wp.struct
+class Instances:
+    """F frames x N rigid instances, as every tracing kernel reads them (flowsynth.accel.SceneAccel)."""
+
+    bvh: wp.uint64  # grouped top-level BVH over instance boxes, group f = frame f
+    roots: wp.array[wp.int32]  # (F,) root node of each group
+    use_bvh: wp.int32  # 0: camera rays walk the near-to-far candidate lists instead of the BVH
+    frame_start: wp.array[wp.int32]  # (F + 1,) CSR start of each frame's items in frame_items
+    frame_items: wp.array[wp.int32]  # (F * N,) each frame's items, nearest box first
+    near: wp.array[wp.float32]  # (F * N,) distance from the frame's camera centre to the item's box [m]
+    lowers: wp.array[wp.vec3]  # (F * N,) item box, reference frame [m]
+    uppers: wp.array[wp.vec3]
+    item_mesh: wp.array[wp.uint64]  # (F * N,) wp.Mesh id of the item's asset
+    obj_T_ref: wp.array[wp.mat44]  # (F * N,) reference (camera) frame -> object frame
+    ref_T_obj: wp.array[wp.mat44]  # (F * N,) object frame -> reference frame
+    n_inst: wp.int32  # N
+
+
+@wp.struct
+class TileLists:
+    """Per (frame, TILE x TILE screen tile) candidate lists of the primary cast, near to far (CSR)."""
+
+    start: wp.array[wp.int32]  # (F * tiles_y * tiles_x + 1,)
+    items: wp.array[wp.int32]
+    tiles_x: wp.int32
+    tiles_y: wp.int32
+    tile: wp.int32  # tile size [px]
+
+
+@wp.struct
+class Pinhole:
+    """Pinhole intrinsics: intr = (fx, fy, cx, cy) [px], skew = K[0, 1]."""
+
+    intr: wp.vec4
+    skew: wp.float32
 
 
 @wp.func
-def trace_closest(
-    bvh: wp.uint64,
-    root: wp.int32,
-    item_mesh: wp.array[wp.uint64],
-    obj_T_ref: wp.array[wp.mat44],
-    o: wp.vec3,
-    d: wp.vec3,
-    max_t: wp.float32,
-):
-    """Closest hit along o + t d, t in [0, max_t). Returns (item or -1, t, face, bary u, bary v)."""
+def trace_closest(inst: Instances, g: wp.int32, o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+    """Closest hit along o + t d, t in [0, max_t), in group (frame) g. Returns (item or -1, t, face, u, v)."""
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
     best_u = wp.float32(0.0)
     best_v = wp.float32(0.0)
-    query = wp.bvh_query_ray(bvh, o, d, root)
+    query = wp.bvh_query_ray(inst.bvh, o, d, inst.roots[g])
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, best_t):
-        X = obj_T_ref[item]
-        hit = wp.mesh_query_ray(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), best_t)
+        X = inst.obj_T_ref[item]
+        hit = wp.mesh_query_ray(inst.item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), best_t)
         if hit.result and hit.t < best_t:
             best_t = hit.t
             best_item = item
@@ -47,21 +82,13 @@ def trace_closest(
 
 
 @wp.func
-def trace_any(
-    bvh: wp.uint64,
-    root: wp.int32,
-    item_mesh: wp.array[wp.uint64],
-    obj_T_ref: wp.array[wp.mat44],
-    o: wp.vec3,
-    d: wp.vec3,
-    max_t: wp.float32,
-):
-    """True when anything is hit along o + t d with t in [0, max_t)."""
-    query = wp.bvh_query_ray(bvh, o, d, root)
+def trace_any(inst: Instances, g: wp.int32, o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+    """True when anything in group (frame) g is hit along o + t d with t in [0, max_t)."""
+    query = wp.bvh_query_ray(inst.bvh, o, d, inst.roots[g])
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, max_t):
-        X = obj_T_ref[item]
-        if wp.mesh_query_ray_anyhit(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), max_t):
+        X = inst.obj_T_ref[item]
+        if wp.mesh_query_ray_anyhit(inst.item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), max_t):
             return True
     return False
 
@@ -87,43 +114,30 @@ def box_entry(lo: wp.vec3, hi: wp.vec3, d: wp.vec3):
 
 
 @wp.func
-def trace_from_camera(
-    bvh: wp.uint64,
-    root: wp.int32,
-    use_bvh: wp.int32,
-    lst: wp.int32,
-    list_start: wp.array[wp.int32],
-    list_items: wp.array[wp.int32],
-    near: wp.array[wp.float32],
-    lowers: wp.array[wp.vec3],
-    uppers: wp.array[wp.vec3],
-    item_mesh: wp.array[wp.uint64],
-    obj_T_ref: wp.array[wp.mat44],
-    d: wp.vec3,
-    max_t: wp.float32,
-):
-    """``trace_closest`` for a ray leaving the camera centre of a frame, same result.
+def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32], items: wp.array[wp.int32],
+                        lst: wp.int32, d: wp.vec3, max_t: wp.float32):
+    """``trace_closest`` for a ray leaving the camera centre of frame g, same result.
 
-    With few instances (``use_bvh`` = 0) the candidates of list ``lst`` (all the frame's instances, or
-    those whose box projects onto the ray's screen tile) are visited near to far (sorted by ``near``, the
-    distance from the camera to each box) and the walk stops at the first box farther than the best
-    hit: ~1.2 mesh queries per ray instead of one per box crossed.
+    With few instances (``use_bvh`` = 0) the candidates of list ``lst`` of the CSR lists (start, items)
+    (all the frame's instances, or those whose box projects onto the ray's screen tile) are visited near
+    to far (sorted by ``near``) and the walk stops at the first box farther than the best hit: ~1.2 mesh
+    queries per ray instead of one per box crossed.
     """
-    if use_bvh != 0:
-        return trace_closest(bvh, root, item_mesh, obj_T_ref, wp.vec3(0.0), d, max_t)
+    if inst.use_bvh != 0:
+        return trace_closest(inst, g, wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
     best_u = wp.float32(0.0)
     best_v = wp.float32(0.0)
-    for k in range(list_start[lst], list_start[lst + 1]):
-        item = list_items[k]
-        if near[item] >= best_t:
+    for k in range(start[lst], start[lst + 1]):
+        item = items[k]
+        if inst.near[item] >= best_t:
             break
-        te = box_entry(lowers[item], uppers[item], d)
+        te = box_entry(inst.lowers[item], inst.uppers[item], d)
         if te >= 0.0 and te < best_t:
-            X = obj_T_ref[item]
-            hit = wp.mesh_query_ray(item_mesh[item], wp.transform_point(X, wp.vec3(0.0)),
+            X = inst.obj_T_ref[item]
+            hit = wp.mesh_query_ray(inst.item_mesh[item], wp.vec3(X[0, 3], X[1, 3], X[2, 3]),
                                     wp.transform_vector(X, d), best_t)
             if hit.result and hit.t < best_t:
                 best_t = hit.t
@@ -135,12 +149,30 @@ def trace_from_camera(
 
 
 @wp.func
-def pixel_ray(i: wp.int32, j: wp.int32, intr: wp.vec4, skew: wp.float32):
-    """Unit camera-frame direction through the centre of pixel (row i, col j); intr = (fx, fy, cx, cy)."""
-    y = (wp.float32(i) - intr[3]) / intr[1]
-    x = (wp.float32(j) - intr[2] - skew * y) / intr[0]
-    return wp.normalize(wp.vec3(x, y, 1.0))
+def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32):
+    """``trace_any`` for a ray leaving the camera centre of frame g: the frame's instances near to far,
+    first blocker ends the walk (any-hit mesh queries)."""
+    if inst.use_bvh != 0:
+        return trace_any(inst, g, wp.vec3(0.0), d, max_t)
+    for k in range(inst.frame_start[g], inst.frame_start[g + 1]):
+        item = inst.frame_items[k]
+        if inst.near[item] >= max_t:
+            break
+        te = box_entry(inst.lowers[item], inst.uppers[item], d)
+        if te >= 0.0 and te < max_t:
+            X = inst.obj_T_ref[item]
+            if wp.mesh_query_ray_anyhit(inst.item_mesh[item], wp.vec3(X[0, 3], X[1, 3], X[2, 3]),
+                                        wp.transform_vector(X, d), max_t):
+                return True
+    return False
 
+
+@wp.func
+def pixel_ray(i: wp.int32, j: wp.int32, cam: Pinhole):
+    """Unit camera-frame direction through the centre of pixel (row i, col j)."""
+    y = (wp.float32(i) - cam.intr[3]) / cam.intr[1]
+    x = (wp.float32(j) - cam.intr[2] - cam.skew * y) / cam.intr[0]
+    return wp.normalize(wp.vec3(x, y, 1.0))
 
 
 _PRIMARY: dict = {}
@@ -150,9 +182,9 @@ def primary_kernel(want_normals: bool, want_points: bool):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
 
     Launch dims (F, rows, W) from row ``band0`` (``flowsynth.parallel``).
-    Outputs per pixel: ``dist`` ray length [m] (0 = no hit), ``item``
-    (-1 = no hit), ``face``, and when requested ``point`` (object-frame hit point [m]) and
-    ``normal`` (unit, reference/camera frame, facing the camera; 0 = no hit).
+    Outputs per pixel (every pixel written): ``dist`` ray length [m] (0 = no hit), ``item`` (-1 = no
+    hit), ``face`` (-1 = no hit), and when requested ``point`` (object-frame hit point [m], 0 = no hit)
+    and ``normal`` (unit, reference/camera frame, facing the camera; 0 = no hit).
     """
     key = (bool(want_normals), bool(want_points))
     if key in _PRIMARY:
@@ -160,22 +192,9 @@ def primary_kernel(want_normals: bool, want_points: bool):
 
     @wp.kernel(enable_backward=False, module="unique")
     def primary(
-        bvh: wp.uint64,
-        roots: wp.array[wp.int32],
-        use_bvh: wp.int32,
-        list_start: wp.array[wp.int32],
-        list_items: wp.array[wp.int32],
-        near: wp.array[wp.float32],
-        lowers: wp.array[wp.vec3],
-        uppers: wp.array[wp.vec3],
-        item_mesh: wp.array[wp.uint64],
-        obj_T_ref: wp.array[wp.mat44],
-        tiles_x: wp.int32,
-        tiles_y: wp.int32,
-        tile: wp.int32,
-        ref_T_obj: wp.array[wp.mat44],
-        intr: wp.vec4,
-        skew: wp.float32,
+        inst: Instances,
+        tiles: TileLists,
+        cam: Pinhole,
         max_t: wp.float32,
         band0: wp.int32,
         # outputs
@@ -187,26 +206,29 @@ def primary_kernel(want_normals: bool, want_points: bool):
     ):
         f, i, j = wp.tid()
         i += band0
-        d = pixel_ray(i, j, intr, skew)
-        lst = (f * tiles_y + i // tile) * tiles_x + j // tile
-        item, t, face, u, v = trace_from_camera(bvh, roots[f], use_bvh, lst, list_start, list_items, near, lowers,
-                                                uppers, item_mesh, obj_T_ref, d, max_t)
+        d = pixel_ray(i, j, cam)
+        lst = (f * tiles.tiles_y + i // tiles.tile) * tiles.tiles_x + j // tiles.tile
+        item, t, face, u, v = closest_from_camera(inst, f, tiles.start, tiles.items, lst, d, max_t)
         if item < 0:
             item_out[f, i, j] = -1
             face_out[f, i, j] = -1
             dist[f, i, j] = 0.0
+            if wp.static(want_points):
+                point[f, i, j] = wp.vec3(0.0)
+            if wp.static(want_normals):
+                normal[f, i, j] = wp.vec3(0.0)
             return
         item_out[f, i, j] = item
         face_out[f, i, j] = face
         dist[f, i, j] = t
         if wp.static(want_points):
-            point[f, i, j] = wp.mesh_eval_position(item_mesh[item], face, u, v)
+            point[f, i, j] = wp.mesh_eval_position(inst.item_mesh[item], face, u, v)
         if wp.static(want_normals):
-            m = wp.mesh_get(item_mesh[item])
+            m = wp.mesh_get(inst.item_mesh[item])
             a = m.points[m.indices[3 * face + 0]]
             b = m.points[m.indices[3 * face + 1]]
             c = m.points[m.indices[3 * face + 2]]
-            n = wp.normalize(wp.transform_vector(ref_T_obj[item], wp.cross(b - a, c - a)))
+            n = wp.normalize(wp.transform_vector(inst.ref_T_obj[item], wp.cross(b - a, c - a)))
             if wp.dot(n, d) > 0.0:
                 n = -n
             normal[f, i, j] = n
@@ -217,16 +239,7 @@ def primary_kernel(want_normals: bool, want_points: bool):
 
 @wp.kernel(enable_backward=False)
 def visibility_kernel(
-    bvh: wp.uint64,
-    roots: wp.array[wp.int32],
-    use_bvh: wp.int32,
-    list_start: wp.array[wp.int32],
-    list_items: wp.array[wp.int32],
-    near: wp.array[wp.float32],
-    lowers: wp.array[wp.vec3],
-    uppers: wp.array[wp.vec3],
-    item_mesh: wp.array[wp.uint64],
-    obj_T_ref: wp.array[wp.mat44],
+    inst: Instances,
     target: wp.array[wp.vec3],
     pair_frame: wp.array[wp.int32],
     rel_tol: wp.float32,
@@ -238,7 +251,7 @@ def visibility_kernel(
 
     ``target[r]`` is the point in the camera frame of frame ``pair_frame[r]`` [m]. The ray from the
     camera centre towards it counts as blocked when it hits a surface closer than (1 - rel_tol) times
-    the point's distance. Launch dims (rays,) from ray ``band0``.
+    the point's distance (any hit: the first blocker ends the ray). Launch dims (rays,) from ray ``band0``.
     """
     r = wp.tid() + band0
     p = target[r]
@@ -246,10 +259,8 @@ def visibility_kernel(
     if L <= 0.0:
         blocked[r] = wp.int8(1)
         return
-    f = pair_frame[r]
-    item, _t, _face, _u, _v = trace_from_camera(bvh, roots[f], use_bvh, f, list_start, list_items, near, lowers,
-                                                uppers, item_mesh, obj_T_ref, p / L, L * (1.0 - rel_tol))
-    blocked[r] = wp.int8(1) if item >= 0 else wp.int8(0)
+    hit = any_from_camera(inst, pair_frame[r], p / L, L * (1.0 - rel_tol))
+    blocked[r] = wp.int8(1) if hit else wp.int8(0)
 
 
 @wp.kernel(enable_backward=False)

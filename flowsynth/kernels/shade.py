@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from flowsynth.kernels.raycast import trace_any, trace_closest
+from flowsynth.kernels.raycast import Instances, Pinhole, trace_any, trace_closest
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
 __all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel"]
@@ -55,12 +55,7 @@ PI = wp.constant(3.14159265358979)
 class ShadeScene:
     """Everything a shading thread reads besides its pixel's G-buffer entry."""
 
-    bvh: wp.uint64
-    roots: wp.array[wp.int32]
-    item_mesh: wp.array[wp.uint64]
-    obj_T_ref: wp.array[wp.mat44]
-    ref_T_obj: wp.array[wp.mat44]
-    n_inst: wp.int32
+    inst: Instances
     max_t: wp.float32
     mat_f: wp.array2d[wp.float32]
     mat_i: wp.array2d[wp.int32]
@@ -83,10 +78,10 @@ def reverse_bits(x: wp.uint32) -> wp.uint32:
 
 
 @wp.func
-def camera_ray(v: wp.float32, u: wp.float32, intr: wp.vec4, skew: wp.float32):
-    """Unit camera-frame direction through image point (u, v) [px]; intr = (fx, fy, cx, cy)."""
-    y = (v - intr[3]) / intr[1]
-    x = (u - intr[2] - skew * y) / intr[0]
+def camera_ray(v: wp.float32, u: wp.float32, cam: Pinhole):
+    """Unit camera-frame direction through image point (u, v) [px]."""
+    y = (v - cam.intr[3]) / cam.intr[1]
+    x = (u - cam.intr[2] - cam.skew * y) / cam.intr[0]
     return wp.normalize(wp.vec3(x, y, 1.0))
 
 
@@ -134,15 +129,15 @@ def brdf(n: wp.vec3, wi: wp.vec3, wo: wp.vec3, albedo: wp.vec3, spec: wp.float32
 @wp.func
 def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: wp.vec3):
     """Shading normal (camera frame, facing against d), albedo, specular weight, roughness at a hit."""
-    m = wp.mesh_get(sc.item_mesh[item])
+    m = wp.mesh_get(sc.inst.item_mesh[item])
     a = m.points[m.indices[3 * face + 0]]
     b = m.points[m.indices[3 * face + 1]]
     c = m.points[m.indices[3 * face + 2]]
     n_obj = wp.normalize(wp.cross(b - a, c - a))
-    n = wp.normalize(wp.transform_vector(sc.ref_T_obj[item], n_obj))
+    n = wp.normalize(wp.transform_vector(sc.inst.ref_T_obj[item], n_obj))
     if wp.dot(n, d) > 0.0:
         n = -n
-    inst = item % sc.n_inst
+    inst = item % sc.inst.n_inst
     albedo = base_color(sc.mat_f, sc.mat_i, sc.img_data, sc.img_info, inst, p_obj, n_obj)
     return n, albedo, sc.mat_f[inst, COL_SPECULAR], sc.mat_f[inst, COL_ROUGHNESS]
 
@@ -171,7 +166,7 @@ def direct_light(sc: ShadeScene, g: wp.int32, x: wp.vec3, n: wp.vec3, wo: wp.vec
         if ci <= 0.0:
             continue
         if shadows:
-            if trace_any(sc.bvh, sc.roots[g], sc.item_mesh, sc.obj_T_ref, o, wi, t_max):
+            if trace_any(sc.inst, g, o, wi, t_max):
                 continue
         L += wp.cw_mul(brdf(n, wi, wo, albedo, spec, rough), E) * ci
     return L
@@ -236,13 +231,14 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
                 break
             beta = beta / q
         o = offset_origin(x, n)
-        item, dist, face, bu, bv = trace_closest(sc.bvh, sc.roots[g], sc.item_mesh, sc.obj_T_ref, o, wi, sc.max_t)
+        item, dist, face, bu, bv = trace_closest(sc.inst, g, o, wi, sc.max_t)
         if item < 0:
             L += clamp_indirect(wp.cw_mul(beta, sc.sky))
             break
         x = o + wi * dist
         wo = -wi
-        n, albedo, spec, rough = surface(sc, item, face, wp.mesh_eval_position(sc.item_mesh[item], face, bu, bv), wi)
+        n, albedo, spec, rough = surface(sc, item, face, wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv),
+                                         wi)
         rough = wp.max(rough, MIN_INDIRECT_ROUGHNESS)
         L += clamp_indirect(wp.cw_mul(beta, direct_light(sc, g, x, n, wo, albedo, spec, rough, True)))
     return L
@@ -272,8 +268,7 @@ def shade_kernel(mode: str):
         gb_dist: wp.array3d[wp.float32],
         gb_point: wp.array3d[wp.vec3],
         reuse: wp.int32,
-        intr: wp.vec4,
-        skew: wp.float32,
+        cam: Pinhole,
         spp: wp.int32,
         slices: wp.int32,
         seed: wp.int32,
@@ -299,7 +294,7 @@ def shade_kernel(mode: str):
             p_obj = wp.vec3(0.0)
             d = wp.vec3(0.0)
             if reuse != 0:
-                d = camera_ray(wp.float32(i), wp.float32(j), intr, skew)
+                d = camera_ray(wp.float32(i), wp.float32(j), cam)
                 item = gb_item[t, i, j]
                 face = gb_face[t, i, j]
                 dist = gb_dist[t, i, j]
@@ -307,11 +302,10 @@ def shade_kernel(mode: str):
             else:
                 du = (wp.float32(k) + wp.randf(rng)) / wp.float32(spp)
                 dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
-                d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, intr, skew)
-                item, dist, face, bu, bv = trace_closest(sc.bvh, sc.roots[g], sc.item_mesh, sc.obj_T_ref,
-                                                         wp.vec3(0.0), d, sc.max_t)
+                d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
+                item, dist, face, bu, bv = trace_closest(sc.inst, g, wp.vec3(0.0), d, sc.max_t)
                 if item >= 0:
-                    p_obj = wp.mesh_eval_position(sc.item_mesh[item], face, bu, bv)
+                    p_obj = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
             if item < 0:
                 acc += sc.sky
                 continue
