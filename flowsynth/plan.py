@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass
 
 from flowsynth.errors import ConfigError
+from flowsynth.kernels import RENDER_MODES
 from flowsynth.parallel import resolve_threads
 
 __all__ = ["DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FLOW_KEYS", "GBUFFER_KEYS", "MAX_BOUNCES",
@@ -30,8 +31,7 @@ CAMERA_KEYS = ("K", "cam_T_world")
 OUTPUTS = ("rgb",) + GBUFFER_KEYS + FLOW_KEYS + TABLE_KEYS + CAMERA_KEYS
 OCCLUSION_METHODS = ("exact", "depth")
 # RGB options: the one definition of their choices, ranges and defaults (config, Plan and shading use these;
-# the models are in docs/rendering.md).
-RENDER_MODES = ("flat", "direct", "path")
+# the models are in docs/rendering.md). RENDER_MODES is defined beside the kernels that implement them.
 DEFAULT_RENDER_MODE = "flat"
 TONEMAPS = ("clamp", "reinhard")
 DEFAULT_TONEMAP = "clamp"

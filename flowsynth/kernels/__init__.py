@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import functools
 
-__all__ = ["wp_runtime"]
+__all__ = ["RENDER_MODES", "wp_runtime"]
+
+# The shading models that kernels/shade.py implements (docs/rendering.md); flowsynth.plan re-exports them.
+RENDER_MODES = ("flat", "direct", "path")
 
 
 @functools.cache

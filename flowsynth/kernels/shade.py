@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from flowsynth.kernels import RENDER_MODES
 from flowsynth.kernels.raycast import Instances, Pinhole, trace_any, trace_closest
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
@@ -255,8 +256,8 @@ def shade_kernel(mode: str):
     """
     if mode in _SHADE:
         return _SHADE[mode]
-    if mode not in ("flat", "direct", "path"):
-        raise ValueError(f"unknown render mode {mode!r}")
+    if mode not in RENDER_MODES:
+        raise ValueError(f"unknown render mode {mode!r}; choose from {RENDER_MODES}")
     path = mode == "path"
     shadows = mode == "direct"
 
