@@ -20,7 +20,8 @@ from flowsynth.kernels import wp_runtime
 
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH.
 ORDERED_MAX = 64
-# Primary rays take their candidate list from their TILE x TILE pixel screen tile.
+# Primary rays take their candidate list from their TILE x TILE pixel screen tile (benchmarks/tiles.py:
+# 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits).
 TILE = 16
 
 __all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh", "pinhole"]

@@ -249,8 +249,8 @@ def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, i
 
 
 def _mp_context():
-    """fork where the platform has it (like DataLoader's default: workers inherit loaded Warp modules,
-    2x faster start-up than spawn on 2 cores), spawn elsewhere."""
+    """fork where the platform has it (like DataLoader's default: workers inherit the loaded Warp modules
+    instead of importing them again), spawn elsewhere."""
     return mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
 
 
