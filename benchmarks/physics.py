@@ -93,6 +93,40 @@ def run_physics(cfg: BouncingThingsConfig, seed: int, substeps: int) -> dict:
             "d_over_s": approach / (cfg.fps * substeps * min(sizes))}
 
 
+_MEMO_PROBE = """
+import json, sys, time
+import flowsynth.motion as motion
+from flowsynth.sampling import sample_layout
+sys.path.insert(0, {here!r})
+from physics import SETS, make_cfg
+if {off}:
+    motion._memoise_newton_kernel_factories = lambda: None  # Newton's own behaviour: fresh kernels per pipeline
+cfg = make_cfg(20, SETS["primitives"] + SETS["hulls"], 2)
+times = []
+for seed in range(5):
+    layout = sample_layout(cfg, seed, 0)
+    t = time.perf_counter()
+    motion.simulate(cfg, layout.assets, layout.initial)
+    times.append(time.perf_counter() - t)
+print(json.dumps(times))
+"""
+
+
+def memo_saving() -> list[dict]:
+    """Seconds per 2-frame physics clip (20 objects, five scenes in a fresh process) with and without
+    flowsynth.motion's memoisation of Newton's narrow-phase kernel factories."""
+    import json
+    import subprocess
+
+    rows = []
+    for name, off in (("memoised (flowsynth)", False), ("Newton as shipped", True)):
+        out = subprocess.run([sys.executable, "-c", _MEMO_PROBE.format(here=str(HERE), off=off)], capture_output=True,
+                             text=True, check=True, env={**os.environ, "PYTHONPATH": str(HERE.parent)})
+        times = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append({"newton kernels": name, "first_scene_s": times[0], "next_scenes_s": float(np.median(times[1:]))})
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer substep counts, frames and seeds")
@@ -155,11 +189,16 @@ def main() -> None:
     print(f"\nMotion per frame, whole clip of {T} frames including physics setup")
     print_table(motion_rows, ["n", "kinematic_ms_per_frame", "physics_ms_per_frame", "physics_substeps"])
 
+    memo = memo_saving()
+    print("\nNewton narrow-phase kernel factories memoised per process (flowsynth.motion) or not: seconds per "
+          "2-frame clip of 20 objects, fresh process, first scene and median of the next four")
+    print_table(memo, ["newton kernels", "first_scene_s", "next_scenes_s"])
+
     path = write_json("physics", {
         "machine": machine_info(), "pinning": PINNING, "loadavg_1_5_15": [load_before, os.getloadavg()],
         "quick": args.quick, "frames": T, "seeds": seeds,
         "substep_fraction": SUBSTEP_FRACTION, "substeps": rows, "fast": fast, "sampling": sampling,
-        "motion": motion_rows})
+        "motion": motion_rows, "memoisation": memo})
     print(f"\nwrote {path}")
     plot(rows)
 

@@ -1,0 +1,38 @@
+"""flowsynth.motion patches one private corner of Newton; this test fails loudly, naming the cause, when it moves.
+
+``motion._memoise_newton_kernel_factories`` wraps Newton's narrow-phase kernel factories
+(``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every CollisionPipeline of a process
+shares one set of kernels (benchmarks/physics.py, "memoisation": several times less setup per scene).
+That only works while (a) those factories exist under those names and (b) ``NarrowPhase`` looks them up
+in that module at construction time. Either can change in any Newton release (pinned < 1.9).
+"""
+
+import flowsynth as fs
+from flowsynth import motion
+from flowsynth.sampling import sample_layout
+
+CAUSE = ("Newton's private narrow-phase module changed: flowsynth.motion._memoise_newton_kernel_factories "
+         "(which memoises {names} in newton._src.geometry.narrow_phase) no longer applies, so every scene "
+         "would recompile Newton's collision kernels. Update the patch for this Newton version, or drop it "
+         "and re-measure benchmarks/physics.py.")
+
+
+def test_narrow_phase_factories_exist():
+    from newton._src.geometry import narrow_phase
+
+    missing = [n for n in motion._NEWTON_KERNEL_FACTORIES if not callable(getattr(narrow_phase, n, None))]
+    assert not missing, CAUSE.format(names=missing)
+
+
+def test_pipelines_share_memoised_kernels():
+    """Two Newton scenes built one after the other get the very same narrow-phase kernel objects."""
+    cfg = fs.BouncingThingsConfig(num_objects=(3, 3), num_frames=2, assets=("box", "rock"))
+    scenes = []
+    for seed in (0, 1):
+        layout = sample_layout(cfg, seed, 0)
+        scenes.append(motion._NewtonScene(cfg, layout.assets, layout.initial, 2))
+    a, b = (s.pipeline.narrow_phase for s in scenes)
+    for attr in ("primitive_kernel", "narrow_phase_kernel"):
+        ka, kb = getattr(a, attr, None), getattr(b, attr, None)
+        assert ka is not None and ka is kb, CAUSE.format(names=list(motion._NEWTON_KERNEL_FACTORIES)) + \
+            f" (NarrowPhase.{attr} differs between two pipelines)"
