@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE), str(HERE.parent), str(HERE.parent / "tests")]  # _common, flowsynth, oracle
 from _common import machine_info, pin_single_core, plot_curves, print_table, write_json
 
 PINNING = pin_single_core()
@@ -50,11 +50,11 @@ PINNING = pin_single_core()
 import numpy as np
 import warp as wp
 from scipy.spatial.transform import Rotation
-from trimesh.collision import CollisionManager
 
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.motion import DENSITY, _NewtonScene, choose_substeps, wall_boxes
 from flowsynth.sampling import sample_layout
+from oracle import max_penetration
 
 SETS = {"primitives": ("box", "sphere", "cylinder", "capsule", "cone"),
         "hulls": ("torus", "rock", "crystal", "star", "blob")}
@@ -69,23 +69,6 @@ def make_cfg(n: int, assets: tuple[str, ...], num_frames: int) -> BouncingThings
         room_size=(6.0, 5.0, 4.0), camera_clearance=1.0, num_objects=(n, n), max_objects=max(32, n),
         object_size=(0.3, 0.6), min_speed=1.0, max_speed=4.0, angular_speed=(0.0, 3.0),
         num_frames=num_frames, assets=assets, motion="physics")
-
-
-def max_penetration(assets, poses: np.ndarray) -> float:
-    """Deepest overlap of two visual meshes over all frames / smaller size (python-fcl contact depths)."""
-    sizes = [a.size for a in assets]
-    cm = CollisionManager()
-    for i, a in enumerate(assets):
-        cm.add_object(str(i), a.mesh)
-    worst = 0.0
-    for t in range(poses.shape[0]):
-        for i in range(len(assets)):
-            cm.set_transform(str(i), poses[t, i])
-        _, contacts = cm.in_collision_internal(return_data=True)
-        for c in contacts:
-            i, j = (int(name) for name in c.names)
-            worst = max(worst, c.depth / min(sizes[i], sizes[j]))
-    return worst
 
 
 def max_wall_excursion(cfg: BouncingThingsConfig, assets, poses: np.ndarray) -> float:

@@ -1,4 +1,5 @@
-"""Independent float64 numpy oracles for the ground-truth tests and ``benchmarks/accuracy.py``.
+"""Independent float64 numpy oracles for the ground-truth tests, ``benchmarks/accuracy.py`` and
+``benchmarks/peers_physics.py``.
 
 Nothing here calls flowsynth's ray caster, flow or annotation code. Conventions (docs/conventions.md):
 OpenCV camera axes (x right, y down, z forward), ``a_T_b`` maps b-frame points into frame a, the centre of
@@ -7,11 +8,13 @@ u = (fx x + s y) / z + cx, v = fy y / z + cy.
 
 Ray casting is brute force: Moller-Trumbore against every triangle of every posed mesh, in world
 coordinates, float64. A per-object bounding-sphere test only skips rays that cannot hit that object.
+Mesh penetration comes from python-fcl contact depths (trimesh's CollisionManager), not from Newton.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from trimesh.collision import CollisionManager
 
 # Slack on the barycentric inside test: rays through a shared edge or vertex hit at least one triangle.
 BARY_EPS = 1e-12
@@ -284,3 +287,20 @@ def homography_flow(Hm: np.ndarray, width: int, height: int) -> np.ndarray:
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     x = np.stack([u, v, np.ones_like(u)], -1) @ Hm.T
     return x[..., :2] / x[..., 2:3] - np.stack([u, v], -1)
+
+
+def max_penetration(assets, poses: np.ndarray) -> float:
+    """Deepest overlap of two visual meshes over all frames / smaller size (python-fcl contact depths)."""
+    sizes = [a.size for a in assets]
+    cm = CollisionManager()
+    for i, a in enumerate(assets):
+        cm.add_object(str(i), a.mesh)
+    worst = 0.0
+    for t in range(poses.shape[0]):
+        for i in range(len(assets)):
+            cm.set_transform(str(i), poses[t, i])
+        _, contacts = cm.in_collision_internal(return_data=True)
+        for c in contacts:
+            i, j = (int(name) for name in c.names)
+            worst = max(worst, c.depth / min(sizes[i], sizes[j]))
+    return worst

@@ -25,6 +25,7 @@ from flowsynth.motion import (
     simulate,
 )
 from flowsynth.sampling import sample_layout
+from oracle import max_penetration
 
 ROOT = Path(__file__).resolve().parents[1]
 # Deepest allowed overlap of two visual meshes, and deepest allowed excursion of a vertex beyond a wall,
@@ -56,25 +57,6 @@ def runs():
         layout = sample_layout(cfg, 0, index)
         out[name, index] = (cfg, layout, simulate(cfg, layout.assets, layout.initial))
     return out
-
-
-def max_penetration(assets, poses) -> float:
-    """Deepest overlap of two visual meshes over all frames / smaller size (python-fcl contact depths)."""
-    from trimesh.collision import CollisionManager
-
-    sizes = [a.size for a in assets]
-    cm = CollisionManager()
-    for i, a in enumerate(assets):
-        cm.add_object(str(i), a.mesh)
-    worst = 0.0
-    for t in range(poses.shape[0]):
-        for i in range(len(assets)):
-            cm.set_transform(str(i), poses[t, i])
-        _, contacts = cm.in_collision_internal(return_data=True)
-        for c in contacts:
-            i, j = (int(name) for name in c.names)
-            worst = max(worst, c.depth / min(sizes[i], sizes[j]))
-    return worst
 
 
 def max_wall_excursion(cfg, assets, poses) -> float:
