@@ -1,4 +1,4 @@
-"""G-buffer ray cast on one CPU core: flowsynth vs Embree (embreex) vs Newton's SensorCamera.
+"""G-buffer ray cast on one CPU core: flowsynth vs Embree (embreex), Mitsuba 3 (llvm) and Newton's SensorCamera.
 
 Scene: 30 icospheres (radius 1 m, 5120 faces each, random rotations) at random non-overlapping positions
 4-12 m in front of a 640x480 camera (60 deg horizontal fov) at the origin, OpenCV axes, looking down +z.
@@ -11,6 +11,10 @@ against the same triangles and returns ray distance (or depth), the hit object a
   output=1)`` returns distance, primitive id and Embree's geometric normal ("cast" level); the row
   "Embree run + numpy post" adds the numpy work to reach flowsynth's outputs (instance id from the
   primitive id, unit camera-facing normal from the hit triangle's vertices, depth) ("full" level);
+- Mitsuba 3 (``mitsuba``, llvm_ad_rgb variant, Dr.Jit thread count 1): the same triangle soup as one
+  ``mi.Mesh`` filled through ``mi.traverse``; ``ray_intersect`` (t, primitive, geometric normal: "cast")
+  and ``ray_intersect_preliminary`` (t, primitive: "raw", beside Embree's ``run`` returning primitive
+  ids and flowsynth's primary kernel without normals);
 - Newton ``SensorCamera.update`` with depth (ray distance), shape index and normal images; the same ray
   directions handed over as a camera-space ray bundle (Newton's camera frame is OpenGL's: x right,
   y up, looking down -z, so directions are (x, -y, -z) and the camera pose is a half-turn about x).
@@ -25,12 +29,15 @@ Timing: all engines are set up first (``first_s``: first call, including kernel 
 and BVH builds), then timed round-robin so load changes hit all alike. Mrays/s comes from the median
 process CPU time, which on one pinned core is the work done even when other processes share the core;
 wall-clock rates are reported beside it. ``x_embree`` compares with Embree's row of the same level,
-``x_newton`` with Newton's update (which returns raw images, i.e. the "cast" level).
+``x_newton`` with Newton's update (which returns raw images, i.e. the "cast" level), ``x_mitsuba`` with
+Mitsuba's row of the same level. Then, on every CPU the process may use, flowsynth's cast at ``threads`` 1
+and all, and Mitsuba at Dr.Jit thread count 1 and all (wall clock; the load average is printed).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -110,6 +117,7 @@ class Engine:
 
     def __init__(self, fns: dict, rows: list, info: dict, result: dict) -> None:
         self.fns, self.rows, self.info, self.result = fns, rows, info, result
+        self.set_threads = None  # callable(n) for engines timed again on all cores
 
 
 def setup_flowsynth(scene: fs.Scene) -> Engine:
@@ -130,6 +138,9 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
             wp.zeros((1, 1, 1), dtype=wp.vec3), wp.zeros(shape, dtype=wp.vec3)]
     inputs = [accel.instances(), accel.tile_lists(cam), pinhole(cam), 1e9, 0]
     kernel = primary_kernel(True, False)
+    raw_kernel = primary_kernel(False, False)  # distance, item, face only: the bare traversal
+    dummy = wp.zeros((1, 1, 1), dtype=wp.vec3)
+    raw_outs = outs[:3] + [dummy, dummy]
     mesh = scene.objects[0].mesh
     pts = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3)
     idx = wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32)
@@ -137,12 +148,13 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
         "render": lambda: fs.render(scene, OUTPUTS),
         "cast": lambda: cast_gbuffer(accel, cam, want_normals=True, want_points=False),
         "kernel": lambda: wp.launch(kernel, dim=shape, inputs=inputs, outputs=outs),
+        "raw": lambda: wp.launch(raw_kernel, dim=shape, inputs=inputs, outputs=raw_outs),
         "scene_accel": lambda: SceneAccel(meshes, cam_T_world, world_T_obj),
         "gbuffer_outputs": lambda: gbuffer_outputs(scene, gb, plan, world_T_obj),
         "asset_bvh_build": lambda: wp.Mesh(points=pts, indices=idx),
     }
     rows = [("flowsynth fs.render", "full", "render", first), ("flowsynth cast_gbuffer", "cast", "cast", None),
-            ("flowsynth kernel only", "cast", "kernel", None)]
+            ("flowsynth kernel only", "cast", "kernel", None), ("flowsynth raw kernel", "raw", "raw", None)]
     result = {"depth": out["depth"][0, 0].numpy().astype(np.float64).reshape(-1),
               "instance": out["instance"][0, 0].numpy().reshape(-1).astype(np.int64) - 1,
               "normal": out["normals"][0].numpy().reshape(3, -1).T.astype(np.float64),
@@ -175,12 +187,67 @@ def setup_embree(scene: fs.Scene, dirs: np.ndarray) -> Engine:
         return np.where(ok, h["tfar"] * d32[:, 2], 0.0), np.where(ok, prim // faces_per, -1), n
 
     depth, inst, normal = post(hit)
-    fns = {"embree_cast": lambda: esc.run(origins, d32, output=1), "embree_post": lambda: post(hit)}
+    fns = {"embree_cast": lambda: esc.run(origins, d32, output=1), "embree_post": lambda: post(hit),
+           "embree_raw": lambda: esc.run(origins, d32)}
     rows = [("Embree run + numpy post", "full", ("embree_cast", "embree_post"), None),
-            ("Embree run(output=1)", "cast", "embree_cast", first)]
+            ("Embree run(output=1)", "cast", "embree_cast", first),
+            ("Embree run (primID only)", "raw", "embree_raw", None)]
     result = {"depth": depth.astype(np.float64), "instance": inst.astype(np.int64),
               "normal": normal.astype(np.float64), "dist": np.where(inst >= 0, hit["tfar"], 0.0).astype(np.float64)}
     return Engine(fns, rows, {"first_call_s": first, "triangles": len(F)}, result)
+
+
+def setup_mitsuba(scene: fs.Scene, dirs: np.ndarray) -> Engine:
+    """Mitsuba 3, llvm_ad_rgb variant: the world triangle soup as one ``mi.Mesh`` (filled through
+    ``mi.traverse``), the same rays as one ``mi.Ray3f`` batch. "raw": ``ray_intersect_preliminary`` (t and
+    primitive index evaluated); "cast": ``ray_intersect`` (t, primitive index and geometric normal)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")
+    dr.set_thread_count(1)
+    V, F, faces_per = world_triangles(scene)
+    t0 = time.perf_counter()
+    mesh = mi.Mesh("spheres", vertex_count=len(V), face_count=len(F), has_vertex_normals=False,
+                   has_vertex_texcoords=False)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(V.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(F.astype(np.uint32).ravel())
+    params.update()
+    msc = mi.load_dict({"type": "scene", "spheres": mesh})
+    d32 = dirs.astype(np.float32)
+    ray = mi.Ray3f(o=mi.Point3f(0.0, 0.0, 0.0), d=mi.Vector3f(*(mi.Float(d32[:, k]) for k in range(3))))
+    dr.eval(ray)
+
+    def raw():
+        si = msc.ray_intersect_preliminary(ray, coherent=True)
+        dr.eval(si.t, si.prim_index)
+        dr.sync_thread()
+        return si
+
+    def cast():
+        si = msc.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
+        dr.eval(si.t, si.prim_index, si.n)
+        dr.sync_thread()
+        return si
+
+    si = cast()
+    first = time.perf_counter() - t0
+    raw()
+    t = si.t.numpy().astype(np.float64)
+    ok = np.isfinite(t)
+    n = si.n.numpy().reshape(3, -1).T.astype(np.float64) if si.n.numpy().shape[0] == 3 else si.n.numpy()
+    n = n * -np.sign(np.einsum("ij,ij->i", n, dirs))[:, None]
+    n[~ok] = 0.0
+    prim = si.prim_index.numpy().astype(np.int64)
+    result = {"depth": np.where(ok, t * dirs[:, 2], 0.0), "instance": np.where(ok, prim // faces_per, -1),
+              "normal": n, "dist": np.where(ok, t, 0.0)}
+    rows = [("Mitsuba ray_intersect", "cast", "mitsuba_cast", first),
+            ("Mitsuba ray_intersect_preliminary", "raw", "mitsuba_raw", None)]
+    engine = Engine({"mitsuba_cast": cast, "mitsuba_raw": raw}, rows,
+                    {"first_call_s": first, "variant": mi.variant(), "mitsuba": mi.__version__}, result)
+    engine.set_threads = dr.set_thread_count
+    return engine
 
 
 def setup_newton(scene: fs.Scene, dirs: np.ndarray) -> Engine:
@@ -225,6 +292,40 @@ def setup_newton(scene: fs.Scene, dirs: np.ndarray) -> Engine:
     return Engine({"newton_update": update}, rows, {"model_build_s": t_build, "first_update_s": first}, result)
 
 
+def load_text() -> str:
+    return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def all_cores(scene: fs.Scene, engines: dict, repeat: int) -> list[dict]:
+    """flowsynth's cast (``threads`` = all) and Mitsuba (``dr.set_thread_count``) on every allowed core."""
+    cpus = PINNING["affinity_before"]
+    if len(cpus) < 2 or "flowsynth" not in engines:
+        return []
+    os.sched_setaffinity(0, set(cpus))
+    n = len(cpus)
+    meshes, cam_T_world, world_T_obj = scene_arrays(scene)
+    accel = SceneAccel(meshes, cam_T_world, world_T_obj)
+    fns = {("flowsynth cast_gbuffer", "cast", k): (lambda k=k: cast_gbuffer(accel, scene.camera, want_normals=True,
+                                                                           want_points=False, threads=k))
+           for k in (1, n)}
+    mit = engines.get("mitsuba")
+    for k in (1, n) if mit else ():
+        def run(k=k, fn=mit.fns["mitsuba_cast"]):
+            mit.set_threads(k)
+            return fn()
+        fns[("Mitsuba ray_intersect", "cast", k)] = run
+    times = time_round_robin(fns, repeat=repeat, warmup=1)
+    if mit:
+        mit.set_threads(1)
+    os.sched_setaffinity(0, set(PINNING["affinity"]))
+    rows = [{"engine": e, "level": lv, "threads": k, "wall_ms": 1e3 * t["wall_s"],
+             "Mrays_s_wall": WIDTH * HEIGHT / t["wall_s"] / 1e6} for (e, lv, k), t in times.items()]
+    for r in rows:
+        other = [x for x in rows if x["engine"].startswith("Mitsuba") and x["threads"] == r["threads"]]
+        r["x_mitsuba"] = r["Mrays_s_wall"] / other[0]["Mrays_s_wall"] if other else None
+    return rows
+
+
 def _row(engine: str, level: str, t: dict, first: float | None = None) -> dict:
     rays = WIDTH * HEIGHT
     return {"engine": engine, "level": level, "first_s": first, "wall_ms": 1e3 * t["wall_s"],
@@ -259,7 +360,8 @@ def _fmt_items(d: dict) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="3 timed rounds instead of 9")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["embree", "newton"], help="engines to leave out")
+    ap.add_argument("--skip", nargs="*", default=[], choices=["embree", "newton", "mitsuba"],
+                    help="engines to leave out")
     ap.add_argument("--cold-cache", action="store_true",
                     help="compile Warp kernels into an empty kernel cache, so first_s includes compilation")
     args = ap.parse_args()
@@ -279,7 +381,7 @@ def main() -> None:
     dirs = pixel_dirs(scene.camera)
     engines, rows, errors = {}, [], {}
     setups = {"flowsynth": lambda: setup_flowsynth(scene), "embree": lambda: setup_embree(scene, dirs),
-              "newton": lambda: setup_newton(scene, dirs)}
+              "newton": lambda: setup_newton(scene, dirs), "mitsuba": lambda: setup_mitsuba(scene, dirs)}
     for name, setup in setups.items():
         if name in args.skip:
             continue
@@ -306,21 +408,29 @@ def main() -> None:
             embree_rate = ref.get((r["level"], "Embree"))
             r["x_embree"] = r["Mrays_s"] / embree_rate if embree_rate else None
             r["x_newton"] = r["Mrays_s"] / newton_rate if newton_rate else None
-    ratios = {f"{r['engine']} / {'Embree (same level)' if k == 'x_embree' else 'Newton'}": r[k]
-              for r in rows if r["engine"].startswith("flowsynth") for k in ("x_embree", "x_newton") if r.get(k)}
+            mitsuba_rate = ref.get((r["level"], "Mitsuba"))
+            r["x_mitsuba"] = r["Mrays_s"] / mitsuba_rate if mitsuba_rate else None
+    names = {"x_embree": "Embree (same level)", "x_newton": "Newton", "x_mitsuba": "Mitsuba (same level)"}
+    ratios = {f"{r['engine']} / {names[k]}": r[k]
+              for r in rows if r["engine"].startswith("flowsynth") for k in names if r.get(k)}
+    multi = all_cores(scene, engines, repeat)
     ours = engines.get("flowsynth")
-    agreement = {k: compare(ours.result, engines[k].result, dirs) for k in ("embree", "newton")
+    agreement = {k: compare(ours.result, engines[k].result, dirs) for k in ("embree", "newton", "mitsuba")
                  if ours and k in engines}
     hit_frac = float((ours.result["instance"] >= 0).mean()) if ours else float("nan")
 
-    info = machine_info(extra_packages=("embreex",))
+    info = machine_info(extra_packages=("embreex", "mitsuba"))
     print(f"G-buffer cast (depth + instance + normals): {NUM_SPHERES} icospheres x "
           f"{len(scene.objects[0].mesh.faces)} faces, {WIDTH}x{HEIGHT} = {WIDTH * HEIGHT} rays, "
           f"hit fraction {hit_frac:.3f}; medians of {repeat} round-robin rounds; Mrays/s from process CPU time")
     print(f"{info['cpu_model']} ({info['cpu_count']} CPUs), affinity {PINNING['affinity']}, torch threads "
           f"{torch.get_num_threads()}, warp {info['warp-lang']}, newton {info['newton']}, embreex {info['embreex']}")
     print_table(rows, ["engine", "level", "first_s", "wall_ms", "cpu_ms", "Mrays_s", "Mrays_s_wall",
-                       "x_embree", "x_newton", "note"])
+                       "x_embree", "x_newton", "x_mitsuba", "note"])
+    if multi:
+        print(f"\nAll {len(PINNING['affinity_before'])} allowed cores (wall-clock medians; Embree's TBB pool "
+              f"was sized at import on one core, so it is not in this table); {load_text()}")
+        print_table(multi, ["engine", "level", "threads", "wall_ms", "Mrays_s_wall", "x_mitsuba"])
     for name, e in engines.items():
         print(f"{name}: {_fmt_items(e.info)}")
     for name, a in agreement.items():
@@ -334,7 +444,8 @@ def main() -> None:
                   "z_range_m": Z_RANGE, "hit_fraction": hit_frac, "repeat": repeat, "quick": args.quick,
                   "cold_cache": args.cold_cache, "rate_clock": "process CPU time (median)"},
         "rows": rows, "ratios": ratios, "details": {k: e.info for k, e in engines.items()}, "errors": errors,
-        "agreement": agreement, "timings": times, "total_s": total,
+        "agreement": agreement, "timings": times, "total_s": total, "all_cores": multi,
+        "loadavg_1_5_15": os.getloadavg(),
     })
     timed = [r for r in rows if r.get("Mrays_s")]
     save_plot("raycast", [r["engine"] for r in timed], [r["Mrays_s"] for r in timed], "Mrays/s (1 core)",
