@@ -278,7 +278,8 @@ class _NewtonScene:
 
     def advance_frame(self) -> None:
         """Advance one frame. Two substeps are captured once into a Warp CPU graph and replayed
-        substeps / 2 times: replay skips Python launch overhead (~40 launches per substep)."""
+        substeps / 2 times: replay skips Python launch overhead (~40 launches per substep; benchmarks/physics_graph.py
+        measures plain against replayed stepping)."""
         import warp as wp
 
         if self.graph is None:

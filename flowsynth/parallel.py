@@ -29,7 +29,7 @@ from flowsynth.errors import ConfigError
 __all__ = ["BAND0", "BANDS_PER_THREAD", "default_threads", "launch_bands", "resolve_threads",
            "set_worker_process"]
 
-# Bands per thread of a cut launch (more bands balance uneven rows; each band costs one launch, ~20 us).
+# Bands per thread of a cut launch (more bands balance uneven rows; each band costs one more launch).
 BANDS_PER_THREAD = 4
 # Fewest kernel threads (pixels, rays) in a band: smaller launches are not worth cutting.
 MIN_BAND_ITEMS = 2048
