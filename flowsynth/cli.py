@@ -2,7 +2,17 @@
 
 Every BouncingThingsConfig field is also a flag (``--num-frames 8``, ``--object-size 0.3,1.0``,
 ``--texture-dir none``); flags override values from ``--config FILE`` (JSON, TOML or YAML).
-Exit status: 0 success, 2 bad input (config, flags, conflicting folder), 1 other failures.
+``flowsynth export --help`` lists every flag with its type, default and meaning (from the field
+docstrings in flowsynth/config.py).
+
+Exit status:
+  0    success.
+  1    an unexpected failure (a bug: please report the traceback).
+  2    bad input: a flag or config value, a config file, an output folder that holds something else,
+       or a sample too large for the memory; nothing was written.
+  3    reading or writing files failed (disk full, permission denied, ...); samples already finished
+       are kept, temporaries removed: free space and re-run the same command to resume.
+  130  interrupted (Ctrl-C); re-run the same command to resume.
 """
 
 from __future__ import annotations
@@ -10,30 +20,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
+import time
 from pathlib import Path
 
-from flowsynth.errors import FlowsynthError
+from flowsynth._flags import add_config_flags, integer
+from flowsynth.errors import ConfigError, FlowsynthError, StorageError
 
 __all__ = ["build_config", "main"]
-
-
-def _convert(text: str, type_str: str):
-    t = type_str.replace(" ", "")
-    if "|None" in t or "None|" in t:
-        if text.lower() in ("none", "null", ""):
-            return None
-        t = t.replace("|None", "").replace("None|", "")
-    if t.startswith("tuple["):
-        inner = t[len("tuple["):-1].split(",")[0].replace("...", "")
-        return tuple(_convert(x, inner) for x in text.split(",") if x != "")
-    if t == "int":
-        return int(text)
-    if t == "float":
-        return float(text)
-    if t == "bool":
-        return text.lower() in ("1", "true", "yes", "on")
-    return text
 
 
 def _config_fields():
@@ -78,42 +73,53 @@ def build_config(args: argparse.Namespace):
     from flowsynth.config import BouncingThingsConfig
 
     values = _read_config_file(args.config) if args.config else {}
-    for f in _config_fields():
-        v = getattr(args, "cfg_" + f.name)
-        if v is not None:
-            values[f.name] = _convert(v, str(f.type))
-    return BouncingThingsConfig.from_dict(values)
+    flags = {f.name: getattr(args, "cfg_" + f.name) for f in _config_fields()}
+    values.update({k: v for k, v in flags.items() if v is not None})  # parsed by flowsynth._flags
+    try:
+        return BouncingThingsConfig.from_dict(values)
+    except ConfigError as e:  # messages start with the field name; name the flag when one set it
+        name = re.match(r"\w*", str(e)).group(0)
+        if flags.get(name) is not None:
+            raise ConfigError(f"--{name.replace('_', '-')}: {e}") from e
+        raise
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="flowsynth", description=__doc__.split("\n")[0])
+    _sub_kw = {"epilog": "exit status:\n" + __doc__.split("Exit status:\n")[1].rstrip(),
+               "formatter_class": argparse.RawDescriptionHelpFormatter}
+    p = argparse.ArgumentParser(prog="flowsynth", description=__doc__.split("\n")[0], **_sub_kw)
     sub = p.add_subparsers(dest="command", required=True)
-    ex = sub.add_parser("export", help="generate N samples into a folder (resumable)")
-    ex.add_argument("--out", required=True, help="output folder")
-    ex.add_argument("--num", type=int, required=True, help="number of samples")
-    ex.add_argument("--seed", type=int, default=0)
-    ex.add_argument("--workers", type=int, default=1, help="processes, each generating its own share")
-    ex.add_argument("--layout", choices=("native", "flyingchairs"), default="native")
-    ex.add_argument("--outputs", default=None, help="comma-separated output keys (default: a useful set)")
-    ex.add_argument("--occlusion", choices=("exact", "depth"), default="exact")
-    ex.add_argument("--overwrite", action="store_true", help="replace an export of another config")
-    ex.add_argument("--no-progress", action="store_true")
-    pv = sub.add_parser("preview", help="write a contact sheet PNG of one sample")
-    pv.add_argument("--out", required=True, help="PNG file to write")
-    pv.add_argument("--index", type=int, default=0)
-    pv.add_argument("--seed", type=int, default=0)
-    st = sub.add_parser("stats", help="measure flow, occlusion, texture and timing statistics of N samples")
-    st.add_argument("--num", type=int, default=16, help="number of samples")
-    st.add_argument("--seed", type=int, default=0)
-    st.add_argument("--start", type=int, default=0, help="first sample index")
-    st.add_argument("--dis", action="store_true", help="also compare OpenCV DIS flow with zero flow (needs opencv)")
-    st.add_argument("--json", default=None, help="also write the statistics to this JSON file")
+    ex = sub.add_parser("export", help="generate N samples into a folder (resumable)", **_sub_kw,
+                        usage="flowsynth export --out DIR --num N [options]  (all options: flowsynth export --help)")
+    ex.add_argument("--out", required=True, help="output folder (created; re-running resumes) [required]")
+    ex.add_argument("--num", type=integer, required=True, help="number of samples [int, required]")
+    ex.add_argument("--seed", type=integer, default=0, help="sample i depends on (seed, i) [int, default 0]")
+    ex.add_argument("--workers", type=integer, default=1, help="processes, each making its own share [int, default 1]")
+    ex.add_argument("--layout", choices=("native", "flyingchairs"), default="native",
+                    help="files on disk: native or flyingchairs (README) [default native]")
+    ex.add_argument("--outputs", default=None, help="comma-separated output keys [default: the layout's set]")
+    ex.add_argument("--occlusion", choices=("exact", "depth"), default="exact",
+                    help="occ_* by exact visibility rays or a depth-buffer test [default exact]")
+    ex.add_argument("--overwrite", action="store_true",
+                    help="replace an export of another config in --out [flag, default off]")
+    ex.add_argument("--no-progress", action="store_true", help="no progress bar [flag, default off]")
+    pv = sub.add_parser("preview", help="write a contact sheet PNG of one sample", **_sub_kw,
+                        usage="flowsynth preview --out FILE.png [options]  (all options: flowsynth preview --help)")
+    pv.add_argument("--out", required=True, help="PNG file to write [required]")
+    pv.add_argument("--index", type=integer, default=0, help="sample index [int, default 0]")
+    pv.add_argument("--seed", type=integer, default=0, help="dataset seed [int, default 0]")
+    st = sub.add_parser("stats", help="measure flow, occlusion, texture and timing statistics of N samples",
+                        **_sub_kw, usage="flowsynth stats [options]  (all options: flowsynth stats --help)")
+    st.add_argument("--num", type=integer, default=16, help="number of samples [int, default 16]")
+    st.add_argument("--seed", type=integer, default=0, help="dataset seed [int, default 0]")
+    st.add_argument("--start", type=integer, default=0, help="first sample index [int, default 0]")
+    st.add_argument("--dis", action="store_true",
+                    help="also compare OpenCV DIS flow with zero flow (needs opencv) [flag, default off]")
+    st.add_argument("--json", default=None, help="also write the statistics to this JSON file [default: none]")
     for sp in (ex, pv, st):
-        sp.add_argument("--config", default=None, help="config file (.json, .toml, .yaml)")
-        grp = sp.add_argument_group("scene configuration (BouncingThingsConfig fields)")
-        for f in _config_fields():
-            grp.add_argument("--" + f.name.replace("_", "-"), dest="cfg_" + f.name, default=None,
-                             metavar=str(f.type).replace(" ", ""))
+        sp.add_argument("--config", default=None,
+                        help="config file (.json, .toml, .yaml); flags override it [default: none]")
+        add_config_flags(sp)
     return p
 
 
@@ -127,8 +133,26 @@ def _preview(args, cfg) -> None:
                         [k for k in outputs if "_fw" not in k and "_bw" not in k], seed=args.seed)
     img = sample_preview(ds.sample(args.index))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    save_png(args.out, img)
+    # what made the picture, so a stale one can be told apart (scripts/make_preview.py, tests/test_cli.py)
+    save_png(args.out, img, text={"flowsynth:config": json.dumps(cfg.to_dict(), sort_keys=True),
+                                  "flowsynth:seed": str(args.seed), "flowsynth:index": str(args.index)})
     print(f"wrote {args.out} ({img.shape[1]}x{img.shape[0]})")
+
+
+_LOAD_HINTS = {"native": "flowsynth.datasets.Exported({root!r})",
+               "flyingchairs": "torchvision.datasets.FlyingChairs(root={root!r})"}
+
+
+def _export(args, cfg) -> None:
+    from flowsynth.export import export
+
+    start = time.perf_counter()
+    root = export(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
+                  layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
+                  progress=not args.no_progress)
+    print(f"exported {args.num} sample{'s' if args.num != 1 else ''} to {root} in "
+          f"{time.perf_counter() - start:.1f} s, layout {args.layout}; load it in Python with "
+          f"{_LOAD_HINTS[args.layout].format(root=str(root))}")
 
 
 def _stats(args, cfg) -> None:
@@ -143,23 +167,28 @@ def _stats(args, cfg) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status (module docstring)."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a flag that does not parse (2); argparse printed why
+        return e.code if isinstance(e.code, int) else 2
     try:
         cfg = build_config(args)
         if args.command == "export":
-            from flowsynth.export import export
-
-            root = export(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
-                          layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
-                          progress=not args.no_progress)
-            print(f"exported {args.num} samples to {root}")
+            _export(args, cfg)
         elif args.command == "stats":
             _stats(args, cfg)
         else:
             _preview(args, cfg)
+    except StorageError as e:
+        print(f"flowsynth {args.command}: error: {e}", file=sys.stderr)
+        return 3
     except (FlowsynthError, ValueError) as e:
         print(f"flowsynth {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"flowsynth {args.command}: interrupted; re-run the same command to resume", file=sys.stderr)
+        return 130
     return 0
 
 

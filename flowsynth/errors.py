@@ -1,6 +1,6 @@
 """Exception hierarchy. Every error the library raises on purpose derives from FlowsynthError."""
 
-__all__ = ["AssetError", "ConfigError", "ExportError", "FlowsynthError", "ShapeError"]
+__all__ = ["AssetError", "ConfigError", "ExportError", "FlowsynthError", "ShapeError", "StorageError"]
 
 
 class FlowsynthError(Exception):
@@ -21,3 +21,15 @@ class ShapeError(FlowsynthError, ValueError):
 
 class ExportError(FlowsynthError, OSError):
     """Writing or reading an exported dataset failed (unwritable folder, conflicting manifest)."""
+
+
+class StorageError(ExportError):
+    """The file system refused a read or write (disk full, permission denied, a file vanished).
+
+    Not bad input: the same command can succeed once the cause is fixed. ``errno`` holds the OS error
+    number when there was one. The CLI exits with status 3.
+    """
+
+    def __init__(self, message: str, errno: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno

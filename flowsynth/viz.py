@@ -228,13 +228,18 @@ def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, sca
     return np.asarray(sheet)
 
 
-def save_png(path: str | os.PathLike[str], img: np.ndarray) -> None:
-    """Save an (H, W, 3) uint8 RGB image as PNG, atomically."""
+def save_png(path: str | os.PathLike[str], img: np.ndarray, text: Mapping[str, str] | None = None) -> None:
+    """Save an (H, W, 3) uint8 RGB image as PNG, atomically; ``text`` goes into tEXt chunks (key -> value)."""
+    from PIL.PngImagePlugin import PngInfo
+
     a = np.asarray(img)
     if a.dtype != np.uint8 or a.ndim != 3 or a.shape[2] != 3:
         raise ShapeError(f"save_png expects (H, W, 3) uint8, got {a.dtype} {a.shape}")
+    info = PngInfo()
+    for key, value in (text or {}).items():
+        info.add_text(key, value)
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(a)).save(buf, format="PNG")
+    Image.fromarray(np.ascontiguousarray(a)).save(buf, format="PNG", pnginfo=info)
     atomic_write_bytes(path, buf.getvalue())
 
 

@@ -1,0 +1,115 @@
+"""Command-line flags for the BouncingThingsConfig fields: help from the field docstrings, strict parsing.
+
+Every field ``name`` becomes ``--name-with-dashes VALUE``. The help line of a flag is the field's
+docstring (the string literal under the field in flowsynth/config.py), its type and
+its default in command-line form. A value that does not parse is refused by argparse with a message
+that names the flag and the expected form (``argument --fov-deg: expected a number such as 60.0,
+got 'abc'``), exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import functools
+import inspect
+from typing import Any
+
+__all__ = ["add_config_flags", "cli_form", "field_docs", "flag_type", "integer"]
+
+
+@functools.cache
+def field_docs() -> dict[str, str]:
+    """{field name: its docstring} of BouncingThingsConfig, read from the source of flowsynth.config."""
+    from flowsynth import config
+
+    tree = ast.parse(inspect.getsource(config))
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "BouncingThingsConfig")
+    docs = {}
+    for field, after in zip(cls.body, cls.body[1:]):
+        if (isinstance(field, ast.AnnAssign) and isinstance(field.target, ast.Name)
+                and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
+                and isinstance(after.value.value, str)):
+            docs[field.target.id] = inspect.cleandoc(after.value.value)
+    return docs
+
+
+def cli_form(value: Any) -> str:
+    """A config value as it is typed on the command line: ``4,12`` for tuples, ``none`` for None."""
+    if value is None:
+        return "none"
+    if isinstance(value, tuple):
+        return ",".join(cli_form(v) for v in value)
+    return str(value)
+
+
+_SCALARS = {"int": (int, "an integer"), "float": (float, "a number"), "str": (str, "text")}
+
+
+def _scalar(text: str, kind: str):
+    return _SCALARS[kind][0](text.strip())
+
+
+def integer(text: str) -> int:
+    """argparse ``type=`` for plain integer flags (``--num``, ``--seed``, ...): names the expected form."""
+    try:
+        return int(text.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, such as 8; got {text!r}") from None
+
+
+def flag_type(field: dataclasses.Field):
+    """argparse ``type=`` for a config field: parses the command-line form, or explains the expected one."""
+    t = str(field.type).replace(" ", "")
+    optional = "|None" in t or "None|" in t
+    t = t.replace("|None", "").replace("None|", "")
+    example = cli_form(field.default)
+    if t.startswith("tuple["):
+        inner = t[len("tuple["):-1].split(",")
+        kind = inner[0]
+        count = None if inner[-1] == "..." else len(inner)
+        noun = {"int": "integers", "float": "numbers", "str": "names"}[kind]
+        form = (f"{count} {noun} separated by commas" if count else f"{noun} separated by commas")
+    else:
+        kind, count = t, None
+        form = _SCALARS[kind][1]
+    if optional:
+        form += " or none"
+    form += f", such as {example}"
+
+    def parse(text: str):
+        if optional and text.strip().lower() in ("none", "null"):
+            return None
+        try:
+            if t.startswith("tuple["):
+                parts = [p.strip() for p in text.split(",") if p.strip() != ""]
+                if count is not None and len(parts) != count:
+                    raise ValueError(text)
+                return tuple(_scalar(p, kind) for p in parts)
+            return _scalar(text, kind)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {form}; got {text!r}") from None
+
+    parse.__name__ = t
+    if t.startswith("tuple["):
+        parse.metavar = {None: "NAME,...", 2: "MIN,MAX", 3: "X,Y,Z"}.get(count, "A,B,...")
+    else:
+        parse.metavar = kind.upper()
+    if optional:
+        parse.metavar += "|none"
+    return parse
+
+
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """Add one flag per BouncingThingsConfig field (dest ``cfg_<name>``, default None = not given)."""
+    from flowsynth.config import BouncingThingsConfig
+
+    docs = field_docs()
+    grp = parser.add_argument_group("scene configuration (BouncingThingsConfig fields; override --config)")
+    for f in dataclasses.fields(BouncingThingsConfig):
+        typ = flag_type(f)
+        meaning = " ".join(docs.get(f.name, "").split()).replace("``", "").replace("%", "%%")
+        grp.add_argument("--" + f.name.replace("_", "-"), dest="cfg_" + f.name, default=None, type=typ,
+                         metavar=typ.metavar,
+                         help=f"{meaning} [{str(f.type).replace(' ', '')}, default {cli_form(f.default)}]")

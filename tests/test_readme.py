@@ -1,0 +1,20 @@
+"""Every ```python block of README.md runs as written, in order, in one namespace (as a reader pastes them)."""
+
+import re
+from pathlib import Path
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_readme_python_blocks_run(tmp_path, monkeypatch, capsys):
+    blocks = re.findall(r"^```python\n(.*?)^```", README.read_text(), re.S | re.M)
+    assert len(blocks) >= 3
+    monkeypatch.chdir(tmp_path)  # the blocks write relative paths such as out/...
+    namespace: dict = {"__name__": "__readme__"}
+    for k, code in enumerate(blocks):
+        exec(compile(code, f"README.md python block {k + 1}", "exec"), namespace)
+    out = capsys.readouterr().out.splitlines()
+    # the printed values are the ones the README's comments state
+    assert out[0] == "torch.Size([2, 2, 3, 192, 256]) torch.Size([2, 1, 2, 192, 256])"
+    assert float(out[1].split("(")[1].split(")")[0]) == 3.5
+    assert out[-1] == "2 torch.Size([1, 2, 192, 256])"
