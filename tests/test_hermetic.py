@@ -33,7 +33,7 @@ def test_harness_gives_fresh_tmp_and_home():
     root = pathlib.Path(__file__).resolve().parents[1]
     tmp = pathlib.Path(tempfile.gettempdir()).resolve()
     home = pathlib.Path(os.environ["HOME"]).resolve()
-    assert tmp.parent.parent == root / ".cache" and tmp.name == "tmp"
+    assert tmp.parent.parent == (root / ".cache").resolve() and tmp.name == "tmp"
     assert home.parent == tmp.parent and home.name == "home"
     assert not any(home.iterdir()) or all(p.name.startswith(".") for p in home.iterdir())
-    assert pathlib.Path(os.environ["WARP_CACHE_PATH"]).resolve().is_relative_to(root)
+    assert pathlib.Path(os.environ["WARP_CACHE_PATH"]).resolve().is_relative_to((root / ".cache").resolve())
