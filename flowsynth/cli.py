@@ -85,6 +85,8 @@ def build_config(args: argparse.Namespace):
 
 
 def _parser() -> argparse.ArgumentParser:
+    from flowsynth.io import layouts
+
     _sub_kw = {"epilog": "exit status:\n" + __doc__.split("Exit status:\n")[1].rstrip(),
                "formatter_class": argparse.RawDescriptionHelpFormatter}
     p = argparse.ArgumentParser(prog="flowsynth", description=__doc__.split("\n")[0], **_sub_kw)
@@ -95,9 +97,14 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--num", type=integer, required=True, help="number of samples [int, required]")
     ex.add_argument("--seed", type=integer, default=0, help="sample i depends on (seed, i) [int, default 0]")
     ex.add_argument("--workers", type=integer, default=1, help="processes, each making its own share [int, default 1]")
-    ex.add_argument("--layout", choices=("native", "flyingchairs"), default="native",
-                    help="files on disk: native or flyingchairs (README) [default native]")
+    ex.add_argument("--layout", choices=layouts.names(), default="native",
+                    help="files on disk; " + "; ".join(f"{n}: {layouts.get(n).summary}" for n in layouts.names())
+                    + " [default native]")
     ex.add_argument("--outputs", default=None, help="comma-separated output keys [default: the layout's set]")
+    ex.add_argument("--exr-compression", choices=layouts.EXR_COMPRESSIONS, default="zip",
+                    help="lossless compression of EXR files (sizes and times: benchmarks/export.py) [default zip]")
+    ex.add_argument("--dry-run", action="store_true",
+                    help="print the bytes each output costs per sample and in total; write nothing [flag, default off]")
     ex.add_argument("--occlusion", choices=("exact", "depth"), default="exact",
                     help="occ_* by exact visibility rays or a depth-buffer test [default exact]")
     ex.add_argument("--overwrite", action="store_true",
@@ -139,20 +146,33 @@ def _preview(args, cfg) -> None:
     print(f"wrote {args.out} ({img.shape[1]}x{img.shape[0]})")
 
 
-_LOAD_HINTS = {"native": "flowsynth.datasets.Exported({root!r})",
-               "flyingchairs": "torchvision.datasets.FlyingChairs(root={root!r})"}
+def _dry_run(args, cfg) -> None:
+    from flowsynth.export import estimate
+
+    sizes = estimate(cfg, args.num, seed=args.seed, outputs=args.outputs, layout=args.layout,
+                     occlusion=args.occlusion, exr_compression=args.exr_compression)
+    rows = [(k, v, v * args.num) for k, v in sorted(sizes.per_sample.items(), key=lambda kv: -kv[1])]
+    if sizes.index:
+        rows.append(("(index files)", 0, sizes.index))
+    rows.append(("total", sum(sizes.per_sample.values()), sizes.total))
+    print(f"{'output':<16} {'bytes/sample':>14} {f'bytes x {args.num}':>16}")
+    for name, one, total in rows:
+        print(f"{name:<16} {one:>14,} {total:>16,}")
+    print(f"dry run: nothing written; layout {args.layout}, sizes measured on sample 0 "
+          f"(other samples compress a few per cent differently)")
 
 
 def _export(args, cfg) -> None:
     from flowsynth.export import export
+    from flowsynth.io import layouts
 
     start = time.perf_counter()
     root = export(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
                   layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
-                  progress=not args.no_progress)
+                  exr_compression=args.exr_compression, progress=not args.no_progress)
     print(f"exported {args.num} sample{'s' if args.num != 1 else ''} to {root} in "
           f"{time.perf_counter() - start:.1f} s, layout {args.layout}; load it in Python with "
-          f"{_LOAD_HINTS[args.layout].format(root=str(root))}")
+          f"{layouts.get(args.layout).load_hint(root)}")
 
 
 def _stats(args, cfg) -> None:
@@ -174,7 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else 2
     try:
         cfg = build_config(args)
-        if args.command == "export":
+        if args.command == "export" and args.dry_run:
+            _dry_run(args, cfg)
+        elif args.command == "export":
             _export(args, cfg)
         elif args.command == "stats":
             _stats(args, cfg)

@@ -1,30 +1,27 @@
-"""Crash-safe, resumable, parallel export of BouncingThings samples to disk.
+"""Crash-safe, resumable, parallel export of BouncingThings samples to disk, in any registered layout.
 
-Layouts:
-
-native (one folder per sample, see flowsynth/sampleio.py for the files)::
-
-    DIR/
-      manifest.json            config, seed, outputs, layout, versions, per-sample checksums, stats
-                               (flowsynth.stats over the samples the last run generated)
-      00000/  rgb_0000.png  flow_fw_0000.exr  instance_0000.png ...  meta.json
-      00001/  ...
-
-flyingchairs (what ``torchvision.datasets.FlyingChairs`` reads)::
+What a layout writes is its own business (``flowsynth/io/layouts/``: native, flyingchairs, kitti,
+sintel, ...). This module does the bookkeeping that is the same for every layout::
 
     DIR/
-      manifest.json
-      FlyingChairs_train_val.txt     one line per sample: 1 = train, 2 = val (every 10th sample)
-      data/00001_img1.ppm  00001_img2.ppm  00001_flow.flo   (1-based numbering like the original)
+      manifest.json       config, seed, outputs, layout and its options, versions, num,
+                          samples: {"NNNNN": {path: {"size": bytes, "sha256": hex}}}, index: {...},
+                          stats (flowsynth.stats over the samples the last run generated)
+      .journal.jsonl      records of samples finished since manifest.json was last rewritten
+      ...                 the layout's files (paths in the manifest are relative to DIR)
 
-Crash safety: a native sample is written into a hidden temporary folder and renamed into place when
-complete, so a folder ``NNNNN/`` is always whole. A flyingchairs sample writes its images first and
-its ``.flo`` last (each file atomically); a sample counts as present only when its ``.flo`` exists, and
-a resumed export removes images left without one. ``manifest.json`` is rewritten atomically.
+Crash safety: a sample is written by its layout into a hidden staging folder ``DIR/.tmp-NNNNN-*``,
+hashed, recorded in the journal, and then moved into place file by file (a folder that does not exist
+yet moves whole) with :func:`os.replace`; so a file under its final name is always whole. On resume a
+sample counts as done when it has a record and every recorded file exists with the recorded size;
+any other sample is written again. ``manifest.json`` is rewritten atomically every 16 samples and at
+the end, which empties the journal.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import multiprocessing as mp
 import os
@@ -37,15 +34,13 @@ from pathlib import Path
 from tqdm import tqdm
 
 from flowsynth.errors import ConfigError, ExportError
+from flowsynth.io import layouts
 
-__all__ = ["LAYOUTS", "MANIFEST", "export"]
+__all__ = ["JOURNAL", "MANIFEST", "Sizes", "estimate", "export"]
 
-LAYOUTS = ("native", "flyingchairs")
 MANIFEST = "manifest.json"
-_FC_OUTPUTS = ("rgb", "flow_fw")
-# native layout default: images, flow both ways with occlusion, ids, and what boxes_coco.json needs
-DEFAULT_OUTPUTS = ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "instance", "box2d_visible",
-                   "visible_pixels", "object_valid", "object_category")
+JOURNAL = ".journal.jsonl"
+_MANIFEST_EVERY = 16  # samples between manifest rewrites
 
 
 def _versions() -> dict:
@@ -60,86 +55,91 @@ def _versions() -> dict:
     return out
 
 
-def _identity(cfg, seed: int, outputs: tuple, layout: str) -> dict:
-    return {"config": cfg.to_dict(), "seed": seed, "outputs": list(outputs), "layout": layout}
+def _resolve(cfg, num, outputs, layout: str, workers: int, exr_compression: str):
+    """Validate everything before anything is written; returns (Layout, outputs tuple)."""
+    from flowsynth.plan import make_plan
+
+    lay = layouts.get(layout, exr_compression=exr_compression)
+    if not isinstance(num, int) or num < 1:
+        raise ConfigError(f"num must be an integer >= 1, got {num!r}")
+    if not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
+    outputs = make_plan(lay.default_outputs if outputs is None else outputs).outputs
+    lay.check(cfg, outputs, num)
+    return lay, outputs
 
 
-def _sample_name(i: int, layout: str) -> str:
-    return f"{i:05d}" if layout == "native" else f"data/{i + 1:05d}_flow.flo"
-
-
-def _existing(root: Path, num: int, layout: str) -> set[int]:
-    done = {i for i in range(num) if (root / _sample_name(i, layout)).exists()}
-    if layout == "flyingchairs":
-        for img in (root / "data").glob("*_img[12].ppm"):
-            if not img.with_name(img.name.split("_")[0] + "_flow.flo").exists():
-                img.unlink()
-    for tmp in root.glob(".tmp-*"):
-        shutil.rmtree(tmp, ignore_errors=True)
-    return done
+def _record(folder: Path, paths) -> dict:
+    """{path: {"size": bytes, "sha256": hex}} of the files ``paths`` under ``folder``."""
+    out = {}
+    for rel in sorted(paths):
+        data = (folder / rel).read_bytes()
+        out[rel] = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    return out
 
 
 _WORKER: dict = {}
 
 
-def _init_worker(cfg, outputs, seed, occlusion) -> None:
+def _init_worker(cfg, outputs, seed, occlusion, layout) -> None:
     import torch
 
     from flowsynth.datasets import BouncingThings
-
-    torch.set_num_threads(1)
     from flowsynth.stats import cheap_stats_outputs
 
+    torch.set_num_threads(1)
     _WORKER["ds"] = BouncingThings(cfg, outputs=cheap_stats_outputs(outputs), seed=seed, occlusion=occlusion)
     _WORKER["keep"] = set(outputs) | {"index", "seed", "K", "cam_T_world"}
+    _WORKER["layout"] = layout
 
 
-def _init_pool_worker(cfg, outputs, seed, occlusion) -> None:
+def _init_pool_worker(*args) -> None:
     """``_init_worker`` in one of several worker processes: ray launches use one thread (flowsynth.parallel)."""
     from flowsynth.parallel import set_worker_process
 
     set_worker_process()
-    _init_worker(cfg, outputs, seed, occlusion)
+    _init_worker(*args)
 
 
-def _write_one(args) -> tuple[int, dict, dict]:
-    """Generate sample i and write it; returns (i, {file: sha256}, flowsynth.stats.sample_record)."""
-    from flowsynth.sampleio import file_digest, write_sample
+def _write_one(args) -> tuple[int, str, dict, dict]:
+    """Generate sample i and write it into a staging folder.
+
+    Returns (i, staging folder, {path: {size, sha256}}, flowsynth.stats.sample_record).
+    """
     from flowsynth.stats import sample_record
 
-    i, root, layout = args
-    root = Path(root)
+    i, root = args
     t = time.perf_counter()
     sample = _WORKER["ds"].sample(i)
-    record = sample_record(sample, time.perf_counter() - t)
+    stats = sample_record(sample, time.perf_counter() - t)
     sample = {k: v for k, v in sample.items() if k in _WORKER["keep"]}
+    staging = Path(tempfile.mkdtemp(prefix=f".tmp-{i:05d}-", dir=root))
     try:
-        if layout == "native":
-            tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{i:05d}-", dir=root))
-            names = write_sample(sample, tmp)
-            digests = {n: file_digest(tmp / n) for n in names}
-            os.replace(tmp, root / f"{i:05d}")
-            return i, digests, record
-        from flowsynth.io import write_flo, write_ppm
-
-        stem = root / "data" / f"{i + 1:05d}"
-        files = {f"{stem.name}_img1.ppm": lambda p: write_ppm(p, sample["rgb"][0].numpy()),
-                 f"{stem.name}_img2.ppm": lambda p: write_ppm(p, sample["rgb"][1].numpy()),
-                 f"{stem.name}_flow.flo": lambda p: write_flo(p, sample["flow_fw"][0].numpy())}
-        digests = {}
-        for name, write in files.items():
-            write(stem.parent / name)
-            digests[name] = file_digest(stem.parent / name)
-        return i, digests, record
-    except OSError as e:
-        raise ExportError(f"could not write sample {i} under {root}: {e}") from e
+        files = _WORKER["layout"].write(sample, i, staging)
+        return i, str(staging), _record(staging, files), stats
+    except BaseException as e:
+        shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(e, OSError) and not isinstance(e, ExportError):
+            raise ExportError(f"could not write sample {i} under {root}: {e}") from e
+        raise
 
 
-def _write_manifest(root: Path, identity: dict, num: int, samples: dict, stats: dict | None = None) -> None:
+def _place(src: Path, dst: Path) -> None:
+    """Move the tree ``src`` into ``dst``: a missing folder moves whole, files replace what is there."""
+    for p in src.iterdir():
+        q = dst / p.name
+        if p.is_dir() and q.is_dir():
+            _place(p, q)
+        else:
+            os.replace(p, q)
+
+
+def _write_manifest(root: Path, identity: dict, num: int, samples: dict, index: dict | None = None,
+                    stats: dict | None = None) -> None:
     from flowsynth.io import write_json
 
     body = dict(identity, num=num, versions=_versions(),
-                samples={f"{i:05d}": samples[i] for i in sorted(samples)})
+                samples={f"{i:05d}": samples[i] for i in sorted(samples)}, index=index or {})
     if stats is None and (root / MANIFEST).is_file():  # a run that generated nothing keeps the last stats
         stats = json.loads((root / MANIFEST).read_text()).get("stats")
     if stats is not None:  # flowsynth.stats.summarize over the samples the last run generated
@@ -147,62 +147,71 @@ def _write_manifest(root: Path, identity: dict, num: int, samples: dict, stats: 
     write_json(root / MANIFEST, body)
 
 
+def _complete(root: Path, files: dict) -> bool:
+    """Every recorded file exists with its recorded size (the quick resume check)."""
+    for rel, rec in files.items():
+        p = root / rel
+        if not p.is_file() or p.stat().st_size != rec["size"]:
+            return False
+    return True
+
+
+def _recorded(root: Path, old: dict) -> dict[int, dict]:
+    """Sample records of the manifest and of the journal (a torn last journal line is ignored)."""
+    records = {int(k): v for k, v in old.get("samples", {}).items()}
+    journal = root / JOURNAL
+    if journal.is_file():
+        for line in journal.read_text().splitlines():
+            try:
+                entry = json.loads(line)
+            except ValueError:
+                continue
+            records[int(entry["sample"])] = entry["files"]
+    return records
+
+
 def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None, workers: int = 1,
            layout: str = "native", overwrite: bool = False, occlusion: str = "exact",
-           progress: bool = True) -> Path:
+           exr_compression: str = "zip", progress: bool = True) -> Path:
     """Export samples 0..num-1 of ``BouncingThings(cfg, outputs, seed)`` to ``out``; resumes if interrupted.
 
-    Raises ExportError when ``out`` holds an export of another config/seed/outputs/layout (pass
-    ``overwrite=True`` to replace it) or cannot be written. Returns the output folder.
-    """
-    from flowsynth.plan import make_plan
+    Args:
+        layout: a name of ``flowsynth.io.layouts.names()``; ``outputs=None`` takes its defaults.
+        exr_compression: lossless compression of EXR files, ``flowsynth.io.layouts.EXR_COMPRESSIONS``.
 
-    if layout not in LAYOUTS:
-        raise ConfigError(f"layout must be one of {LAYOUTS}, got {layout!r}")
-    if not isinstance(num, int) or num < 1:
-        raise ConfigError(f"num must be an integer >= 1, got {num!r}")
-    if not isinstance(workers, int) or workers < 1:
-        raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
-    if outputs is None:
-        outputs = _FC_OUTPUTS if layout == "flyingchairs" else DEFAULT_OUTPUTS
-    outputs = make_plan(outputs).outputs
-    if layout == "flyingchairs":
-        missing = [k for k in _FC_OUTPUTS if k not in outputs]
-        if missing or cfg.num_frames < 2:
-            raise ConfigError(f"layout flyingchairs needs outputs rgb and flow_fw and num_frames >= 2 "
-                              f"(missing: {missing}, num_frames={cfg.num_frames})")
+    Raises ConfigError for invalid arguments (before anything is written); ExportError when ``out``
+    holds an export of another config/seed/outputs/layout (pass ``overwrite=True`` to replace it) or
+    cannot be written. Returns the output folder.
+    """
+    lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression)
     root = Path(out)
-    identity = _identity(cfg, seed, outputs, layout)
-    samples: dict[int, dict] = {}
+    identity = {"config": cfg.to_dict(), "seed": seed, "outputs": list(outputs), "layout": lay.name,
+                "layout_options": lay.options()}
     try:
         root.mkdir(parents=True, exist_ok=True)
         manifest = root / MANIFEST
+        records: dict[int, dict] = {}
         if manifest.exists():
             old = json.loads(manifest.read_text())
             if {k: old.get(k) for k in identity} != json.loads(json.dumps(identity)):
                 if not overwrite:
                     raise ExportError(f"{root} holds an export with a different config/seed/outputs/layout; "
                                       "choose another --out or pass --overwrite to replace it")
-                _clear(root)
+                _clear(root, old.get("layout"))
             else:
-                samples = {int(k): v for k, v in old.get("samples", {}).items()}
+                records = _recorded(root, old)
         elif any(root.iterdir()) and not overwrite:
             raise ExportError(f"{root} is not empty and holds no flowsynth manifest; choose an empty folder "
                               "or pass --overwrite")
-        if layout == "flyingchairs":
-            (root / "data").mkdir(exist_ok=True)
-        done = _existing(root, num, layout)
-        samples = {i: v for i, v in samples.items() if i in done}
-        for i in sorted(done - set(samples)):  # finished after the last manifest update
-            samples[i] = _digests_on_disk(root, i, layout)
+        for tmp in root.glob(".tmp-*"):
+            shutil.rmtree(tmp, ignore_errors=True)
+        samples = {i: f for i, f in records.items() if i < num and _complete(root, f)}
         _write_manifest(root, identity, num, samples)
-        todo = [i for i in range(num) if i not in done]
-        _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples)
-        if layout == "flyingchairs":
-            from flowsynth.io import atomic_write_bytes
-
-            split = "".join("2\n" if (i + 1) % 10 == 0 else "1\n" for i in range(num))
-            atomic_write_bytes(root / "FlyingChairs_train_val.txt", split.encode())
+        (root / JOURNAL).unlink(missing_ok=True)  # its records are in the manifest now
+        todo = [i for i in range(num) if i not in samples]
+        _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples)
+        index = _record(root, lay.finish(root, num, cfg))
+        _write_manifest(root, identity, num, samples, index)
     except OSError as e:
         if isinstance(e, ExportError):
             raise
@@ -211,41 +220,42 @@ def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None
     return root
 
 
-def _digests_on_disk(root: Path, i: int, layout: str) -> dict:
-    from flowsynth.sampleio import file_digest
-
-    if layout == "native":
-        return {p.name: file_digest(p) for p in sorted((root / f"{i:05d}").iterdir())}
-    stem = f"{i + 1:05d}"
-    return {n: file_digest(root / "data" / n) for n in (f"{stem}_img1.ppm", f"{stem}_img2.ppm", f"{stem}_flow.flo")}
-
-
-def _run(todo, root, layout, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples) -> None:
+def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples) -> None:
     bar = tqdm(total=num, initial=num - len(todo), unit="sample", disable=not progress, dynamic_ncols=True)
-    jobs = [(i, str(root), layout) for i in todo]
+    jobs = [(i, str(root)) for i in todo]
     records: list[dict] = []
     pool = None
     try:
         if workers == 1 or len(jobs) <= 1:
-            _init_worker(cfg, outputs, seed, occlusion)
+            _init_worker(cfg, outputs, seed, occlusion, lay)
             results = map(_write_one, jobs)
         else:
             pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=_mp_context(),
-                                       initializer=_init_pool_worker, initargs=(cfg, outputs, seed, occlusion))
+                                       initializer=_init_pool_worker, initargs=(cfg, outputs, seed, occlusion, lay))
             results = pool.map(_write_one, jobs, chunksize=1)
-        for n, (i, digests, record) in enumerate(results, 1):
-            samples[i] = digests
-            records.append(record)
-            bar.update(1)
-            if n % 16 == 0:
-                _write_manifest(root, identity, num, samples)
+        with open(root / JOURNAL, "a") as journal:
+            for n, (i, staging, files, stats) in enumerate(results, 1):
+                # record first, then move: a record whose files are not all in place fails the resume check
+                journal.write(json.dumps({"sample": f"{i:05d}", "files": files}) + "\n")
+                journal.flush()
+                os.fsync(journal.fileno())
+                _place(Path(staging), root)
+                shutil.rmtree(staging, ignore_errors=True)
+                samples[i] = files
+                records.append(stats)
+                bar.update(1)
+                if n % _MANIFEST_EVERY == 0:
+                    _write_manifest(root, identity, num, samples)
+                    journal.seek(0)
+                    journal.truncate()
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
         bar.close()
         from flowsynth.stats import summarize
 
-        _write_manifest(root, identity, num, samples, summarize(records, cfg) if records else None)
+        _write_manifest(root, identity, num, samples, stats=summarize(records, cfg) if records else None)
+        (root / JOURNAL).unlink(missing_ok=True)
 
 
 def _mp_context():
@@ -254,9 +264,47 @@ def _mp_context():
     return mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
 
 
-def _clear(root: Path) -> None:
-    for p in root.iterdir():
-        if p.is_dir() and (p.name.isdigit() or p.name == "data" or p.name.startswith(".tmp-")):
-            shutil.rmtree(p)
-        elif p.name in (MANIFEST, "FlyingChairs_train_val.txt"):
-            p.unlink()
+def _clear(root: Path, old_layout: str | None) -> None:
+    if old_layout in layouts.names():
+        layouts.get(old_layout).clear(root)
+    for p in root.glob(".tmp-*"):
+        shutil.rmtree(p)
+    for name in (MANIFEST, JOURNAL):
+        (root / name).unlink(missing_ok=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Sizes:
+    """What an export costs on disk, measured by writing sample ``seed``'s sample 0 to a temporary folder."""
+
+    per_sample: dict[str, int]
+    """Output key (``"rgb"``, ``"flow_fw"``, ``"meta"``, ...) -> bytes of its files in one sample."""
+    index: int
+    """Bytes of the files that cover the whole export (manifest excluded), e.g. a split file."""
+    num: int
+    """Number of samples."""
+
+    @property
+    def total(self) -> int:
+        """Estimated bytes of the whole export: num * sum(per_sample) + index."""
+        return self.num * sum(self.per_sample.values()) + self.index
+
+
+def estimate(cfg, num: int, *, seed: int = 0, outputs=None, layout: str = "native", occlusion: str = "exact",
+             exr_compression: str = "zip") -> Sizes:
+    """Sizes of ``export(cfg, ..., num, ...)`` without writing under its folder (``flowsynth export --dry-run``).
+
+    Sample 0 is generated and written in a temporary folder that is removed afterwards; other
+    samples differ from it by what their content compresses to (a few per cent, benchmarks/export.py).
+    Raises ConfigError for invalid arguments, as :func:`export` does.
+    """
+    from flowsynth.datasets import BouncingThings
+
+    lay, outputs = _resolve(cfg, num, outputs, layout, 1, exr_compression)
+    sample = BouncingThings(cfg, outputs=outputs, seed=seed, occlusion=occlusion).sample(0)
+    per_sample: dict[str, int] = {}
+    with tempfile.TemporaryDirectory(prefix="flowsynth-dry-run-") as tmp:
+        for rel, key in lay.write(sample, 0, Path(tmp)).items():
+            per_sample[key] = per_sample.get(key, 0) + (Path(tmp) / rel).stat().st_size
+        index = sum((Path(tmp) / rel).stat().st_size for rel in lay.finish(Path(tmp), num, cfg))
+    return Sizes(per_sample=per_sample, index=index, num=num)

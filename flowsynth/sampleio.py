@@ -54,8 +54,10 @@ def file_digest(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def write_sample(sample: dict[str, torch.Tensor], folder: Path) -> list[str]:
+def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compression: str = "zip") -> list[str]:
     """Write every key of ``sample`` into ``folder`` (which must exist). Returns the file names written.
+
+    ``exr_compression`` is a lossless EXR compression, a key of ``flowsynth.io.exr.COMPRESSIONS``.
 
     Raises ExportError, before writing anything, when a key has no file format (see the module table).
     """
@@ -75,7 +77,7 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path) -> list[str]:
         elif key in _EXR:
             for t in range(a.shape[0]):
                 names.append(f"{key}_{t:04d}.exr")
-                write_tensor_exr(folder / names[-1], a[t], CHANNEL_NAMES[_EXR[key]])
+                write_tensor_exr(folder / names[-1], a[t], CHANNEL_NAMES[_EXR[key]], compression=exr_compression)
         elif key in _U16:
             for t in range(a.shape[0]):
                 names.append(f"{key}_{t:04d}.png")

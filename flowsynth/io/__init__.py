@@ -6,7 +6,9 @@ is atomic (:mod:`flowsynth.io.atomic`): a crash never leaves a partial file unde
 - ``exr``: ``.exr`` named float32 channels (depth, flow, normals, ...); lossless, bit-exact.
 - ``flo``: Middlebury ``.flo`` flow (2, H, W); bit-exact float32.
 - ``kitti``: KITTI 16-bit flow PNG with valid mask; 1/64 px steps, range [-512, 512) px.
-- ``png``: 8-bit RGB PNG and PPM; 16-bit greyscale PNG for ids and masks, exact up to 65535.
+- ``png``: 8-bit RGB PNG and PPM; 16-bit greyscale PNG for ids and masks, exact up to 65535; 8-bit
+  0 / 255 mask PNG (Sintel's occlusions).
+- ``layouts``: export layouts (native, flyingchairs, kitti, sintel) as plug-ins, found by name.
 - ``jsonio``: JSON metadata and COCO-style boxes; finite numbers only.
 """
 
@@ -18,9 +20,11 @@ from flowsynth.io.kitti import read_kitti_flow, write_kitti_flow
 from flowsynth.io.png import (
     decode_png,
     encode_png16,
+    read_mask_png,
     read_ppm,
     read_rgb_png,
     read_u16_png,
+    write_mask_png,
     write_ppm,
     write_rgb_png,
     write_u16_png,
@@ -37,6 +41,7 @@ __all__ = [
     "read_flo",
     "read_json",
     "read_kitti_flow",
+    "read_mask_png",
     "read_ppm",
     "read_rgb_png",
     "read_tensor_exr",
@@ -46,6 +51,7 @@ __all__ = [
     "write_flo",
     "write_json",
     "write_kitti_flow",
+    "write_mask_png",
     "write_ppm",
     "write_rgb_png",
     "write_tensor_exr",

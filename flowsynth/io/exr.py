@@ -1,4 +1,4 @@
-"""OpenEXR files: named float32 channels, ZIP-compressed (lossless), bit-exact round trip.
+"""OpenEXR files: named float32 channels, losslessly compressed (ZIP by default), bit-exact round trip.
 
 Uses the ``OpenEXR`` Python package (3.x API: ``OpenEXR.File(header, channels)``). Three traps of that
 API are handled here:
@@ -36,7 +36,7 @@ import OpenEXR
 from flowsynth.errors import ExportError, ShapeError
 from flowsynth.io.atomic import atomic_path
 
-__all__ = ["CHANNEL_NAMES", "read_exr", "read_tensor_exr", "write_exr", "write_tensor_exr"]
+__all__ = ["CHANNEL_NAMES", "COMPRESSIONS", "read_exr", "read_tensor_exr", "write_exr", "write_tensor_exr"]
 
 CHANNEL_NAMES: dict[str, tuple[str, ...]] = {
     "depth": ("Z",),
@@ -46,6 +46,18 @@ CHANNEL_NAMES: dict[str, tuple[str, ...]] = {
     "position": ("P.X", "P.Y", "P.Z"),
 }
 """EXR channel names per flowsynth output, in channel order of the (C, H, W) tensor."""
+
+COMPRESSIONS: dict[str, Any] = {
+    "none": OpenEXR.NO_COMPRESSION,
+    "rle": OpenEXR.RLE_COMPRESSION,
+    "zips": OpenEXR.ZIPS_COMPRESSION,
+    "zip": OpenEXR.ZIP_COMPRESSION,
+    "piz": OpenEXR.PIZ_COMPRESSION,
+}
+"""Lossless compressions by name (float32 channels round-trip bit-exactly with each). ZIP is the default:
+on a default sample's depth and flow (benchmarks/export.py) PIZ is 1.5 % smaller but takes 3.7x the
+write time, ZIPS and RLE are larger. Flow barely compresses with any of them (0.99x raw): its float32
+mantissas are noise."""
 
 _NATIVE = (np.float32, np.float16, np.uint32)  # pixel types EXR stores as-is
 
@@ -66,8 +78,8 @@ def _prepare_channel(name: str, array: Any, shape: tuple[int, int] | None) -> np
     return np.ascontiguousarray(a)
 
 
-def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray]) -> None:
-    """Write named 2-D channels to a single-part scanline EXR with ZIP compression.
+def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray], *, compression: str = "zip") -> None:
+    """Write named 2-D channels to a single-part scanline EXR, losslessly compressed.
 
     Args:
         path: destination file (``.exr``); written atomically.
@@ -75,11 +87,15 @@ def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray]) 
             as-is (float32 round-trips bit-exactly, NaN and inf included); other floating dtypes
             are converted to float32. Arrays may be non-contiguous; the caller's dict is not
             modified.
+        compression: a key of :data:`COMPRESSIONS`.
 
     Raises:
         ShapeError: no channels, a channel that is not 2-D, shapes differ, or a non-float dtype.
+        ValueError: unknown ``compression``.
         ExportError: the file cannot be written.
     """
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"EXR compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}")
     if not channels:
         raise ShapeError("write_exr needs at least one channel")
     shape: tuple[int, int] | None = None
@@ -87,7 +103,7 @@ def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray]) 
     for name, array in channels.items():
         prepared[name] = _prepare_channel(name, array, shape)
         shape = prepared[name].shape
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header = {"compression": COMPRESSIONS[compression], "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp:
         try:
             with OpenEXR.File(header, prepared) as exr:
@@ -113,13 +129,15 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
         raise ExportError(f"cannot read EXR file {path}: {exc}") from exc
 
 
-def write_tensor_exr(path: str | os.PathLike[str], array: Any, names: Sequence[str]) -> None:
+def write_tensor_exr(path: str | os.PathLike[str], array: Any, names: Sequence[str], *,
+                     compression: str = "zip") -> None:
     """Write a channels-first array as one EXR channel per plane.
 
     Args:
         path: destination ``.exr`` file; written atomically.
         array: (C, H, W) float array (numpy, or a CPU torch tensor), e.g. one frame of ``normals``.
         names: C channel names, e.g. ``CHANNEL_NAMES["normals"]``.
+        compression: a key of :data:`COMPRESSIONS`.
 
     Raises:
         ShapeError: ``array`` is not 3-D or ``len(names) != C``.
@@ -130,7 +148,7 @@ def write_tensor_exr(path: str | os.PathLike[str], array: Any, names: Sequence[s
             f"write_tensor_exr expects a (C, H, W) array with C = len(names) = {len(names)}, "
             f"got shape {a.shape}"
         )
-    write_exr(path, {name: a[c] for c, name in enumerate(names)})
+    write_exr(path, {name: a[c] for c, name in enumerate(names)}, compression=compression)
 
 
 def read_tensor_exr(path: str | os.PathLike[str], names: Sequence[str]) -> np.ndarray:

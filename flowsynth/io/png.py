@@ -29,9 +29,11 @@ from flowsynth.io.atomic import atomic_write_bytes
 __all__ = [
     "decode_png",
     "encode_png16",
+    "read_mask_png",
     "read_ppm",
     "read_rgb_png",
     "read_u16_png",
+    "write_mask_png",
     "write_ppm",
     "write_rgb_png",
     "write_u16_png",
@@ -221,6 +223,31 @@ def write_ppm(path: str | os.PathLike[str], rgb: Any) -> None:
 def read_ppm(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a binary PPM as (3, H, W) float32 in [0, 1]."""
     return _load_pillow(path)
+
+
+def write_mask_png(path: str | os.PathLike[str], mask: Any) -> None:
+    """Write a mask as an 8-bit greyscale PNG, 255 = True, 0 = False (Sintel's occlusion maps).
+
+    Args:
+        path: destination file; written atomically.
+        mask: (H, W) bool array (numpy, or a CPU torch tensor).
+
+    Raises:
+        ShapeError: not a 2-D bool array.
+    """
+    a = np.asarray(mask)
+    if a.ndim != 2 or a.dtype != np.bool_:
+        raise ShapeError(f"write_mask_png expects an (H, W) bool array, got {a.dtype} {a.shape}")
+    _save_pillow(path, a.astype(np.uint8) * np.uint8(255), "PNG")
+
+
+def read_mask_png(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a greyscale mask PNG as (H, W) bool: True where the value is above half of the range."""
+    with Image.open(path) as im:
+        a = np.asarray(im)
+    if a.ndim != 2:
+        raise ExportError(f"{path}: expected a greyscale mask PNG, got shape {a.shape}")
+    return a > (np.iinfo(a.dtype).max // 2 if np.issubdtype(a.dtype, np.integer) else 0.5)
 
 
 def write_u16_png(path: str | os.PathLike[str], values: Any) -> None:

@@ -1,0 +1,115 @@
+"""``Layout``: what one export layout writes for a sample, how it reads it back, and what it needs.
+
+A layout only writes files; the exporter (:mod:`flowsynth.export`) does the bookkeeping that is the
+same for every layout: it gives :meth:`Layout.write` an empty staging folder, hashes what was written
+(size and sha256 per file, into ``manifest.json``), then moves the files into the export root with
+:func:`os.replace`, so a file under its final name is always whole. Paths are relative to the export
+root and use ``/``.
+
+To add a layout, subclass :class:`Layout` in a new module of this package and decorate it with
+:func:`flowsynth.io.layouts.register`; the CLI's ``--layout``, :func:`flowsynth.export.export` and
+:class:`flowsynth.datasets.Exported` find it by its ``name``.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import ClassVar
+
+import torch
+
+from flowsynth.errors import ConfigError
+from flowsynth.io.exr import COMPRESSIONS
+
+__all__ = ["EXR_COMPRESSIONS", "Layout"]
+
+EXR_COMPRESSIONS = tuple(COMPRESSIONS)
+"""Lossless OpenEXR compressions an export may use for its float32 files (bit-exact round trip)."""
+
+
+class Layout:
+    """Base class of export layouts. Subclasses set the class attributes and override the methods.
+
+    Args:
+        exr_compression: compression of the EXR files the layout writes, one of
+            :data:`EXR_COMPRESSIONS` (only layouts that write EXR use it).
+    """
+
+    name: ClassVar[str]
+    """Registry name, the CLI's ``--layout NAME``."""
+    summary: ClassVar[str]
+    """One line for ``--help``: what the layout is for and who reads it."""
+    default_outputs: ClassVar[tuple[str, ...]]
+    """Outputs exported when the user names none."""
+    required_outputs: ClassVar[tuple[str, ...]] = ()
+    """Outputs without which the layout cannot write a sample."""
+    min_frames: ClassVar[int] = 1
+    """Smallest ``num_frames`` the layout can store."""
+    owned: ClassVar[tuple[str, ...]] = ()
+    """Top-level entries of the export root that belong to the layout (removed by ``--overwrite``)."""
+
+    def __init__(self, *, exr_compression: str = "zip") -> None:
+        if exr_compression not in EXR_COMPRESSIONS:
+            raise ConfigError(f"exr_compression must be one of {EXR_COMPRESSIONS}, got {exr_compression!r}")
+        self.exr_compression = exr_compression
+
+    def options(self) -> dict:
+        """Settings that change the bytes written; part of the export's identity in the manifest."""
+        return {"exr_compression": self.exr_compression}
+
+    def check(self, cfg, outputs: Sequence[str], num: int) -> None:
+        """Raise :class:`ConfigError` when ``cfg`` / ``outputs`` / ``num`` cannot be written in this layout.
+
+        Args:
+            cfg: the export's ``BouncingThingsConfig``.
+            outputs: the resolved output keys (``flowsynth.plan.make_plan(...).outputs``).
+            num: number of samples in the export.
+        """
+        missing = [k for k in self.required_outputs if k not in outputs]
+        if missing:
+            raise ConfigError(f"layout {self.name} needs the outputs {list(self.required_outputs)}; add "
+                              f"{missing} to --outputs")
+        if cfg.num_frames < self.min_frames:
+            raise ConfigError(f"layout {self.name} needs num_frames >= {self.min_frames}, got {cfg.num_frames}; "
+                              f"raise --num-frames")
+
+    def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
+        """Write sample ``index`` under the staging ``folder`` (empty; laid out like the export root).
+
+        Args:
+            sample: one ``BouncingThings.sample`` dict (CPU tensors, shapes in docs/conventions.md).
+            index: the sample's index in the export, 0-based.
+            folder: staging root; create sub-folders as needed.
+
+        Returns:
+            relative path -> the output it stores (``"rgb"``, ``"flow_fw"``, ...; ``"meta"`` for
+            metadata), for every file written; ``--dry-run`` sums sizes by that output.
+        """
+        raise NotImplementedError
+
+    def read(self, root: Path, files: Sequence[str]) -> dict[str, torch.Tensor]:
+        """Read one sample back from its files (relative paths under ``root``, as in the manifest).
+
+        Returns:
+            a sample dict with the stream's keys, shapes and dtypes, for the outputs the layout stores.
+        """
+        raise NotImplementedError
+
+    def finish(self, root: Path, num: int, cfg) -> list[str]:
+        """Write index files that cover the whole export (after the last sample); returns their paths."""
+        return []
+
+    def load_hint(self, root: Path) -> str:
+        """A Python line that loads the export at ``root``, for the CLI's closing message."""
+        return f"flowsynth.datasets.Exported({str(root)!r})"
+
+    def clear(self, root: Path) -> None:
+        """Remove everything this layout wrote under ``root`` (``--overwrite``)."""
+        for name in self.owned:
+            p = root / name
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()

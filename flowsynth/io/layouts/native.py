@@ -1,0 +1,59 @@
+"""``native`` layout: one folder per sample, every output lossless (file formats in flowsynth/sampleio.py).
+
+::
+
+    DIR/
+      manifest.json        config, seed, outputs, layout, versions, size and sha256 of every file
+      00000/  rgb_0000.png  depth_0000.exr  flow_fw_0000.exr  instance_0000.png ...  meta.json
+      00001/  ...
+
+Read it back with ``flowsynth.datasets.Exported(DIR)``: the stream's keys, float outputs bit-exact.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+from flowsynth.io.layouts import register
+from flowsynth.io.layouts.base import Layout
+
+__all__ = ["Native"]
+
+_PER_FRAME = re.compile(r"(.+)_\d{4}\.\w+$")
+
+
+@register
+class Native(Layout):
+    """Every requested output of a sample in folder ``NNNNN/`` (5-digit, 0-based index)."""
+
+    name = "native"
+    summary = "one folder per sample, every output lossless; read with flowsynth.datasets.Exported"
+    # images, flow both ways with occlusion, ids, and what boxes_coco.json needs
+    default_outputs = ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "instance", "box2d_visible",
+                       "visible_pixels", "object_valid", "object_category")
+
+    def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
+        from flowsynth.sampleio import write_sample
+
+        sub = Path(folder) / f"{index:05d}"
+        sub.mkdir()
+        out = {}
+        for n in write_sample(sample, sub, exr_compression=self.exr_compression):
+            m = _PER_FRAME.match(n)
+            out[f"{sub.name}/{n}"] = m.group(1) if m else n.rsplit(".", 1)[0]
+        return out
+
+    def read(self, root: Path, files: Sequence[str]) -> dict[str, torch.Tensor]:
+        from flowsynth.sampleio import read_sample
+
+        return read_sample(Path(root) / Path(files[0]).parent)
+
+    def clear(self, root: Path) -> None:
+        for p in Path(root).iterdir():
+            if p.is_dir() and p.name.isdigit():
+                shutil.rmtree(p)
