@@ -120,8 +120,9 @@ def test_default_threads_is_one_in_export_workers(tmp_path):
     from concurrent.futures import ProcessPoolExecutor
 
     from flowsynth import export
+    from flowsynth.io import layouts
 
     cfg = fs.BouncingThingsConfig(width=16, height=12, num_frames=1, num_objects=(1, 1), motion="static")
     with ProcessPoolExecutor(1, mp_context=mp.get_context("fork"), initializer=export._init_pool_worker,
-                             initargs=(cfg, ("depth",), 0, "exact")) as pool:
+                             initargs=(cfg, ("depth",), 0, "exact", layouts.get("native"))) as pool:
         assert list(pool.map(_worker_default, [0])) == [1]
