@@ -86,7 +86,6 @@ def build_config(args: argparse.Namespace):
 
 def _parser() -> argparse.ArgumentParser:
     from flowsynth.io import layouts
-    from flowsynth.plan import OCCLUSION_METHODS
 
     _sub_kw = {"epilog": "exit status:\n" + __doc__.split("Exit status:\n")[1].rstrip(),
                "formatter_class": argparse.RawDescriptionHelpFormatter}
@@ -106,8 +105,11 @@ def _parser() -> argparse.ArgumentParser:
                     help="lossless compression of EXR files (sizes and times: benchmarks/export.py) [default zip]")
     ex.add_argument("--dry-run", action="store_true",
                     help="print the bytes each output costs per sample and in total; write nothing [flag, default off]")
-    ex.add_argument("--occlusion", choices=OCCLUSION_METHODS, default="exact",
+    ex.add_argument("--occlusion", choices=("exact", "depth"), default="exact",
                     help="occ_* by exact visibility rays or a depth-buffer test [default exact]")
+    ex.add_argument("--verify", action="store_true",
+                    help="on resume, check every file's sha256 against the manifest, not only presence and size "
+                         "[flag, default off]")
     ex.add_argument("--overwrite", action="store_true",
                     help="replace an export of another config in --out [flag, default off]")
     ex.add_argument("--no-progress", action="store_true", help="no progress bar [flag, default off]")
@@ -133,10 +135,12 @@ def _parser() -> argparse.ArgumentParser:
 
 def _preview(args, cfg) -> None:
     from flowsynth.datasets import BouncingThings
+    from flowsynth.memory import check_sample_memory
     from flowsynth.viz import sample_preview, save_png
 
     outputs = ["rgb", "flow_fw", "flow_bw", "occ_fw", "depth", "normals", "instance", "box2d_visible",
                "object_valid"]
+    check_sample_memory(cfg)
     ds = BouncingThings(cfg, outputs=outputs if cfg.num_frames > 1 else
                         [k for k in outputs if "_fw" not in k and "_bw" not in k], seed=args.seed)
     img = sample_preview(ds.sample(args.index))
@@ -170,7 +174,7 @@ def _export(args, cfg) -> None:
     start = time.perf_counter()
     root = export(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
                   layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
-                  exr_compression=args.exr_compression, progress=not args.no_progress)
+                  exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress)
     print(f"exported {args.num} sample{'s' if args.num != 1 else ''} to {root} in "
           f"{time.perf_counter() - start:.1f} s, layout {args.layout}; load it in Python with "
           f"{layouts.get(args.layout).load_hint(root)}")

@@ -12,10 +12,21 @@ sintel, ...). This module does the bookkeeping that is the same for every layout
 
 Crash safety: a sample is written by its layout into a hidden staging folder ``DIR/.tmp-NNNNN-*``,
 hashed, recorded in the journal, and then moved into place file by file (a folder that does not exist
-yet moves whole) with :func:`os.replace`; so a file under its final name is always whole. On resume a
-sample counts as done when it has a record and every recorded file exists with the recorded size;
-any other sample is written again. ``manifest.json`` is rewritten atomically every 16 samples and at
-the end, which empties the journal.
+yet moves whole) with :func:`os.replace`; so a file under its final name is always whole. Folders and
+files get the modes the umask gives (0755 / 0644 under the usual 022), never the staging folder's 0700.
+``manifest.json`` is rewritten atomically every 16 samples and at the end, which empties the journal.
+
+Nothing is written before everything is validated (arguments, layout, the dataset, the output folder,
+the memory a sample needs, :mod:`flowsynth.memory`), and ``manifest.json`` appears only when the first
+sample is about to be moved into place: a run that fails before that leaves nothing in the way of the
+corrected command.
+
+Resume (:mod:`flowsynth.integrity`): a sample counts as done when it has a record and every recorded
+file passes the check, quick (present, recorded size) or with ``verify=True`` full (sha256); every
+other sample is written again. Files that no record names are reported as foreign and left untouched.
+
+I/O failures (disk full, permission denied) raise :class:`flowsynth.errors.StorageError` (CLI exit
+status 3) after the staging folders are removed; every finished sample stays recorded.
 """
 
 from __future__ import annotations
@@ -26,6 +37,7 @@ import json
 import multiprocessing as mp
 import os
 import shutil
+import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -33,7 +45,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from flowsynth.errors import ConfigError, ExportError
+from flowsynth.errors import ConfigError, ExportError, StorageError
 from flowsynth.io import layouts
 
 __all__ = ["JOURNAL", "MANIFEST", "Sizes", "estimate", "export"]
@@ -120,7 +132,7 @@ def _write_one(args) -> tuple[int, str, dict, dict]:
     except BaseException as e:
         shutil.rmtree(staging, ignore_errors=True)
         if isinstance(e, OSError) and not isinstance(e, ExportError):
-            raise ExportError(f"could not write sample {i} under {root}: {e}") from e
+            raise StorageError(f"could not write sample {i} under {root}: {e.strerror or e}", e.errno) from e
         raise
 
 
@@ -147,15 +159,6 @@ def _write_manifest(root: Path, identity: dict, num: int, samples: dict, index: 
     write_json(root / MANIFEST, body)
 
 
-def _complete(root: Path, files: dict) -> bool:
-    """Every recorded file exists with its recorded size (the quick resume check)."""
-    for rel, rec in files.items():
-        p = root / rel
-        if not p.is_file() or p.stat().st_size != rec["size"]:
-            return False
-    return True
-
-
 def _recorded(root: Path, old: dict) -> dict[int, dict]:
     """Sample records of the manifest and of the journal (a torn last journal line is ignored)."""
     records = {int(k): v for k, v in old.get("samples", {}).items()}
@@ -172,52 +175,135 @@ def _recorded(root: Path, old: dict) -> dict[int, dict]:
 
 def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None, workers: int = 1,
            layout: str = "native", overwrite: bool = False, occlusion: str = "exact",
-           exr_compression: str = "zip", progress: bool = True) -> Path:
+           exr_compression: str = "zip", verify: bool = False, progress: bool = True) -> Path:
     """Export samples 0..num-1 of ``BouncingThings(cfg, outputs, seed)`` to ``out``; resumes if interrupted.
 
     Args:
         layout: a name of ``flowsynth.io.layouts.names()``; ``outputs=None`` takes its defaults.
         exr_compression: lossless compression of EXR files, ``flowsynth.io.layouts.EXR_COMPRESSIONS``.
+        verify: on resume, check the sha256 of every recorded file, not only its presence and size.
 
-    Raises ConfigError for invalid arguments (before anything is written); ExportError when ``out``
-    holds an export of another config/seed/outputs/layout (pass ``overwrite=True`` to replace it) or
-    cannot be written. Returns the output folder.
+    Raises ConfigError for invalid arguments and ExportError when ``out`` holds an export of another
+    config/seed/outputs/layout (pass ``overwrite=True`` to replace it) or something else; both before
+    anything is written. StorageError (an ExportError) when a file cannot be written: finished
+    samples are kept, temporaries removed, and the same call resumes. Returns the output folder.
     """
+    from flowsynth.memory import check_sample_memory
+
     lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression)
+    check_sample_memory(cfg, processes=min(workers, num))
+    _check_dataset(cfg, outputs, seed, occlusion)
     root = Path(out)
     identity = {"config": cfg.to_dict(), "seed": seed, "outputs": list(outputs), "layout": lay.name,
                 "layout_options": lay.options()}
+    old = _check_folder(root, identity, overwrite)
+    samples: dict[int, dict] = {}
     try:
         root.mkdir(parents=True, exist_ok=True)
-        manifest = root / MANIFEST
-        records: dict[int, dict] = {}
-        if manifest.exists():
-            old = json.loads(manifest.read_text())
-            if {k: old.get(k) for k in identity} != json.loads(json.dumps(identity)):
-                if not overwrite:
-                    raise ExportError(f"{root} holds an export with a different config/seed/outputs/layout; "
-                                      "choose another --out or pass --overwrite to replace it")
-                _clear(root, old.get("layout"))
-            else:
-                records = _recorded(root, old)
-        elif any(root.iterdir()) and not overwrite:
-            raise ExportError(f"{root} is not empty and holds no flowsynth manifest; choose an empty folder "
-                              "or pass --overwrite")
         for tmp in root.glob(".tmp-*"):
             shutil.rmtree(tmp, ignore_errors=True)
-        samples = {i: f for i, f in records.items() if i < num and _complete(root, f)}
-        _write_manifest(root, identity, num, samples)
-        (root / JOURNAL).unlink(missing_ok=True)  # its records are in the manifest now
+        records: dict[int, dict] = {}
+        if old is not None and _same(old, identity):
+            records = _recorded(root, old)
+        elif old is not None:  # another export, overwrite=True
+            _clear(root, old.get("layout"))
+        samples.update(_verified(root, records, num, "full" if verify else "quick"))
+        _report_foreign(root, records, old)
+        if (root / MANIFEST).exists():  # a resumed export: the manifest says what passed the check
+            _write_manifest(root, identity, num, samples)
+            (root / JOURNAL).unlink(missing_ok=True)  # its records are in the manifest now
         todo = [i for i in range(num) if i not in samples]
         _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples)
         index = _record(root, lay.finish(root, num, cfg))
         _write_manifest(root, identity, num, samples, index)
     except OSError as e:
-        if isinstance(e, ExportError):
+        if isinstance(e, ExportError) and not isinstance(e, StorageError):
             raise
-        raise ExportError(f"cannot write the export to {root}: {e.strerror or e}; samples already written "
-                          "are kept, re-run the same command to resume") from e
+        for tmp in root.glob(".tmp-*"):
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise StorageError(f"cannot write the export to {root}: {e.strerror or e}; {len(samples)} of {num} samples are "
+                           "finished and kept, temporaries removed; fix the cause (free space?) and re-run the "
+                           "same command to resume", e.errno) from e
     return root
+
+
+def _same(old: dict, identity: dict) -> bool:
+    return {k: old.get(k) for k in identity} == json.loads(json.dumps(identity))
+
+
+def _check_dataset(cfg, outputs, seed, occlusion) -> None:
+    """Build the dataset once, so what it refuses (num_frames for flow, assets, occlusion) fails first."""
+    from flowsynth.datasets import BouncingThings
+
+    BouncingThings(cfg, outputs=outputs, seed=seed, occlusion=occlusion)
+
+
+def _check_folder(root: Path, identity: dict, overwrite: bool) -> dict | None:
+    """Refuse an output folder that cannot be used, reading only; returns its manifest (None if none)."""
+    if root.exists() and not root.is_dir():
+        raise ExportError(f"--out {root} is a file; choose a folder")
+    if not root.exists():
+        parent = next(p for p in root.parents if p.exists())
+        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            raise ExportError(f"cannot write the export to {root}: {parent} is not a writable folder")
+        return None
+    if not os.access(root, os.W_OK | os.X_OK):
+        raise ExportError(f"cannot write the export to {root}: the folder is not writable")
+    manifest = root / MANIFEST
+    if manifest.is_file():
+        try:
+            old = json.loads(manifest.read_text())
+        except ValueError as e:
+            raise ExportError(f"{manifest} is not valid JSON ({e}); move it away or pass --overwrite") from e
+        if not _same(old, identity) and not overwrite:
+            raise ExportError(f"{root} holds an export with a different config/seed/outputs/layout; "
+                              "choose another --out or pass --overwrite to replace it")
+        return old
+    if any(not p.name.startswith(".tmp-") for p in root.iterdir()) and not overwrite:
+        raise ExportError(f"{root} is not empty and holds no flowsynth manifest; choose an empty folder "
+                          "or pass --overwrite")
+    return None
+
+
+def _verified(root: Path, records: dict, num: int, mode: str) -> dict[int, dict]:
+    """The records of samples < num whose files pass the ``mode`` check; says which will be written again."""
+    from flowsynth.integrity import sample_problem
+
+    samples, redo = {}, []
+    for i, files in sorted(records.items()):
+        if i >= num:
+            continue
+        problem = sample_problem(root, files, mode)
+        if problem is None:
+            samples[i] = files
+        else:
+            redo.append(f"{i:05d} ({problem})")
+    if redo:
+        _note(f"{len(redo)} incomplete or damaged sample{'s' if len(redo) != 1 else ''} will be written "
+              f"again: {_first(redo)}")
+    return samples
+
+
+def _report_foreign(root: Path, records: dict, old: dict | None) -> None:
+    """Name the files under root that no record of this export names; they are left as they are."""
+    from flowsynth.integrity import foreign_files
+
+    known = {MANIFEST, JOURNAL, *(old or {}).get("index", {})}
+    for files in records.values():
+        known.update(files)
+    foreign = foreign_files(root, known)
+    if foreign:
+        _note(f"{len(foreign)} foreign file{'s' if len(foreign) != 1 else ''} in {root} (not written by this "
+              f"export; left untouched): {_first(foreign)}")
+
+
+def _first(items: list[str], n: int = 10) -> str:
+    return ", ".join(items[:n]) + (f", ... ({len(items) - n} more)" if len(items) > n else "")
+
+
+def _note(text: str) -> None:
+    """A message for the user beside the progress bar (stderr)."""
+    tqdm.write(f"flowsynth export: {text}", file=sys.stderr)
 
 
 def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples) -> None:
@@ -225,6 +311,7 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
     jobs = [(i, str(root)) for i in todo]
     records: list[dict] = []
     pool = None
+    journal = None
     try:
         if workers == 1 or len(jobs) <= 1:
             _init_worker(cfg, outputs, seed, occlusion, lay)
@@ -233,29 +320,37 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
             pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=_mp_context(),
                                        initializer=_init_pool_worker, initargs=(cfg, outputs, seed, occlusion, lay))
             results = pool.map(_write_one, jobs, chunksize=1)
-        with open(root / JOURNAL, "a") as journal:
-            for n, (i, staging, files, stats) in enumerate(results, 1):
-                # record first, then move: a record whose files are not all in place fails the resume check
-                journal.write(json.dumps({"sample": f"{i:05d}", "files": files}) + "\n")
-                journal.flush()
-                os.fsync(journal.fileno())
-                _place(Path(staging), root)
-                shutil.rmtree(staging, ignore_errors=True)
-                samples[i] = files
-                records.append(stats)
-                bar.update(1)
-                if n % _MANIFEST_EVERY == 0:
+        for n, (i, staging, files, stats) in enumerate(results, 1):
+            if journal is None:  # the first sample is about to be placed: now the folder is an export
+                if not (root / MANIFEST).exists():
                     _write_manifest(root, identity, num, samples)
-                    journal.seek(0)
-                    journal.truncate()
+                journal = open(root / JOURNAL, "a")  # closed in finally
+            # record first, then move: a record whose files are not all in place fails the resume check
+            journal.write(json.dumps({"sample": f"{i:05d}", "files": files}) + "\n")
+            journal.flush()
+            os.fsync(journal.fileno())
+            _place(Path(staging), root)
+            shutil.rmtree(staging, ignore_errors=True)
+            samples[i] = files
+            records.append(stats)
+            bar.update(1)
+            if n % _MANIFEST_EVERY == 0:
+                _write_manifest(root, identity, num, samples)
+                journal.seek(0)
+                journal.truncate()
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+        for tmp in root.glob(".tmp-*"):  # staging of samples that never got placed
+            shutil.rmtree(tmp, ignore_errors=True)
         bar.close()
-        from flowsynth.stats import summarize
+        if journal is not None:
+            journal.close()
+        if (root / MANIFEST).exists():
+            from flowsynth.stats import summarize
 
-        _write_manifest(root, identity, num, samples, stats=summarize(records, cfg) if records else None)
-        (root / JOURNAL).unlink(missing_ok=True)
+            _write_manifest(root, identity, num, samples, stats=summarize(records, cfg) if records else None)
+            (root / JOURNAL).unlink(missing_ok=True)
 
 
 def _mp_context():

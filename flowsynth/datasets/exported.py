@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import Dataset
 
-from flowsynth.errors import ExportError
+from flowsynth.errors import ConfigError, ExportError
 
 __all__ = ["Exported"]
 
@@ -28,10 +28,19 @@ class Exported(Dataset):
 
     Args:
         root: export folder (the one holding ``manifest.json``).
-        verify: check every file's sha256 against the manifest when reading it.
+        verify: how the files are checked against the manifest (:mod:`flowsynth.integrity`):
+            ``"quick"`` (default) when the folder is opened: every file of every recorded sample
+            exists with its recorded size; ``"full"``: that, and the sha256 of each file whenever a
+            sample is read; ``"none"``: no check. ``True`` / ``False`` mean ``"full"`` / ``"none"``.
+
+    Raises:
+        ExportError: no manifest, an unknown layout, or (quick/full) a sample whose files fail the
+            check; the message names them and says how to repair (re-run the export command).
+        ConfigError: ``verify`` is not one of the above.
     """
 
-    def __init__(self, root: str | Path, verify: bool = False) -> None:
+    def __init__(self, root: str | Path, verify: str | bool = "quick") -> None:
+        from flowsynth.integrity import VERIFY_MODES, sample_problem
         from flowsynth.io import layouts
 
         self.root = Path(root)
@@ -44,19 +53,28 @@ class Exported(Dataset):
             raise ExportError(f"{self.root} uses layout {name!r}, which this flowsynth does not know "
                               f"({', '.join(layouts.names())})")
         self.layout = layouts.get(name)
-        samples = self.manifest.get("samples", {})
-        self.names = sorted(n for n in samples if all((self.root / f).is_file() for f in samples[n]))
+        if isinstance(verify, bool):
+            verify = "full" if verify else "none"
+        if verify not in VERIFY_MODES:
+            raise ConfigError(f"verify must be one of {VERIFY_MODES} (or a bool), got {verify!r}")
         self.verify = verify
+        samples = self.manifest.get("samples", {})
+        self.names = sorted(samples)
+        quick = "none" if verify == "none" else "quick"  # sha256 waits until a sample is read
+        bad = [f"{n}: {p}" for n in self.names if (p := sample_problem(self.root, samples[n], quick))]
+        if bad:
+            raise ExportError(f"{len(bad)} sample(s) of {self.root} do not match its manifest ({'; '.join(bad[:5])}"
+                              f"{'; ...' if len(bad) > 5 else ''}); re-run the `flowsynth export` command that "
+                              "wrote it to repair them, or pass verify='none' to read what is there")
 
     def __len__(self) -> int:
         return len(self.names)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        from flowsynth.sampleio import file_digest
+        from flowsynth.integrity import sample_problem
 
         files = self.manifest["samples"][self.names[i]]
-        if self.verify:
-            for rel, rec in files.items():
-                if file_digest(self.root / rel) != rec["sha256"]:
-                    raise ExportError(f"checksum mismatch for {self.root / rel}; the export is corrupted")
+        if self.verify == "full" and (problem := sample_problem(self.root, files, "full")):
+            raise ExportError(f"sample {self.names[i]} of {self.root}: {problem} (sha256 check); the export is "
+                              "damaged: re-run `flowsynth export ... --verify` with the same arguments to repair it")
         return self.layout.read(self.root, list(files))

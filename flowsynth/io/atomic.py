@@ -17,7 +17,7 @@ import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
-from flowsynth.errors import ExportError
+from flowsynth.errors import ExportError, StorageError
 
 __all__ = ["atomic_path", "atomic_write_bytes"]
 
@@ -35,8 +35,8 @@ def _create_temp(path: Path) -> Path:
         except FileExistsError:
             continue
         except OSError as exc:
-            raise ExportError(
-                f"cannot write {path}: the directory {path.parent} is missing or not writable ({exc})"
+            raise StorageError(
+                f"cannot write {path}: the directory {path.parent} is missing or not writable ({exc})", exc.errno
             ) from exc
         os.close(fd)
         return tmp
@@ -77,7 +77,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         path: final destination. Its directory must exist.
 
     Raises:
-        ExportError: the directory is missing or not writable, or the rename fails; names ``path``.
+        StorageError: the directory is missing or not writable, the disk is full, or the rename fails;
+            names ``path`` (an ExportError; the CLI exits with status 3).
 
     Example:
         >>> with atomic_path("out/depth.exr") as tmp:  # doctest: +SKIP
@@ -93,7 +94,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         if isinstance(exc, OSError) and not isinstance(exc, ExportError):
-            raise ExportError(f"cannot write {final}: {exc}") from exc
+            raise StorageError(f"cannot write {final}: {exc.strerror or exc}", exc.errno) from exc
         raise
     _fsync_dir(final.parent)
 
@@ -102,7 +103,7 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temporary sibling, fsync, :func:`os.replace`).
 
     Raises:
-        ExportError: the directory is missing or not writable; the message names ``path``.
+        StorageError: the directory is missing or not writable, or the disk is full; names ``path``.
     """
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(data)
