@@ -86,6 +86,7 @@ def build_config(args: argparse.Namespace):
 
 def _parser() -> argparse.ArgumentParser:
     from flowsynth.io import layouts
+    from flowsynth.plan import OCCLUSION_METHODS
 
     _sub_kw = {"epilog": "exit status:\n" + __doc__.split("Exit status:\n")[1].rstrip(),
                "formatter_class": argparse.RawDescriptionHelpFormatter}
@@ -105,7 +106,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="lossless compression of EXR files (sizes and times: benchmarks/export.py) [default zip]")
     ex.add_argument("--dry-run", action="store_true",
                     help="print the bytes each output costs per sample and in total; write nothing [flag, default off]")
-    ex.add_argument("--occlusion", choices=("exact", "depth"), default="exact",
+    ex.add_argument("--occlusion", choices=OCCLUSION_METHODS, default="exact",
                     help="occ_* by exact visibility rays or a depth-buffer test [default exact]")
     ex.add_argument("--verify", action="store_true",
                     help="on resume, check every file's sha256 against the manifest, not only presence and size "

@@ -21,7 +21,7 @@ from flowsynth.kernels import RENDER_MODES
 from flowsynth.parallel import resolve_threads
 
 __all__ = ["DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FLOW_KEYS", "GBUFFER_KEYS", "MAX_BOUNCES",
-           "OUTPUTS", "RENDER_MODES", "TABLE_KEYS", "TONEMAPS", "Plan", "make_plan"]
+           "OCCLUSION_METHODS", "OUTPUTS", "RENDER_MODES", "TABLE_KEYS", "TONEMAPS", "Plan", "make_plan"]
 
 GBUFFER_KEYS = ("depth", "distance", "normals", "position", "instance", "category", "asset")
 FLOW_KEYS = ("flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw", "motion")
