@@ -202,3 +202,16 @@ def test_dry_run_writes_nothing_and_predicts_the_real_sizes(tmp_path, capsys):
     real = sum(r["size"] for f in json.loads((three / "manifest.json").read_text())["samples"].values()
                for r in f.values())
     assert abs(real - sizes.total) <= 0.1 * sizes.total
+
+
+def test_layouts_that_number_pairs_refuse_too_many():
+    from flowsynth.io import layouts
+
+    cfg = fs.BouncingThingsConfig(num_frames=3)  # 2 pairs per sample
+    outputs = ("rgb", "flow_fw", "valid_fw")
+    for name, digits in (("flyingchairs", 5), ("kitti", 6)):
+        layout = layouts.get(name)
+        layout.check(cfg, outputs, num=10**digits // 2 - 1)  # 10**digits - 2 pairs fit
+        with pytest.raises(fs.ConfigError, match=f"{digits} digits"):
+            layout.check(cfg, outputs, num=10**digits // 2)
+    layouts.get("native").check(cfg, outputs, num=10**7)

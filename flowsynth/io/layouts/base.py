@@ -49,6 +49,9 @@ class Layout:
     """Smallest ``num_frames`` the layout can store."""
     owned: ClassVar[tuple[str, ...]] = ()
     """Top-level entries of the export root that belong to the layout (removed by ``--overwrite``)."""
+    pair_digits: ClassVar[int | None] = None
+    """Digits of the frame-pair numbers in file names, for layouts that number pairs across the export
+    (num * (num_frames - 1) must stay below 10**pair_digits); None: no such limit."""
 
     def __init__(self, *, exr_compression: str = "zip") -> None:
         if exr_compression not in EXR_COMPRESSIONS:
@@ -74,6 +77,10 @@ class Layout:
         if cfg.num_frames < self.min_frames:
             raise ConfigError(f"layout {self.name} needs num_frames >= {self.min_frames}, got {cfg.num_frames}; "
                               f"raise --num-frames")
+        pairs = num * (cfg.num_frames - 1)
+        if self.pair_digits is not None and pairs >= 10**self.pair_digits:
+            raise ConfigError(f"layout {self.name} numbers pairs with {self.pair_digits} digits; --num {num} with "
+                              f"num_frames {cfg.num_frames} makes {pairs} pairs; lower --num or --num-frames")
 
     def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
         """Write sample ``index`` under the staging ``folder`` (empty; laid out like the export root).

@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from flowsynth.errors import ConfigError
 from flowsynth.io.flo import read_flo, write_flo
 from flowsynth.io.atomic import atomic_write_bytes
 from flowsynth.io.layouts import register
@@ -48,14 +47,8 @@ class FlyingChairs(Layout):
     default_outputs = ("rgb", "flow_fw")
     required_outputs = ("rgb", "flow_fw")
     min_frames = 2
+    pair_digits = _DIGITS
     owned = ("FlyingChairs",)
-
-    def check(self, cfg, outputs: Sequence[str], num: int) -> None:
-        super().check(cfg, outputs, num)
-        pairs = num * (cfg.num_frames - 1)
-        if pairs >= 10**_DIGITS:
-            raise ConfigError(f"layout flyingchairs numbers pairs with {_DIGITS} digits; --num {num} with "
-                              f"num_frames {cfg.num_frames} makes {pairs} pairs; lower --num or --num-frames")
 
     def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
         rgb, flow = sample["rgb"].numpy(), sample["flow_fw"].numpy()

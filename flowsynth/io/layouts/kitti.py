@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from flowsynth.errors import ConfigError
 from flowsynth.io.kitti import KITTI_FLOW_MAX, KITTI_FLOW_MIN, read_kitti_flow, write_kitti_flow
 from flowsynth.io.layouts import register
 from flowsynth.io.layouts.base import Layout
@@ -46,14 +45,8 @@ class Kitti(Layout):
     default_outputs = ("rgb", "flow_fw", "valid_fw", "occ_fw")
     required_outputs = ("rgb", "flow_fw", "valid_fw")
     min_frames = 2
+    pair_digits = _DIGITS
     owned = ("KittiFlow",)
-
-    def check(self, cfg, outputs: Sequence[str], num: int) -> None:
-        super().check(cfg, outputs, num)
-        pairs = num * (cfg.num_frames - 1)
-        if pairs >= 10**_DIGITS:
-            raise ConfigError(f"layout kitti numbers pairs with {_DIGITS} digits; --num {num} with num_frames "
-                              f"{cfg.num_frames} makes {pairs} pairs; lower --num or --num-frames")
 
     def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
         rgb, flow = sample["rgb"].numpy(), sample["flow_fw"].numpy()
