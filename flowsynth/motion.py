@@ -357,18 +357,26 @@ def _clamp_kernel():
 # benchmarks/physics.py), although every scene asks for the same few variants. These factories are
 # pure functions of their (hashable) arguments, so one kernel per argument tuple serves all pipelines.
 _NEWTON_KERNEL_FACTORIES = ("create_narrow_phase_primitive_kernel", "create_narrow_phase_kernel_gjk_mpr")
+# ModelBuilder.finalize recomputes the edge adjacency of every convex hull for every model (numpy, ~10-30 ms
+# a hull), a pure function of the hull; the hulls are the per-process newton.Mesh objects of
+# _newton_unit_hull, so one result per hull serves every model (benchmarks/physics.py, "memoisation").
+_NEWTON_BUILDER_FUNCTIONS = ("_convex_hull_adjacency",)
 
 
 @functools.cache
 def _memoise_newton_kernel_factories() -> None:
-    """Cache Newton's narrow-phase kernel factories per process. Private Newton API: tests/test_newton_internals.py
-    fails, naming this function, when Newton renames them or stops looking them up in that module."""
+    """Cache Newton's narrow-phase kernel factories and hull adjacency per process. Private Newton API:
+    tests/test_newton_internals.py fails, naming this function, when Newton renames them or stops looking
+    them up in those modules."""
     from newton._src.geometry import narrow_phase
+    from newton._src.sim import builder
 
-    for name in _NEWTON_KERNEL_FACTORIES:
-        factory = getattr(narrow_phase, name, None)
-        if callable(factory) and not hasattr(factory, "cache_info"):
-            setattr(narrow_phase, name, functools.cache(factory))
+    for module, names, wrap in ((narrow_phase, _NEWTON_KERNEL_FACTORIES, functools.cache),
+                                (builder, _NEWTON_BUILDER_FUNCTIONS, functools.lru_cache(maxsize=1024))):
+        for name in names:
+            fn = getattr(module, name, None)
+            if callable(fn) and not hasattr(fn, "cache_info"):
+                setattr(module, name, wrap(fn))
 
 
 def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:

@@ -2,9 +2,10 @@
 
 ``motion._memoise_newton_kernel_factories`` wraps Newton's narrow-phase kernel factories
 (``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every CollisionPipeline of a process
-shares one set of kernels (benchmarks/physics.py, "memoisation": several times less setup per scene).
-That only works while (a) those factories exist under those names and (b) ``NarrowPhase`` looks them up
-in that module at construction time. Either can change in any Newton release (pinned < 1.9).
+shares one set of kernels, and ``newton._src.sim.builder._convex_hull_adjacency`` so each hull's edge
+adjacency is computed once per process (benchmarks/physics.py, "memoisation"). That only works while
+(a) those functions exist under those names and (b) Newton looks them up in those modules when called.
+Either can change in any Newton release (pinned < 1.9).
 """
 
 import flowsynth as fs
@@ -19,9 +20,26 @@ CAUSE = ("Newton's private narrow-phase module changed: flowsynth.motion._memois
 
 def test_narrow_phase_factories_exist():
     from newton._src.geometry import narrow_phase
+    from newton._src.sim import builder
 
     missing = [n for n in motion._NEWTON_KERNEL_FACTORIES if not callable(getattr(narrow_phase, n, None))]
+    missing += [n for n in motion._NEWTON_BUILDER_FUNCTIONS if not callable(getattr(builder, n, None))]
     assert not missing, CAUSE.format(names=missing)
+
+
+def test_hull_adjacency_computed_once_per_hull():
+    """Building two models over the same hulls computes each hull's adjacency once (cache hits after)."""
+    from newton._src.sim import builder
+
+    cfg = fs.BouncingThingsConfig(num_objects=(3, 3), num_frames=2, assets=("rock",))
+    layout = sample_layout(cfg, 0, 0)
+    motion._NewtonScene(cfg, layout.assets, layout.initial, 2)
+    fn = builder._convex_hull_adjacency
+    assert hasattr(fn, "cache_info"), CAUSE.format(names=list(motion._NEWTON_BUILDER_FUNCTIONS))
+    hits = fn.cache_info().hits
+    motion._NewtonScene(cfg, layout.assets, layout.initial, 2)
+    assert fn.cache_info().hits > hits, CAUSE.format(names=list(motion._NEWTON_BUILDER_FUNCTIONS)) + \
+        " (ModelBuilder.finalize no longer calls builder._convex_hull_adjacency)"
 
 
 def test_pipelines_share_memoised_kernels():
