@@ -183,8 +183,10 @@ def _export(args, cfg) -> None:
 
 def _stats(args, cfg) -> None:
     from flowsynth.io import write_json
+    from flowsynth.memory import check_sample_memory
     from flowsynth.stats import dataset_stats, format_stats
 
+    check_sample_memory(cfg)
     st = dataset_stats(cfg, args.num, seed=args.seed, start=args.start, dis=args.dis)
     print(format_stats(st))
     if args.json:

@@ -138,3 +138,14 @@ def test_preview_script_writes_the_config_it_used(tmp_path):
     cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
                                   max_objects=4)
     assert _png_config(out) == json.loads(json.dumps(cfg.to_dict()))
+
+
+def test_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch):
+    import flowsynth.export
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(flowsynth.export, "export", interrupted)
+    assert main(["export", "--out", str(tmp_path / "o"), "--num", "1", *SMALL]) == 130
+    assert "re-run the same command to resume" in capsys.readouterr().err

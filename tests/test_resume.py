@@ -195,6 +195,10 @@ def test_memory_estimate_refuses_huge_sizes_with_the_flags_and_gib(tmp_path, cap
     need = memory.sample_memory_bytes(fs.BouncingThingsConfig(width=100000, height=100000)) / 2**30
     assert f"{need:.1f} GiB" in err and need > 1e5
     assert not out.exists()
+    for cmd in (["preview", "--out", str(tmp_path / "p.png")], ["stats", "--num", "1"]):  # the other commands
+        assert main([*cmd, "--width", "100000", "--height", "100000"]) == 2
+        assert "GiB" in capsys.readouterr().err
+    assert not (tmp_path / "p.png").exists()
     # against a known amount of free memory: 4 workers of a mid-size sample do not fit in 2 GiB
     monkeypatch.setattr(memory, "available_memory_bytes", lambda: 2 << 30)
     cfg = fs.BouncingThingsConfig(width=640, height=480, num_frames=4)
