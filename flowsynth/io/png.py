@@ -9,7 +9,7 @@ dependency-free codec on ``zlib`` + ``struct``:
   which is vectorised and compresses smooth maps well;
 - the decoder reads any non-interlaced 8- or 16-bit greyscale, grey+alpha, RGB or RGBA PNG. Rows
   with filter 0-2 (what the encoder writes) decode vectorised; filter 3-4 rows, which other
-  encoders such as libpng may choose, take a per-byte Python loop (about 0.5 s per megabyte).
+  encoders such as libpng may choose, take a slower per-byte Python loop (not benchmarked).
 """
 
 from __future__ import annotations
