@@ -1,6 +1,6 @@
 """Textures evaluated in object-local coordinates, so a texture moves exactly with its object.
 
-A material is one row of two packed parameter tables (see ``flowsynth.materials.pack_materials``):
+A material is one row of two packed parameter tables (see ``flowsynth.shading.pack_materials``):
 ``mat_f`` (M, MAT_F) float32 and ``mat_i`` (M, MAT_I) int32. It has two texture *layers* (a, b) and
 a blend mask; a single-layer material has layer b's family set to ``FAMILY_NONE``.
 
