@@ -9,6 +9,7 @@ import hashlib
 import json
 import os
 import stat
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -211,3 +212,33 @@ def test_available_memory_is_plausible():
     avail = memory.available_memory_bytes()
     total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     assert avail is not None and 0 < avail <= total
+
+
+def _mount_tmpfs(path: Path, size: str, remount: bool = False) -> bool:
+    opts = f"remount,size={size}" if remount else f"size={size}"
+    cmd = ["mount", "-o", opts, str(path)] if remount else ["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(path)]
+    return subprocess.run(cmd, capture_output=True).returncode == 0
+
+
+def test_real_disk_full_on_a_small_tmpfs(tmp_path, capsys):
+    """The file system itself runs out of space (a 120 KiB tmpfs), where root may mount one."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or not _mount_tmpfs(disk, "120k"):
+        pytest.skip("mounting a tmpfs needs root; tests/test_resume.py's injected ENOSPC covers the rest")
+    try:
+        out = disk / "ds"
+        assert export(out, 8) == 3
+        err = capsys.readouterr().err
+        assert os.strerror(errno.ENOSPC) in err and "re-run the same command" in err
+        assert no_temporaries(out)
+        finished = sorted(p.name for p in out.iterdir() if p.name.isdigit())
+        assert 1 <= len(finished) < 8
+        mtimes = {n: (out / n / "meta.json").stat().st_mtime_ns for n in finished}
+        assert _mount_tmpfs(disk, "8m", remount=True)
+        assert export(out, 8) == 0
+        assert export(tmp_path / "ref", 8) == 0
+        assert tree(out) == tree(tmp_path / "ref")
+        assert {n: (out / n / "meta.json").stat().st_mtime_ns for n in finished} == mtimes
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
