@@ -3,6 +3,7 @@ Pillow), atomic writes, and error paths."""
 
 from __future__ import annotations
 
+import fcntl
 import os
 import struct
 import zlib
@@ -367,14 +368,38 @@ def test_writers_atomic_and_unwritable(tmp_path: Path, fmt: str) -> None:
         _WRITERS[fmt](path / "child.bin")
 
 
-@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root ignores directory permissions")
+# Linux ioctls of the file attribute flags (linux/fs.h): the immutable flag stops even root from creating files.
+_FS_IOC_GETFLAGS, _FS_IOC_SETFLAGS, _FS_IMMUTABLE_FL = 0x80086601, 0x40086602, 0x10
+
+
+def _set_immutable(path: Path, on: bool) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        flags = struct.unpack("i", fcntl.ioctl(fd, _FS_IOC_GETFLAGS, struct.pack("i", 0)))[0]
+        flags = flags | _FS_IMMUTABLE_FL if on else flags & ~_FS_IMMUTABLE_FL
+        fcntl.ioctl(fd, _FS_IOC_SETFLAGS, struct.pack("i", flags))
+    finally:
+        os.close(fd)
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permissions")
 def test_read_only_directory(tmp_path: Path) -> None:
-    tmp_path.chmod(0o500)
+    # Root ignores the permission bits, so as root the directory is made immutable instead.
+    if os.geteuid() == 0:
+        try:
+            _set_immutable(tmp_path, True)
+        except OSError as e:
+            pytest.skip(f"running as root and this filesystem has no immutable flag ({e})")
+        undo = lambda: _set_immutable(tmp_path, False)
+    else:
+        tmp_path.chmod(0o500)
+        undo = lambda: tmp_path.chmod(0o700)
     try:
         with pytest.raises(ExportError, match="not writable"):
             atomic_write_bytes(tmp_path / "x.bin", b"x")
     finally:
-        tmp_path.chmod(0o700)
+        undo()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_atomic_path_temp_name_failure_and_permissions(tmp_path: Path) -> None:
