@@ -69,6 +69,7 @@ def _versions() -> dict:
 
 def _resolve(cfg, num, outputs, layout: str, workers: int, exr_compression: str):
     """Validate everything before anything is written; returns (Layout, outputs tuple)."""
+    from flowsynth.memory import check_sample_memory
     from flowsynth.plan import make_plan
 
     lay = layouts.get(layout, exr_compression=exr_compression)
@@ -78,6 +79,7 @@ def _resolve(cfg, num, outputs, layout: str, workers: int, exr_compression: str)
         raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
     outputs = make_plan(lay.default_outputs if outputs is None else outputs).outputs
     lay.check(cfg, outputs, num)
+    check_sample_memory(cfg, processes=min(workers, num))
     return lay, outputs
 
 
@@ -188,10 +190,7 @@ def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None
     anything is written. StorageError (an ExportError) when a file cannot be written: finished
     samples are kept, temporaries removed, and the same call resumes. Returns the output folder.
     """
-    from flowsynth.memory import check_sample_memory
-
     lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression)
-    check_sample_memory(cfg, processes=min(workers, num))
     _check_dataset(cfg, outputs, seed, occlusion)
     root = Path(out)
     identity = {"config": cfg.to_dict(), "seed": seed, "outputs": list(outputs), "layout": lay.name,

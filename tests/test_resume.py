@@ -196,7 +196,8 @@ def test_memory_estimate_refuses_huge_sizes_with_the_flags_and_gib(tmp_path, cap
     need = memory.sample_memory_bytes(fs.BouncingThingsConfig(width=100000, height=100000)) / 2**30
     assert f"{need:.1f} GiB" in err and need > 1e5
     assert not out.exists()
-    for cmd in (["preview", "--out", str(tmp_path / "p.png")], ["stats", "--num", "1"]):  # the other commands
+    for cmd in (["preview", "--out", str(tmp_path / "p.png")], ["stats", "--num", "1"],  # the other commands
+                ["export", "--out", str(out), "--num", "1", "--dry-run"]):
         assert main([*cmd, "--width", "100000", "--height", "100000"]) == 2
         assert "GiB" in capsys.readouterr().err
     assert not (tmp_path / "p.png").exists()
