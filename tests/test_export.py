@@ -132,6 +132,9 @@ def test_layout_checks_refuse_before_writing(tmp_path):
         if lay.required_outputs:
             with pytest.raises(ConfigError, match="needs the outputs"):
                 export(CFG, tmp_path / name, 1, layout=name, outputs=["depth"], progress=False)
+        if lay.stored_outputs is not None:
+            with pytest.raises(ConfigError, match="stores only"):
+                export(CFG, tmp_path / name, 1, layout=name, outputs=[*lay.required_outputs, "depth"], progress=False)
         assert not (tmp_path / name).exists()
     with pytest.raises(ConfigError, match="unknown layout"):
         layouts.get("nope")

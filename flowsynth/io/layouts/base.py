@@ -45,6 +45,8 @@ class Layout:
     """Outputs exported when the user names none."""
     required_outputs: ClassVar[tuple[str, ...]] = ()
     """Outputs without which the layout cannot write a sample."""
+    stored_outputs: ClassVar[tuple[str, ...] | None] = None
+    """Every output the layout can store; None: any. Others are refused, never computed and dropped."""
     min_frames: ClassVar[int] = 1
     """Smallest ``num_frames`` the layout can store."""
     owned: ClassVar[tuple[str, ...]] = ()
@@ -74,6 +76,10 @@ class Layout:
         if missing:
             raise ConfigError(f"layout {self.name} needs the outputs {list(self.required_outputs)}; add "
                               f"{missing} to --outputs")
+        dropped = [k for k in outputs if self.stored_outputs is not None and k not in self.stored_outputs]
+        if dropped:
+            raise ConfigError(f"layout {self.name} stores only the outputs {list(self.stored_outputs)}; remove "
+                              f"{dropped} from --outputs (or export them with --layout native)")
         if cfg.num_frames < self.min_frames:
             raise ConfigError(f"layout {self.name} needs num_frames >= {self.min_frames}, got {cfg.num_frames}; "
                               f"raise --num-frames")

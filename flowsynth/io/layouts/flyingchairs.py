@@ -46,6 +46,7 @@ class FlyingChairs(Layout):
               "torchvision.datasets.FlyingChairs(root=DIR)"
     default_outputs = ("rgb", "flow_fw")
     required_outputs = ("rgb", "flow_fw")
+    stored_outputs = default_outputs
     min_frames = 2
     pair_digits = _DIGITS
     owned = ("FlyingChairs",)

@@ -44,6 +44,7 @@ class Kitti(Layout):
               "one per frame pair; torchvision.datasets.KittiFlow(root=DIR)"
     default_outputs = ("rgb", "flow_fw", "valid_fw", "occ_fw")
     required_outputs = ("rgb", "flow_fw", "valid_fw")
+    stored_outputs = default_outputs
     min_frames = 2
     pair_digits = _DIGITS
     owned = ("KittiFlow",)

@@ -41,6 +41,7 @@ class Sintel(Layout):
               "sample; torchvision.datasets.Sintel(root=DIR)"
     default_outputs = ("rgb", "flow_fw", "occ_fw")
     required_outputs = ("rgb", "flow_fw")
+    stored_outputs = default_outputs
     min_frames = 2
     owned = ("Sintel",)
 
