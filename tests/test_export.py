@@ -214,7 +214,7 @@ def test_layouts_that_number_pairs_refuse_too_many():
     outputs = ("rgb", "flow_fw", "valid_fw")
     for name, digits in (("flyingchairs", 5), ("kitti", 6)):
         layout = layouts.get(name)
-        layout.check(cfg, outputs, num=10**digits // 2 - 1)  # 10**digits - 2 pairs fit
+        layout.check(cfg, layout.required_outputs, num=10**digits // 2 - 1)  # 10**digits - 2 pairs fit
         with pytest.raises(fs.ConfigError, match=f"{digits} digits"):
-            layout.check(cfg, outputs, num=10**digits // 2)
+            layout.check(cfg, layout.required_outputs, num=10**digits // 2)
     layouts.get("native").check(cfg, outputs, num=10**7)
