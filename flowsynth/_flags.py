@@ -44,7 +44,17 @@ def cli_form(value: Any) -> str:
     return str(value)
 
 
-_SCALARS = {"int": (int, "an integer"), "float": (float, "a number"), "str": (str, "text")}
+_BOOLS = {"true": True, "yes": True, "on": True, "1": True, "false": False, "no": False, "off": False, "0": False}
+
+
+def _bool(text: str) -> bool:
+    if text.lower() not in _BOOLS:
+        raise ValueError(text)
+    return _BOOLS[text.lower()]
+
+
+_SCALARS = {"int": (int, "an integer"), "float": (float, "a number"), "str": (str, "text"),
+            "bool": (_bool, "true or false")}
 
 
 def _scalar(text: str, kind: str):
@@ -61,7 +71,8 @@ def integer(text: str) -> int:
 
 def flag_type(field: dataclasses.Field):
     """argparse ``type=`` for a config field: parses the command-line form, or explains the expected one."""
-    t = str(field.type).replace(" ", "")
+    t = (field.type if isinstance(field.type, str) else getattr(field.type, "__name__", str(field.type)))
+    t = t.replace(" ", "")
     optional = "|None" in t or "None|" in t
     t = t.replace("|None", "").replace("None|", "")
     example = cli_form(field.default)
@@ -69,7 +80,7 @@ def flag_type(field: dataclasses.Field):
         inner = t[len("tuple["):-1].split(",")
         kind = inner[0]
         count = None if inner[-1] == "..." else len(inner)
-        noun = {"int": "integers", "float": "numbers", "str": "names"}[kind]
+        noun = {"int": "integers", "float": "numbers", "str": "names", "bool": "true/false values"}[kind]
         form = (f"{count} {noun} separated by commas" if count else f"{noun} separated by commas")
     else:
         kind, count = t, None

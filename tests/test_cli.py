@@ -149,3 +149,19 @@ def test_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(flowsynth.export, "export", interrupted)
     assert main(["export", "--out", str(tmp_path / "o"), "--num", "1", *SMALL]) == 130
     assert "re-run the same command to resume" in capsys.readouterr().err
+
+
+def test_flag_types_cover_bool_fields():
+    """A future bool config field parses true/false forms and refuses others, naming the form."""
+    import argparse
+
+    from flowsynth._flags import flag_type
+
+    @dataclasses.dataclass
+    class WithBool:
+        mirror: bool = False
+
+    parse = flag_type(dataclasses.fields(WithBool)[0])
+    assert [parse(x) for x in ("true", "Yes", "1", "off", "0", "false")] == [True, True, True, False, False, False]
+    with pytest.raises(argparse.ArgumentTypeError, match="expected true or false"):
+        parse("maybe")
