@@ -5,13 +5,15 @@
 Each benchmark is a script in this folder that prints its tables and writes results/<name>.json (and PNG
 plots for curves). This runner calls them one after the other (each in its own process, so kernel
 caches and memory don't leak between them), keeps their printed tables, and writes SUMMARY.md with the
-machine, versions and date. ``--quick`` is passed on to every script (all of them within ~10 min on 2 cores).
+machine, versions, load average and date (with ``--only``, the other benchmarks' sections are kept from the
+previous SUMMARY.md). ``--quick`` is passed on to every script (all of them within ~10 min on 2 cores).
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import subprocess
 import sys
 import time
@@ -55,17 +57,41 @@ def main() -> int:
             body += f"\n```\n{r.stderr.strip()[-2000:]}\n```\n"
         sections.append(body)
     m = machine_info()
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    kept_rows, kept_sections = _kept(names) if args.only else ({}, {})
     head = ["# Benchmark summary", "",
-            f"Date: {datetime.datetime.now().isoformat(timespec='seconds')}  ",
-            f"Machine: {m.get('cpu_model')} — {m.get('cpu_count')} CPUs, {m.get('platform')}  ",
+            f"Date: {datetime.datetime.now().isoformat(timespec='seconds')}" +
+            (f" (sections {', '.join(names)}; the others are kept from the previous run)" if args.only else "") +
+            "  ",
+            f"Machine: {m.get('cpu_model')} — {m.get('cpu_count')} CPUs, {m.get('platform')}; load average at the "
+            f"end {load} (the machine is shared)  ",
             f"Python {m.get('python')}; " + ", ".join(f"{k} {m.get(k)}" for k in ("torch", "warp-lang", "newton",
                                                                                "numpy", "trimesh")) + "  ",
             f"Mode: {'--quick' if args.quick else 'full'}", "",
             "| benchmark | status | seconds |", "|---|---|---|"]
-    head += [f"| {n} | {'ok' if ok else 'FAILED'} | {dt:.0f} |" for n, ok, dt in status]
-    (RESULTS_DIR / "SUMMARY.md").write_text("\n".join(head) + "\n\n" + "\n".join(sections))
+    rows = {n: f"| {n} | {'ok' if ok else 'FAILED'} | {dt:.0f} |" for n, ok, dt in status}
+    done = dict(zip(names, sections))
+    order = [n for n in BENCHMARKS if n in rows or n in kept_rows] + [n for n in names if n not in BENCHMARKS]
+    head += [rows.get(n) or kept_rows[n] for n in order]
+    body = [done.get(n) or kept_sections.get(n, "") for n in order]
+    (RESULTS_DIR / "SUMMARY.md").write_text("\n".join(head) + "\n\n" + "\n".join(b for b in body if b))
     print(f"wrote {RESULTS_DIR / 'SUMMARY.md'}")
     return 0 if all(ok for _, ok, _ in status) else 1
+
+
+def _kept(names: list[str]) -> tuple[dict, dict]:
+    """Status rows and sections of the previous SUMMARY.md for the benchmarks not run now (``--only``)."""
+    path = RESULTS_DIR / "SUMMARY.md"
+    if not path.exists():
+        return {}, {}
+    text = path.read_text()
+    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")
+            and not line.startswith("| benchmark")}
+    sections = {}
+    for part in text.split("\n## ")[1:]:
+        name = part.split("\n", 1)[0].strip()
+        sections[name] = "## " + part.rstrip("\n") + "\n"
+    return ({k: v for k, v in rows.items() if k not in names}, {k: v for k, v in sections.items() if k not in names})
 
 
 if __name__ == "__main__":
