@@ -102,7 +102,9 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
     for k in counts:
         cast, sample = times[("cast", k)]["wall_s"], times[("sample", k)]["wall_s"]
         rows.append({"threads": k, "cast_ms": 1e3 * cast, "cast_Mrays_s": rays / cast / 1e6,
-                     "sample_s": sample, "samples_s": 1.0 / sample})
+                     "cast_cores_got": times[("cast", k)]["cpu_s"] / cast,
+                     "sample_s": sample, "samples_s": 1.0 / sample,
+                     "sample_cores_got": times[("sample", k)]["cpu_s"] / sample})
     for r in rows:
         r["cast_speedup"] = rows[0]["cast_ms"] / r["cast_ms"]
         r["sample_speedup"] = rows[0]["sample_s"] / r["sample_s"]
@@ -169,8 +171,10 @@ def main() -> None:
     threads = thread_scaling(counts, 3 if args.quick else 7)
     print("\nThreads: primary cast (30 icospheres x 5120 faces, 640x480) and full sample (512x384, T=2, 20 objects, "
           "direct RGB, depth/normals/instance/flow+occ both ways); wall-clock medians")
-    print_table(threads, ["threads", "cast_ms", "cast_Mrays_s", "cast_speedup", "sample_s", "samples_s",
-                          "sample_speedup"])
+    print("cores_got: process CPU time / wall time, the cores this process actually had (less than the threads "
+          "when other processes load the machine)")
+    print_table(threads, ["threads", "cast_ms", "cast_Mrays_s", "cast_speedup", "cast_cores_got", "sample_s",
+                          "samples_s", "sample_speedup", "sample_cores_got"])
     print(load())
     print("\nSamples/s (wall) at threads " + ", ".join(map(str, counts)) + "; others at 256x192, 20 objects, "
           "1280 faces, T=2")
