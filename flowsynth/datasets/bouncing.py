@@ -87,7 +87,8 @@ class BouncingThings(IterableDataset):
             max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, shutter=cfg.shutter,
             bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure, threads=threads)
         if cfg.num_frames < 2 and self.plan.flow_stage:
-            raise ConfigError("flow outputs need num_frames >= 2")
+            raise ConfigError(f"flow outputs need num_frames >= 2, got {cfg.num_frames}; raise num_frames "
+                              "(--num-frames) or leave the flow outputs out")
         self.cfg, self.seed, self.length, self.start, self.device = cfg, int(seed), length, int(start), device
         self.outputs = self.plan.outputs
         self._epoch = 0
