@@ -24,8 +24,8 @@ sys.path.insert(0, str(HERE))
 
 from _common import RESULTS_DIR, machine_info
 
-BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "scaling",
-              "physics_graph", "png_level", "tiles"]
+BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "ray_export",
+              "scaling", "physics_graph", "png_level", "tiles"]
 
 
 def main() -> int:

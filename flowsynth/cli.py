@@ -97,7 +97,15 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", required=True, help="output folder (created; re-running resumes) [required]")
     ex.add_argument("--num", type=integer, required=True, help="number of samples [int, required]")
     ex.add_argument("--seed", type=integer, default=0, help="sample i depends on (seed, i) [int, default 0]")
-    ex.add_argument("--workers", type=integer, default=1, help="processes, each making its own share [int, default 1]")
+    ex.add_argument("--workers", type=integer, default=None,
+                    help="local engine: processes, each making its own share [int, default 1]; ray engine: actors, "
+                         "one CPU each [int, default one per CPU of the cluster]")
+    ex.add_argument("--engine", choices=("local", "ray"), default="local",
+                    help="where samples are made: this machine, or a Ray cluster (needs the ray extra: "
+                         "pip install 'flowsynth[ray]'; docs/distributed.md) [default local]")
+    ex.add_argument("--address", default=None,
+                    help="ray engine: the cluster to join (auto, HOST:6379, ray://HOST:10001); --out must be a "
+                         "folder every node reaches [default: the cluster this process joined, else a local one]")
     ex.add_argument("--layout", choices=layouts.names(), default="native",
                     help="files on disk; " + "; ".join(f"{n}: {layouts.get(n).summary}" for n in layouts.names())
                     + " [default native]")
@@ -175,7 +183,8 @@ def _export(args, cfg) -> None:
     start = time.perf_counter()
     root = export(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
                   layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
-                  exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress)
+                  exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress,
+                  engine=args.engine, address=args.address)
     print(f"exported {args.num} sample{'s' if args.num != 1 else ''} to {root} in "
           f"{time.perf_counter() - start:.1f} s, layout {args.layout}; load it in Python with "
           f"{layouts.get(args.layout).load_hint(root)}")

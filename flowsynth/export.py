@@ -48,7 +48,9 @@ from tqdm import tqdm
 from flowsynth.errors import ConfigError, ExportError, StorageError
 from flowsynth.io import layouts
 
-__all__ = ["JOURNAL", "MANIFEST", "Sizes", "estimate", "export"]
+__all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export"]
+
+ENGINES = ("local", "ray")  # where samples are made: worker processes here, or actors of a Ray cluster
 
 MANIFEST = "manifest.json"
 JOURNAL = ".journal.jsonl"
@@ -67,7 +69,7 @@ def _versions() -> dict:
     return out
 
 
-def _resolve(cfg, num, outputs, layout: str, workers: int, exr_compression: str):
+def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compression: str, engine: str = "local"):
     """Validate everything before anything is written; returns (Layout, outputs tuple)."""
     from flowsynth.memory import check_sample_memory
     from flowsynth.plan import make_plan
@@ -75,11 +77,17 @@ def _resolve(cfg, num, outputs, layout: str, workers: int, exr_compression: str)
     lay = layouts.get(layout, exr_compression=exr_compression)
     if not isinstance(num, int) or num < 1:
         raise ConfigError(f"num must be an integer >= 1, got {num!r}")
-    if not isinstance(workers, int) or workers < 1:
-        raise ConfigError(f"workers must be an integer >= 1, got {workers!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ConfigError(f"workers must be None or an integer >= 1, got {workers!r}")
+    if engine not in ENGINES:
+        raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
+    if engine == "ray":
+        from flowsynth.distributed import require_ray
+
+        require_ray()
     outputs = make_plan(lay.default_outputs if outputs is None else outputs).outputs
     lay.check(cfg, outputs, num)
-    check_sample_memory(cfg, processes=min(workers, num))
+    check_sample_memory(cfg, processes=min(workers or 1, num))
     return lay, outputs
 
 
@@ -175,22 +183,30 @@ def _recorded(root: Path, old: dict) -> dict[int, dict]:
     return records
 
 
-def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None, workers: int = 1,
+def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None, workers: int | None = None,
            layout: str = "native", overwrite: bool = False, occlusion: str = "exact",
-           exr_compression: str = "zip", verify: bool = False, progress: bool = True) -> Path:
+           exr_compression: str = "zip", verify: bool = False, progress: bool = True, engine: str = "local",
+           address: str | None = None) -> Path:
     """Export samples 0..num-1 of ``BouncingThings(cfg, outputs, seed)`` to ``out``; resumes if interrupted.
 
     Args:
         layout: a name of ``flowsynth.io.layouts.names()``; ``outputs=None`` takes its defaults.
         exr_compression: lossless compression of EXR files, ``flowsynth.io.layouts.EXR_COMPRESSIONS``.
         verify: on resume, check the sha256 of every recorded file, not only its presence and size.
+        workers: ``engine="local"``: processes on this machine (None: 1); ``engine="ray"``: Ray actors,
+            one CPU each (None: one per CPU of the cluster).
+        engine: "local", or "ray" (``flowsynth.distributed``; needs the ray extra): on the Ray cluster at
+            ``address`` (None: the one this process joined, else a local one); ``out`` must then be a
+            folder every node reaches. Both engines write the same files, and the same manifest up to its
+            measured ``stats.seconds_per_sample``.
 
-    Raises ConfigError for invalid arguments and ExportError when ``out`` holds an export of another
-    config/seed/outputs/layout (pass ``overwrite=True`` to replace it) or something else; both before
-    anything is written. StorageError (an ExportError) when a file cannot be written: finished
-    samples are kept, temporaries removed, and the same call resumes. Returns the output folder.
+    Raises ConfigError for invalid arguments (``engine="ray"`` without Ray installed included) and
+    ExportError when ``out`` holds an export of another config/seed/outputs/layout (pass
+    ``overwrite=True`` to replace it) or something else; both before anything is written. StorageError
+    (an ExportError) when a file cannot be written: finished samples are kept, temporaries removed, and
+    the same call resumes. Returns the output folder.
     """
-    lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression)
+    lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression, engine)
     _check_dataset(cfg, outputs, seed, occlusion)
     root = Path(out)
     identity = {"config": cfg.to_dict(), "seed": seed, "outputs": list(outputs), "layout": lay.name,
@@ -212,7 +228,8 @@ def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None
             _write_manifest(root, identity, num, samples)
             (root / JOURNAL).unlink(missing_ok=True)  # its records are in the manifest now
         todo = [i for i in range(num) if i not in samples]
-        _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples)
+        _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples, engine,
+             address)
         index = _record(root, lay.finish(root, num, cfg))
         _write_manifest(root, identity, num, samples, index)
     except OSError as e:
@@ -305,14 +322,19 @@ def _note(text: str) -> None:
     tqdm.write(f"flowsynth export: {text}", file=sys.stderr)
 
 
-def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples) -> None:
+def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples, engine,
+         address) -> None:
     bar = tqdm(total=num, initial=num - len(todo), unit="sample", disable=not progress, dynamic_ncols=True)
     jobs = [(i, str(root)) for i in todo]
-    records: list[dict] = []
+    records: list[tuple[int, dict]] = []  # (index, stats record): summed in index order, whatever the engine
     pool = None
     journal = None
     try:
-        if workers == 1 or len(jobs) <= 1:
+        if engine == "ray" and jobs:
+            from flowsynth.distributed import export_results
+
+            results = export_results(jobs, (cfg, outputs, seed, occlusion, lay), actors=workers, address=address)
+        elif workers in (None, 1) or len(jobs) <= 1:
             _init_worker(cfg, outputs, seed, occlusion, lay)
             results = map(_write_one, jobs)
         else:
@@ -331,7 +353,7 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
             _place(Path(staging), root)
             shutil.rmtree(staging, ignore_errors=True)
             samples[i] = files
-            records.append(stats)
+            records.append((i, stats))
             bar.update(1)
             if n % _MANIFEST_EVERY == 0:
                 _write_manifest(root, identity, num, samples)
@@ -348,7 +370,9 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
         if (root / MANIFEST).exists():
             from flowsynth.stats import summarize
 
-            _write_manifest(root, identity, num, samples, stats=summarize(records, cfg) if records else None)
+            records.sort(key=lambda x: x[0])
+            _write_manifest(root, identity, num, samples,
+                            stats=summarize([r for _, r in records], cfg) if records else None)
             (root / JOURNAL).unlink(missing_ok=True)
 
 

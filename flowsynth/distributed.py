@@ -1,0 +1,152 @@
+"""Scale-out on Ray (the optional ``flowsynth[ray]`` extra): a Ray Data dataset of samples, and export.
+
+Both run flowsynth in a fixed pool of Ray actors (``ray.data.ActorPoolStrategy``), one CPU each. An
+actor pays the setup once in ``__init__`` (dataset, kernel compile or cache load, mesh caches) and
+renders with one thread (``flowsynth.parallel.set_worker_process``), like a DataLoader or export
+worker process: actors x threads never exceed the CPUs Ray was given.
+
+The pipeline starts from ``ray.data.from_items`` (the sample indices, held in the driver), not from
+``ray.data.range``: a ``range`` read task needs a CPU of its own, and on a cluster whose every CPU is
+held by an actor it never runs (measured with Ray 2.60 on ``ray.init(num_cpus=2)``: an actor pool of
+2 behind ``range(8)`` never finishes; behind ``from_items`` it returns all rows).
+
+Fault tolerance is Ray Data's: its actor-pool actors are created with ``max_restarts=-1`` and
+``max_task_retries=-1`` (``ray/data/_internal/execution/operators/actor_pool_map_operator.py``), so
+an actor that dies is restarted and its batch runs again; samples are pure functions of
+(config, seed, index), so the retry writes the same bytes.
+
+Nothing outside this module imports Ray, and this module imports it only inside its functions.
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Iterator, Sequence
+
+from flowsynth.errors import ConfigError
+
+__all__ = ["INSTALL_HINT", "connect", "export_results", "ray_dataset", "require_ray"]
+
+INSTALL_HINT = "pip install 'flowsynth[ray]'  (in a checkout: bash scripts/setup.sh --ray)"
+
+
+def require_ray():
+    """The ``ray`` module, or a ConfigError naming the install command when the extra is missing."""
+    try:
+        import ray
+        import ray.data
+    except ImportError as e:
+        raise ConfigError(f"the Ray engine needs Ray, which is not installed: {INSTALL_HINT}") from e
+    return ray
+
+
+def connect(address: str | None = None):
+    """Join the Ray cluster at ``address`` (``"auto"``, ``"ray://host:10001"``, ``"host:6379"``) or, with
+    None, the one this process already joined, else start a local one on this machine's CPUs.
+    Returns the ``ray`` module."""
+    ray = require_ray()
+    if not ray.is_initialized():
+        ray.init(address=address, log_to_driver=False, include_dashboard=False)
+    return ray
+
+
+def _cluster_cpus(ray) -> int:
+    return max(int(ray.cluster_resources().get("CPU", 1)), 1)
+
+
+def _pool(ray, actors: int | None, items: int):
+    """A fixed actor pool: ``actors`` (default: every CPU of the cluster), at most one per item."""
+    if actors is not None and (isinstance(actors, bool) or not isinstance(actors, int) or actors < 1):
+        raise ConfigError(f"actors must be None (one per cluster CPU) or an integer >= 1, got {actors!r}")
+    size = min(actors or _cluster_cpus(ray), items)
+    return ray.data.ActorPoolStrategy(size=size)
+
+
+class SampleRenderer:
+    """Ray Data actor: ``{"item": (B,) int64 sample indices}`` -> one row per sample, every output key a
+    column of ``BouncingThings(cfg, outputs, seed).sample(i)`` as numpy (shapes as in the stream,
+    batch axis first)."""
+
+    def __init__(self, cfg, outputs: Sequence[str], seed: int, occlusion: str) -> None:
+        import torch
+
+        from flowsynth.datasets import BouncingThings
+        from flowsynth.parallel import set_worker_process
+
+        set_worker_process()
+        torch.set_num_threads(1)
+        self.ds = BouncingThings(cfg, outputs=outputs, seed=seed, occlusion=occlusion, threads=1)
+
+    def __call__(self, batch: dict) -> dict:
+        import numpy as np
+
+        samples = [self.ds.sample(int(i)) for i in batch["item"]]
+        return {k: np.stack([s[k].numpy() for s in samples]) for k in samples[0]}
+
+
+def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] = ("rgb", "flow_fw"), *,
+                start: int = 0, occlusion: str = "exact", actors: int | None = None, address: str | None = None):
+    """Samples ``start .. start + num_samples - 1`` of ``BouncingThings(config, outputs, seed)`` as a
+    ``ray.data.Dataset``, rendered lazily by a pool of actors.
+
+    Args:
+        config: BouncingThingsConfig (defaults when None).
+        num_samples: number of rows, >= 1.
+        seed, outputs, occlusion: as for ``flowsynth.datasets.BouncingThings``.
+        start: first sample index.
+        actors: actors in the pool, one CPU each (None: one per CPU of the cluster).
+        address: Ray cluster to join when this process has not joined one (see :func:`connect`).
+
+    Returns:
+        A Dataset with one row per sample: every key of ``ds.sample(i)`` (``index``, ``seed``, ``K``,
+        ``cam_T_world`` and the outputs) as a numpy column with the stream's dtype and per-sample shape,
+        equal to ``ds.sample(i)`` whatever the cluster size. Row order is not guaranteed; read
+        ``index``. ``iter_torch_batches`` gives the tensors the DataLoader would.
+    """
+    from flowsynth.config import BouncingThingsConfig
+    from flowsynth.datasets import BouncingThings
+
+    config = BouncingThingsConfig() if config is None else config
+    if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
+        raise ConfigError(f"num_samples must be an integer >= 1, got {num_samples!r}")
+    outputs = BouncingThings(config, outputs=outputs, seed=seed, start=start, occlusion=occlusion).outputs
+    ray = connect(address)
+    items = list(range(start, start + num_samples))
+    return ray.data.from_items(items, override_num_blocks=num_samples).map_batches(
+        SampleRenderer, fn_constructor_args=(config, outputs, seed, occlusion), batch_size=1, num_cpus=1,
+        compute=_pool(ray, actors, num_samples), batch_format="numpy")
+
+
+class ExportWriter:
+    """Ray Data actor around the local exporter's per-sample writer: ``{"item": pickled jobs}`` ->
+    ``{"result": pickled return values}`` of ``flowsynth.export._write_one`` (the files are on disk)."""
+
+    def __init__(self, initargs: tuple) -> None:
+        from flowsynth.export import _init_pool_worker
+
+        _init_pool_worker(*initargs)
+
+    def __call__(self, batch: dict) -> dict:
+        import numpy as np
+
+        from flowsynth.export import _write_one
+
+        return {"result": np.array([pickle.dumps(_write_one(pickle.loads(job))) for job in batch["item"]],
+                                   dtype=object)}
+
+
+def export_results(jobs: list, initargs: tuple, *, actors: int | None = None, address: str | None = None) -> Iterator:
+    """Run ``flowsynth.export._write_one(job)`` for every job in a Ray actor pool; yields its return
+    values in completion order. Each actor runs ``flowsynth.export._init_pool_worker(*initargs)`` once.
+
+    An attempt cut short by a dying actor leaves a staging folder ``.tmp-*`` that no result names; the
+    exporter removes those when the run ends.
+    """
+    ray = connect(address)
+    ds = ray.data.from_items([pickle.dumps(job) for job in jobs], override_num_blocks=len(jobs))
+    ds = ds.map_batches(ExportWriter, fn_constructor_args=(initargs,), batch_size=1, num_cpus=1,
+                        compute=_pool(ray, actors, len(jobs)), batch_format="numpy")
+    ds.context.enable_progress_bars = False  # the exporter's driver shows its own bar
+    for batch in ds.iter_batches(batch_size=None, batch_format="numpy", prefetch_batches=0):
+        for res in batch["result"]:
+            yield pickle.loads(res)

@@ -1,0 +1,182 @@
+"""Ray engine (flowsynth.distributed) on a local 2-CPU cluster: dataset rows equal the stream, Ray export equals
+local export byte for byte, a killed actor loses nothing, a killed driver resumes. Without Ray: nothing imports
+it, and asking for it names the install command."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import flowsynth as fs
+from flowsynth.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["--width", "32", "--height", "24", "--num-frames", "2", "--motion", "kinematic",
+         "--num-objects", "2,3", "--max-objects", "4"]
+CFG = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
+                              max_objects=4)
+OUTS = "depth,flow_fw,occ_fw,instance,box2d_visible,object_valid"
+
+
+def test_nothing_imports_ray():
+    code = ("import sys, flowsynth as fs, flowsynth.cli, flowsynth.export, flowsynth.stats\n"
+            "from flowsynth.datasets import BouncingThings, Exported\n"
+            "fs.BouncingThingsConfig(); fs.datasets\n"
+            "bad = sorted(m for m in sys.modules if m == 'ray' or m.startswith('ray.'))\n"
+            "assert not bad, bad\n")
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+
+
+def test_ray_engine_without_ray_names_the_install_command(tmp_path, monkeypatch, capsys):
+    for name in [m for m in sys.modules if m == "ray" or m.startswith("ray.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError, as when it is not installed
+    out = tmp_path / "ds"
+    assert main(["export", "--out", str(out), "--num", "2", "--engine", "ray", "--no-progress", *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "pip install 'flowsynth[ray]'" in err and "scripts/setup.sh --ray" in err
+    assert not out.exists()  # refused before anything was written
+    with pytest.raises(fs.ConfigError, match=r"flowsynth\[ray\]"):
+        from flowsynth.distributed import ray_dataset
+
+        ray_dataset(CFG, 2)
+
+
+# -- on a local Ray cluster of exactly 2 CPUs ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A local Ray cluster with 2 CPUs; its workers import this checkout's flowsynth. Yields its address."""
+    ray = pytest.importorskip("ray", reason="Ray engine tests need the ray extra (bash scripts/setup.sh --ray)")
+    old = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = str(ROOT)  # the raylet and every worker it starts inherit this
+    try:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        yield ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()
+        if old is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = old
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _same_export(a: Path, b: Path) -> None:
+    """Every file byte-identical; manifests equal except the wall-clock seconds per sample."""
+    ta, tb = _tree(a), _tree(b)
+    assert sorted(ta) == sorted(tb)
+    assert [k for k in ta if k != "manifest.json" and ta[k] != tb[k]] == []
+    ma, mb = (json.loads(t["manifest.json"]) for t in (ta, tb))
+    for m in (ma, mb):
+        assert m["stats"].pop("seconds_per_sample")["mean"] > 0
+    assert ma == mb
+
+
+@pytest.mark.ray
+def test_ray_dataset_equals_stream(cluster):
+    from flowsynth.distributed import ray_dataset
+
+    outputs = OUTS.split(",")
+    rows = ray_dataset(CFG, 4, seed=3, outputs=outputs, start=5).take_all()
+    ds = fs.datasets.BouncingThings(CFG, outputs=outputs, seed=3)
+    assert sorted(int(r["index"]) for r in rows) == [5, 6, 7, 8]
+    for r in rows:
+        s = ds.sample(int(r["index"]))
+        assert set(r) == set(s)
+        for k, v in s.items():
+            got = torch.as_tensor(r[k])
+            assert got.dtype == v.dtype and torch.equal(got, v), k
+
+
+@pytest.mark.ray
+def test_ray_export_equals_local_export(cluster, tmp_path):
+    for layout in ("native", "flyingchairs"):
+        args = ["--num", "3", "--seed", "7", "--layout", layout, "--no-progress", *SMALL]
+        if layout == "native":
+            args += ["--outputs", OUTS]
+        assert main(["export", "--out", str(tmp_path / f"ray-{layout}"), "--engine", "ray", *args]) == 0
+        assert main(["export", "--out", str(tmp_path / f"local-{layout}"), *args]) == 0
+        _same_export(tmp_path / f"ray-{layout}", tmp_path / f"local-{layout}")
+
+
+def _actor_pids(name: str) -> list[int]:
+    """PIDs of Ray actor processes whose title names ``name`` (Ray titles them ``ray::MapWorker(...)``)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if name.encode() in (d / "cmdline").read_bytes():
+                    pids.append(int(d.name))
+            except OSError:
+                continue
+    return pids
+
+
+def _done(out: Path) -> int:
+    return len([p for p in out.iterdir() if p.name.isdigit()]) if out.exists() else 0
+
+
+@pytest.mark.ray
+def test_killed_actor_loses_nothing(cluster, tmp_path):
+    from flowsynth.export import export
+
+    out, num = tmp_path / "ray", 8
+    errors: list[BaseException] = []
+
+    def run():
+        try:
+            export(CFG, out, num, seed=1, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
+        except BaseException as e:  # reported by the assertion below
+            errors.append(e)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    deadline = time.time() + 300
+    while time.time() < deadline and _done(out) < 1:
+        time.sleep(0.05)
+    victims = _actor_pids("ExportWriter")
+    assert victims and _done(out) < num, "no actor was running while samples remained; make the export longer"
+    os.kill(victims[0], signal.SIGKILL)
+    thread.join(600)
+    assert not thread.is_alive() and not errors, errors
+    export(CFG, tmp_path / "local", num, seed=1, outputs=OUTS.split(","), progress=False)
+    _same_export(out, tmp_path / "local")
+
+
+@pytest.mark.ray
+def test_killed_driver_resumes(cluster, tmp_path):
+    out, num = tmp_path / "ray", 8
+    cmd = [sys.executable, "-m", "flowsynth.cli", "export", "--out", str(out), "--num", str(num), "--engine", "ray",
+           "--address", cluster, "--outputs", OUTS, "--no-progress", *SMALL]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and _done(out) < 2:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    before = sorted(p.name for p in out.iterdir() if p.name.isdigit())
+    assert 2 <= len(before) < num, "the export finished before it could be killed; make it longer"
+    mtimes = {n: (out / n / "meta.json").stat().st_mtime_ns for n in before}
+    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    for n, m in mtimes.items():  # finished samples were kept, not generated again
+        assert (out / n / "meta.json").stat().st_mtime_ns == m
+    assert main(["export", "--out", str(tmp_path / "local"), "--num", str(num), "--outputs", OUTS,
+                 "--no-progress", *SMALL]) == 0
+    ray_tree, local = _tree(out), _tree(tmp_path / "local")
+    assert sorted(ray_tree) == sorted(local)
+    assert [k for k in local if k != "manifest.json" and ray_tree[k] != local[k]] == []
+    assert json.loads(ray_tree["manifest.json"])["samples"] == json.loads(local["manifest.json"])["samples"]
