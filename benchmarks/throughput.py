@@ -20,7 +20,7 @@ from _common import machine_info, print_table, write_json
 OUTPUT_SETS = {
     "depth": ["depth"],
     "flow+occ": ["flow_fw", "valid_fw", "occ_fw"],
-    "everything+direct rgb": None,  # filled from plan.OUTPUTS below
+    "everything+direct rgb": None,  # filled from plan.CORE_OUTPUTS below (issue-17 outputs: outputs_cost.py)
 }
 
 
@@ -45,9 +45,9 @@ def rate(cfg, outputs, workers: int, n: int) -> float:
 
 def skip_savings(cfg, n: int) -> list[dict]:
     import flowsynth as fs
-    from flowsynth.plan import OUTPUTS
+    from flowsynth.plan import CORE_OUTPUTS
 
-    full = list(OUTPUTS)
+    full = list(CORE_OUTPUTS)
     rows = []
     cases = {
         "full request": full,
@@ -101,9 +101,9 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=None, help="samples per measurement (default 24 quick, 64 full)")
     args = p.parse_args()
     import flowsynth as fs
-    from flowsynth.plan import OUTPUTS
+    from flowsynth.plan import CORE_OUTPUTS
 
-    OUTPUT_SETS["everything+direct rgb"] = list(OUTPUTS)
+    OUTPUT_SETS["everything+direct rgb"] = list(CORE_OUTPUTS)
     W, H = (256, 192) if args.quick else (512, 384)
     n = args.samples or (24 if args.quick else 64)  # long enough that the prefetch buffer does not flatter workers
     rows = []

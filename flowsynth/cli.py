@@ -127,6 +127,8 @@ def _parser() -> argparse.ArgumentParser:
     pv.add_argument("--out", required=True, help="PNG file to write [required]")
     pv.add_argument("--index", type=integer, default=0, help="sample index [int, default 0]")
     pv.add_argument("--seed", type=integer, default=0, help="dataset seed [int, default 0]")
+    pv.add_argument("--outputs", default=None,
+                    help="comma-separated output keys to show [default: rgb, flow, occlusion, depth, ids, boxes]")
     st = sub.add_parser("stats", help="measure flow, occlusion, texture and timing statistics of N samples",
                         **_sub_kw, usage="flowsynth stats [options]  (all options: flowsynth stats --help)")
     st.add_argument("--num", type=integer, default=16, help="number of samples [int, default 16]")
@@ -148,7 +150,7 @@ def _preview(args, cfg) -> None:
     from flowsynth.viz import sample_preview, save_png
 
     outputs = ["rgb", "flow_fw", "flow_bw", "occ_fw", "depth", "normals", "instance", "box2d_visible",
-               "object_valid"]
+               "object_valid"] if args.outputs is None else [k for k in args.outputs.split(",") if k]
     check_sample_memory(cfg)
     ds = BouncingThings(cfg, outputs=outputs if cfg.num_frames > 1 else
                         [k for k in outputs if "_fw" not in k and "_bw" not in k], seed=args.seed)

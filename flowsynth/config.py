@@ -14,7 +14,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from flowsynth.errors import AssetError, ConfigError
-from flowsynth.plan import DEFAULT_BOUNCES, DEFAULT_RENDER_MODE, DEFAULT_TONEMAP, MAX_BOUNCES, RENDER_MODES, TONEMAPS
+from flowsynth.plan import (
+    DEFAULT_BOUNCES,
+    DEFAULT_RENDER_MODE,
+    DEFAULT_TONEMAP,
+    MAX_BOUNCES,
+    RENDER_MODES,
+    TONEMAPS,
+    TRACK_SAMPLING,
+)
 
 __all__ = ["CAMERA_MOTIONS", "MOTIONS", "RENDER_MODES", "BouncingThingsConfig"]
 
@@ -87,6 +95,17 @@ class BouncingThingsConfig:
     """Linear radiance -> display: "clamp" or "reinhard", then sRGB encoding (docs/rendering.md)."""
     exposure: float = 1.0
     """Radiance multiplier before tone mapping, >= 0."""
+    flow_gaps: tuple[int, ...] = (1,)
+    """Frame gaps k of the per-pair outputs (flow, masks, scene flow) [frames]: a requested ``flow_fw`` gives
+    ``flow_fw`` for k = 1 and ``flow_fw_kK`` (T-K pairs (t, t+K)) for every other K; needs K < num_frames."""
+    num_tracks: int = 256
+    """Point tracks per clip Q (outputs ``tracks`` = target_points, occluded, query_points), >= 1 [count]."""
+    track_sampling: str = "uniform"
+    """Where query points are drawn: "uniform" (any surface), "objects" (not the room) or "edges" (near depth
+    edges); see flowsynth/tracks.py."""
+    stereo_baseline: float = 0.0
+    """Distance of a rectified right camera along the left camera's +x [m], >= 0; 0 = no right camera.
+    Needed (> 0) for rgb_right, depth_right, disparity* (flowsynth/stereo.py)."""
     texture_dir: str | None = None
     """Folder of image textures (jpg/png) for objects and walls; None uses procedural textures only."""
     texture_families: tuple[str, ...] = ("noise", "cells", "stripes", "checks", "blend", "solid")
@@ -252,6 +271,16 @@ def _validate(cfg: BouncingThingsConfig) -> None:
     _int(cfg, "bounces", 0, MAX_BOUNCES)
     _choice(cfg, "tonemap", TONEMAPS)
     _set(cfg, "exposure", _float(cfg, "exposure", lo=0.0))
+    gaps = cfg.flow_gaps
+    if isinstance(gaps, (str, bytes)) or not hasattr(gaps, "__len__") or not gaps or not all(_is_int(k) for k in gaps):
+        raise ConfigError(f"flow_gaps must be a non-empty sequence of integers, e.g. (1, 2, 4); got {gaps!r}")
+    gaps = tuple(dict.fromkeys(int(k) for k in gaps))
+    if min(gaps) < 1:
+        raise ConfigError(f"flow_gaps must be integers >= 1, got {gaps}")
+    _set(cfg, "flow_gaps", gaps)
+    _int(cfg, "num_tracks", 1)
+    _set(cfg, "stereo_baseline", _float(cfg, "stereo_baseline", lo=0.0))
+    _choice(cfg, "track_sampling", TRACK_SAMPLING)
     fams = cfg.texture_families
     if isinstance(fams, str) or not fams or not all(isinstance(f, str) and f for f in fams):
         raise ConfigError(f"texture_families must be a non-empty sequence of names, got {fams!r}")

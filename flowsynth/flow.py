@@ -1,7 +1,8 @@
-"""Optical flow, validity, occlusion and motion masks by exact reprojection of ray-cast hit points.
+"""Optical flow, validity, occlusion, motion masks and scene flow by exact reprojection of ray-cast hit points.
 
 For a pixel (u, v) of source frame s that sees instance n at object-frame point p (kept by the
-primary cast), with target frame r (r = s + 1 forward, r = s - 1 backward):
+primary cast), with target frame r (r = s + k forward, r = s - k backward, k a frame gap of
+``flow_gaps``; keys of gap k >= 2 are named KEY_kK):
 
     X_r   = cam_T_world[r] @ world_T_obj[r, n] @ p           (float64)
     valid = hit and X_r.z > 0
@@ -11,6 +12,7 @@ primary cast), with target frame r (r = s + 1 forward, r = s - 1 backward):
     occ   = oof or (hit and the ray from camera r towards X_r hits a surface closer than
                     (1 - VISIBILITY_REL_TOL) |X_r|)                         (occlusion="exact")
     motion = hit and |world_T_obj[s+1, n] p - world_T_obj[s, n] p| > MOTION_TOL
+    scene_flow = cam_T_world[s] (world_T_obj[r, n] - world_T_obj[s, n]) p   [m], where hit, else 0
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from kornia.geometry.conversions import convert_points_from_homogeneous
 
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
+from flowsynth.plan import gap_key
 
 __all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject"]
 
@@ -55,40 +58,45 @@ def reproject(points: np.ndarray, M: np.ndarray, K: np.ndarray) -> tuple[np.ndar
 
 
 def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
-    """Every flow-family key the plan asks for, as tensors of shape (T-1, C, H, W)."""
+    """Every flow-family key the plan asks for: per (direction, gap k) of ``plan.pair_jobs``, tensors of shape
+    (max(T-k, 0), C, H, W) whose index t is the pair (t, t+k); ``motion`` (T-1, 1, H, W)."""
     T, H, W = gb.dist.shape
     K = scene.camera.K
     want = set(plan.outputs)
     out: dict[str, torch.Tensor] = {}
     idx = gb.instance_index
     cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)  # (T, N, 4, 4), once per frame and object
-    directions = [("fw", plan.fw, 0, 1), ("bw", plan.bw, 1, -1)]
     rays, jobs = [], []
-    for name, needed, first_src, step in directions:
-        if not needed:
-            continue
-        src = np.arange(first_src, first_src + T - 1)
+    for name, k in plan.pair_jobs:
+        P = max(T - k, 0)  # pairs (t, t+k); none when the clip is not longer than the gap
+        key = {kind: gap_key(f"{kind}_{name}", k) for kind in ("flow", "valid", "occ", "oof", "scene_flow")}
+        src = np.arange(P) + (0 if name == "fw" else k)
         f, i, j = np.nonzero(gb.hit[src])
         s = src[f]
-        r = s + step
+        r = s + (k if name == "fw" else -k)
         n = idx[s, i, j]
         p = gb.point[s, i, j].astype(np.float64)
+        if key["scene_flow"] in want:
+            out[key["scene_flow"]] = torch.from_numpy(
+                _scene_flow(f, i, j, src, k if name == "fw" else -k, n, p, world_T_obj, cam_T_world, (P, 3, H, W)))
+        if not want & {key["flow"], key["valid"], key["occ"], key["oof"]}:
+            continue
         X, uv = reproject(p, cam_T_obj[r, n], K)
         front = X[:, 2] > 0
         inside = front & (uv[:, 0] >= -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < H - 0.5)
-        flow = np.zeros((T - 1, 2, H, W), np.float32)
+        flow = np.zeros((P, 2, H, W), np.float32)
         flow[f, 0, i, j] = np.where(front, uv[:, 0] - j, 0.0)
         flow[f, 1, i, j] = np.where(front, uv[:, 1] - i, 0.0)
-        masks = {k: np.zeros((T - 1, 1, H, W), bool) for k in ("valid", "oof", "occ")}
+        masks = {m: np.zeros((P, 1, H, W), bool) for m in ("valid", "oof", "occ")}
         masks["valid"][f, 0, i, j] = front
         masks["oof"][f, 0, i, j] = ~inside
-        jobs.append((name, f, i, j, r, X, uv, inside, flow, masks))
-        if f"occ_{name}" in want and plan.occlusion == "exact":
+        jobs.append((key, f, i, j, r, X, uv, inside, flow, masks))
+        if key["occ"] in want and plan.occlusion == "exact":
             rays.append((X[inside], r[inside]))
     blocked_all = _visibility(accel, rays, plan.threads) if rays else None
     offset = 0
-    for name, f, i, j, r, X, uv, inside, flow, masks in jobs:
-        if f"occ_{name}" in want:
+    for key, f, i, j, r, X, uv, inside, flow, masks in jobs:
+        if key["occ"] in want:
             if plan.occlusion == "exact":
                 cnt = int(inside.sum())
                 blocked = blocked_all[offset:offset + cnt]
@@ -98,12 +106,28 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
             occ = ~inside
             occ[np.nonzero(inside)[0]] = blocked
             masks["occ"][f, 0, i, j] = occ
-        out[f"flow_{name}"] = torch.from_numpy(flow)
-        for k, m in masks.items():
-            out[f"{k}_{name}"] = torch.from_numpy(m)
+        out[key["flow"]] = torch.from_numpy(flow)
+        for m, a in masks.items():
+            out[key[m]] = torch.from_numpy(a)
     if "motion" in want:
         out["motion"] = torch.from_numpy(_motion(gb, idx, world_T_obj))
     return {k: v for k, v in out.items() if k in want}
+
+
+def _scene_flow(f, i, j, src, step: int, n, p, world_T_obj: np.ndarray, cam_T_world: np.ndarray,
+                shape: tuple) -> np.ndarray:
+    """(P, 3, H, W) float32: cam_T_world[s] (world_T_obj[s + step, n] - world_T_obj[s, n]) p per hit pixel of
+    pair f (source frame s = src[f]); one pair at a time, so temporaries stay at one frame's pixels."""
+    sf = np.zeros(shape, np.float32)
+    bounds = np.searchsorted(f, np.arange(shape[0] + 1))  # np.nonzero returns f sorted
+    for t in range(shape[0]):
+        a, b = bounds[t], bounds[t + 1]
+        if a == b:
+            continue
+        s = src[t]
+        M = np.matmul(cam_T_world[s], world_T_obj[s + step] - world_T_obj[s])[n[a:b]]  # (Pt, 4, 4)
+        sf[t, :, i[a:b], j[a:b]] = np.einsum("pij,pj->pi", M[:, :3, :3], p[a:b]) + M[:, :3, 3]
+    return sf
 
 
 def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int | None) -> np.ndarray:

@@ -5,8 +5,11 @@
 | primary cast     | always (one per frame)                                               |
 | hit points       | position, flow_*, valid_*, occ_*, oof_*, motion, rgb                 |
 | normals          | normals, rgb                                                         |
-| reprojection     | flow_*, valid_*, occ_*, oof_* (per direction), motion                |
-| visibility rays  | occ_fw / occ_bw with occlusion="exact" (per direction)               |
+| reprojection     | flow_*, valid_*, occ_*, oof_* (per direction and frame gap), motion  |
+| scene flow       | scene_flow_* (per direction and frame gap)                           |
+| visibility rays  | occ_* with occlusion="exact" (per direction and gap), point tracks   |
+| point tracks     | target_points, occluded, query_points (alias ``tracks``)             |
+| right camera     | rgb_right, depth_right, disparity*, (stereo_baseline > 0)            |
 | object tables    | object_* , world_T_obj, box*, visible_pixels                         |
 | shading          | rgb                                                                   |
 """
@@ -14,21 +17,38 @@
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import RENDER_MODES
 from flowsynth.parallel import resolve_threads
 
-__all__ = ["DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FLOW_KEYS", "GBUFFER_KEYS", "MAX_BOUNCES",
-           "OCCLUSION_METHODS", "OUTPUTS", "RENDER_MODES", "TABLE_KEYS", "TONEMAPS", "Plan", "make_plan"]
+__all__ = ["CORE_OUTPUTS", "DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FLOW_KEYS", "GAP_KEYS",
+           "GBUFFER_KEYS", "MAX_BOUNCES", "OCCLUSION_METHODS", "OUTPUTS", "RENDER_MODES", "SCENE_FLOW_KEYS",
+           "STEREO_KEYS", "TABLE_KEYS", "TONEMAPS", "TRACK_KEYS", "TRACK_SAMPLING", "Plan", "expand_outputs",
+           "gap_key", "make_plan", "split_gap_key"]
 
 GBUFFER_KEYS = ("depth", "distance", "normals", "position", "instance", "category", "asset")
 FLOW_KEYS = ("flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw", "motion")
 TABLE_KEYS = ("object_valid", "object_category", "object_asset", "world_T_obj", "box3d_corners",
               "box2d_amodal", "box2d_visible", "visible_pixels")
 CAMERA_KEYS = ("K", "cam_T_world")
-OUTPUTS = ("rgb",) + GBUFFER_KEYS + FLOW_KEYS + TABLE_KEYS + CAMERA_KEYS
+SCENE_FLOW_KEYS = ("scene_flow_fw", "scene_flow_bw")
+# Per-pair keys that exist for every frame gap k of ``flow_gaps``: k = 1 under these names, k >= 2 as
+# ``gap_key(key, k)`` = KEY_kK (e.g. flow_fw_k2), shape (T-k, C, H, W), index t = pair (t, t+k).
+GAP_KEYS = FLOW_KEYS[:-1] + SCENE_FLOW_KEYS
+# Point tracks in the TAP-Vid layout (flowsynth/tracks.py); the alias ``tracks`` requests all three.
+TRACK_KEYS = ("target_points", "occluded", "query_points")
+TRACK_SAMPLING = ("uniform", "objects", "edges")
+ALIASES = {"tracks": TRACK_KEYS}
+# Rectified right camera at ``stereo_baseline`` metres along the left camera's +x (flowsynth/stereo.py).
+STEREO_KEYS = ("rgb_right", "depth_right", "disparity", "disparity_right", "disparity_change", "disparity_occ",
+               "disparity_occ_right")
+# The outputs before scene flow, tracks and stereo (benchmarks/throughput.py keeps timing this set).
+CORE_OUTPUTS = ("rgb",) + GBUFFER_KEYS + FLOW_KEYS + TABLE_KEYS + CAMERA_KEYS
+OUTPUTS = CORE_OUTPUTS + SCENE_FLOW_KEYS + TRACK_KEYS + STEREO_KEYS
+_GAP_RE = re.compile(r"^(?P<base>[a-z_]+_(?:fw|bw))_k(?P<k>[0-9]+)$")
 OCCLUSION_METHODS = ("exact", "depth")
 # RGB options: the one definition of their choices, ranges and defaults (config, Plan and shading use these;
 # the models are in docs/rendering.md). RENDER_MODES is defined beside the kernels that implement them.
@@ -54,6 +74,10 @@ class Plan:
     tonemap: str = DEFAULT_TONEMAP
     exposure: float = 1.0
     threads: int | None = None
+    flow_gaps: tuple[int, ...] = (1,)
+    num_tracks: int = 256
+    track_sampling: str = "uniform"
+    stereo_baseline: float = 0.0
 
     def _any(self, *keys: str) -> bool:
         return any(k in self.outputs for k in keys)
@@ -63,20 +87,38 @@ class Plan:
         return "rgb" in self.outputs
 
     @property
+    def pair_jobs(self) -> tuple[tuple[str, int], ...]:
+        """(direction "fw"/"bw", gap k) of every frame pairing some requested key needs, in a fixed order."""
+        keys = [split_gap_key(k) for k in self.outputs]
+        jobs = {(base[-2:], k) for base, k in filter(None, keys)}
+        if "motion" in self.outputs:
+            jobs.add(("fw", 1))
+        return tuple(sorted(jobs, key=lambda j: (j[1], j[0] == "bw")))
+
+    @property
     def fw(self) -> bool:
-        return self._any("flow_fw", "valid_fw", "occ_fw", "oof_fw", "motion")
+        return any(d == "fw" for d, _ in self.pair_jobs)
 
     @property
     def bw(self) -> bool:
-        return self._any("flow_bw", "valid_bw", "occ_bw", "oof_bw")
+        return any(d == "bw" for d, _ in self.pair_jobs)
 
     @property
     def flow_stage(self) -> bool:
-        return self.fw or self.bw
+        return bool(self.pair_jobs)
+
+    @property
+    def tracks(self) -> bool:
+        return self._any(*TRACK_KEYS)
+
+    @property
+    def stereo(self) -> bool:
+        return self._any(*STEREO_KEYS)
 
     @property
     def points(self) -> bool:
-        return self.flow_stage or self.rgb or "position" in self.outputs
+        return (self.flow_stage or self.rgb or self.tracks or "position" in self.outputs
+                or self._any("disparity_change", "disparity_occ"))
 
     @property
     def normals(self) -> bool:
@@ -87,11 +129,53 @@ class Plan:
         return self._any(*TABLE_KEYS)
 
 
+def gap_key(key: str, k: int) -> str:
+    """Name of per-pair ``key`` (one of GAP_KEYS) for frame gap k: the key itself for k = 1, else KEY_kK."""
+    return key if k == 1 else f"{key}_k{k}"
+
+
+def split_gap_key(key: str) -> tuple[str, int] | None:
+    """(base key in GAP_KEYS, gap k) of a per-pair key such as ``occ_bw_k4``; None for other keys."""
+    if key in GAP_KEYS:
+        return key, 1
+    m = _GAP_RE.match(key)
+    if m and m["base"] in GAP_KEYS and int(m["k"]) >= 2 and m["k"] == str(int(m["k"])):
+        return m["base"], int(m["k"])
+    return None
+
+
+def _check_gaps(flow_gaps) -> tuple[int, ...]:
+    if isinstance(flow_gaps, (int, str)) or not hasattr(flow_gaps, "__iter__"):
+        raise ConfigError(f"flow_gaps must be a sequence of integers >= 1, e.g. (1, 2, 4); got {flow_gaps!r}")
+    gaps = tuple(flow_gaps)
+    if not gaps or any(isinstance(k, bool) or not isinstance(k, int) or k < 1 for k in gaps):
+        raise ConfigError(f"flow_gaps must be a non-empty sequence of integers >= 1, e.g. (1, 2, 4); "
+                          f"got {flow_gaps!r}")
+    return tuple(dict.fromkeys(gaps))
+
+
+def expand_outputs(outputs, flow_gaps=(1,)) -> tuple[str, ...]:
+    """Requested keys with every GAP_KEYS base name replaced by its keys for each gap of ``flow_gaps``
+    and every alias (``tracks``) by the keys it stands for."""
+    gaps = _check_gaps(flow_gaps)
+    out: list[str] = []
+    for key in outputs:
+        out += [gap_key(key, k) for k in gaps] if key in GAP_KEYS else list(ALIASES.get(key, [key]))
+    return tuple(dict.fromkeys(out))
+
+
 def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
               render_mode: str = DEFAULT_RENDER_MODE, spp: int = 1, shutter: float = 0.0, seed: int = 0,
               bounces: int = DEFAULT_BOUNCES, tonemap: str = DEFAULT_TONEMAP, exposure: float = 1.0,
-              threads: int | None = None) -> Plan:
+              threads: int | None = None, flow_gaps=(1,), num_tracks: int = 256,
+              track_sampling: str = "uniform", stereo_baseline: float = 0.0) -> Plan:
     """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys.
+
+    ``num_tracks`` (Q >= 1) and ``track_sampling`` (TRACK_SAMPLING): point tracks, see flowsynth/tracks.py.
+    ``stereo_baseline`` [m]: distance of the right camera (0 = no right camera; STEREO_KEYS need > 0).
+    ``flow_gaps``: frame gaps k of the per-pair keys (GAP_KEYS): each requested ``flow_fw`` etc. becomes
+    ``gap_key(key, k)`` for every k (``flow_fw`` for k = 1, ``flow_fw_k2`` for k = 2, ...); keys named with
+    a gap (``flow_fw_k3``) may also be requested directly. ``Plan.outputs`` holds the expanded keys.
 
     ``threads``: threads of every ray launch (None = all cores the process may use, 1 inside DataLoader and
     export workers; flowsynth.parallel). Results do not depend on it."""
@@ -100,9 +184,12 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
     outputs = tuple(dict.fromkeys(outputs))
     if not outputs:
         raise ConfigError(f"outputs is empty; choose from {', '.join(OUTPUTS)}")
-    unknown = [k for k in outputs if k not in OUTPUTS]
+    gaps = _check_gaps(flow_gaps)
+    outputs = expand_outputs(outputs, gaps)
+    unknown = [k for k in outputs if k not in OUTPUTS and split_gap_key(k) is None]
     if unknown:
-        raise ConfigError(f"unknown output(s) {unknown}; valid outputs are: {', '.join(OUTPUTS)}")
+        raise ConfigError(f"unknown output(s) {unknown}; valid outputs are: {', '.join(OUTPUTS)}, "
+                          f"and KEY_kK (frame gap K >= 2) for KEY in {', '.join(GAP_KEYS)}")
     if occlusion not in OCCLUSION_METHODS:
         raise ConfigError(f"occlusion must be one of {OCCLUSION_METHODS}, got {occlusion!r}")
     if max_objects is not None and (not isinstance(max_objects, int) or max_objects < 0):
@@ -121,5 +208,15 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
         raise ConfigError(f"exposure must be finite and >= 0, got {exposure!r}")
     if threads is not None:
         resolve_threads(threads)
+    if isinstance(num_tracks, bool) or not isinstance(num_tracks, int) or num_tracks < 1:
+        raise ConfigError(f"num_tracks must be an integer >= 1, got {num_tracks!r}")
+    if track_sampling not in TRACK_SAMPLING:
+        raise ConfigError(f"track_sampling must be one of {TRACK_SAMPLING}, got {track_sampling!r}")
+    if isinstance(stereo_baseline, bool) or not isinstance(stereo_baseline, (int, float)) or not (
+            math.isfinite(stereo_baseline) and stereo_baseline >= 0):
+        raise ConfigError(f"stereo_baseline must be a finite number >= 0 [m], got {stereo_baseline!r}")
+    stereo = [k for k in outputs if k in STEREO_KEYS]
+    if stereo and stereo_baseline == 0:
+        raise ConfigError(f"{stereo} need a right camera: set stereo_baseline > 0 [m] (e.g. 0.1)")
     return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed), int(bounces),
-                tonemap, float(exposure), threads)
+                tonemap, float(exposure), threads, gaps, num_tracks, track_sampling, float(stereo_baseline))

@@ -112,6 +112,14 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
         from flowsynth.flow import flow_outputs
 
         out.update(flow_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world))
+    if plan.stereo:
+        from flowsynth.stereo import stereo_outputs
+
+        out.update(stereo_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world, device=device))
+    if plan.tracks:
+        from flowsynth.tracks import track_outputs
+
+        out.update(track_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world))
     if plan.boxes:
         from flowsynth.annotations import object_tables
 

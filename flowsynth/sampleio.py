@@ -5,13 +5,29 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 
 | key                                   | file                    | format                              |
 |---------------------------------------|-------------------------|-------------------------------------|
-| rgb                                   | rgb_TTTT.png            | 8-bit sRGB PNG                      |
+| rgb, rgb_right                        | KEY_TTTT.png            | 8-bit sRGB PNG                      |
 | depth, distance, normals, position    | KEY_TTTT.exr            | float32 EXR (channels: io.exr)      |
+| depth_right                           | KEY_TTTT.exr            | float32 EXR, channel Z              |
+| disparity, disparity_right,           | KEY_TTTT.exr            | float32 EXR, channel disparity      |
+| disparity_change                      |                         |                                     |
 | flow_fw, flow_bw                      | KEY_TTTT.exr            | float32 EXR, channels flow.x/flow.y |
+| scene_flow_fw, scene_flow_bw          | KEY_TTTT.exr            | float32 EXR, channels SF.X/Y/Z      |
 | instance, category, asset             | KEY_TTTT.png            | 16-bit greyscale PNG                |
-| valid_*, occ_*, oof_*, motion         | KEY_TTTT.png            | 16-bit greyscale PNG, 0/1           |
+| valid_*, occ_*, oof_*, motion,        | KEY_TTTT.png            | 16-bit greyscale PNG, 0/1           |
+| disparity_occ, disparity_occ_right    |                         |                                     |
+| any of these per-pair keys at gap K   | KEY_kK_TTTT.*           | as the key at gap 1 (TTTT = pair t) |
 | K, cam_T_world, object tables, index  | meta.json               | JSON (float32 values, exact)        |
 | box2d_visible (when requested)        | boxes_coco.json         | COCO-style detection boxes          |
+| target_points, occluded, query_points | tracks.npz              | numpy .npz, the tensors as they are |
+| all three track keys (when requested) | tapvid.pkl              | TAP-Vid (Kubric) dict, see below    |
+
+``tapvid.pkl`` is what TAP-Vid loaders read: a pickled dict of numpy arrays with TAP-Vid's Kubric keys,
+``query_points`` (Q, 3) float32 (t, y, x), ``target_points`` (Q, T, 2) float32 (x, y) and ``occluded``
+(Q, T) bool, in TAP-Vid's raster pixel coordinates (flowsynth's + 0.5: the top-left image corner is (0, 0));
+``points`` (Q, T, 2) the same positions divided by (W, H), as in the TAP-Vid DAVIS / Kinetics pickles
+(when the sample has an image-sized key that gives W and H);
+and, when rgb was requested, ``video`` (T, H, W, 3) uint8 (Kubric's loader gives it scaled to [-1, 1]:
+``video / 127.5 - 1``). ``{name: pickle.load(f)}`` over samples is the TAP-Vid DAVIS file layout.
 
 A key that is in none of these rows raises :class:`flowsynth.errors.ExportError`: a new output needs its
 own row here (a file format, or a place in ``META_KEYS``) before it can be exported.
@@ -20,6 +36,8 @@ own row here (a file format, or a place in ``META_KEYS``) before it can be expor
 from __future__ import annotations
 
 import hashlib
+import io
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -38,15 +56,26 @@ from flowsynth.io import (
     write_u16_png,
 )
 from flowsynth.errors import ExportError
-from flowsynth.plan import CAMERA_KEYS, FLOW_KEYS, GBUFFER_KEYS, TABLE_KEYS
+from flowsynth.io.atomic import atomic_write_bytes
+from flowsynth.plan import CAMERA_KEYS, FLOW_KEYS, GBUFFER_KEYS, TABLE_KEYS, TRACK_KEYS, split_gap_key
 
-__all__ = ["META_KEYS", "file_digest", "read_sample", "write_sample"]
+__all__ = ["META_KEYS", "file_digest", "read_sample", "tapvid_dict", "write_sample"]
 
 _EXR = {"depth": "depth", "distance": "distance", "normals": "normals", "position": "position",
-        "flow_fw": "flow", "flow_bw": "flow"}
-_U16 = ("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.startswith("flow_"))
+        "flow_fw": "flow", "flow_bw": "flow", "scene_flow_fw": "scene_flow", "scene_flow_bw": "scene_flow",
+        "depth_right": "depth", "disparity": "disparity", "disparity_right": "disparity",
+        "disparity_change": "disparity"}
+_RGB = ("rgb", "rgb_right")
+_U16 = (("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.startswith("flow_"))
+        + ("disparity_occ", "disparity_occ_right"))
 # Keys stored as JSON arrays in meta.json: cameras, object tables, and the sample's index and seed.
 META_KEYS = CAMERA_KEYS + TABLE_KEYS + ("index", "seed")
+
+
+def _base(key: str) -> str:
+    """The key whose file format ``key`` uses: per-pair keys at any frame gap use the gap-1 key's."""
+    split = split_gap_key(key)
+    return split[0] if split else key
 
 
 def file_digest(path: Path) -> str:
@@ -62,7 +91,8 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
     Raises ExportError, before writing anything, when a key has no file format (see the module table).
     """
     folder = Path(folder)
-    unknown = [k for k in sample if k != "rgb" and k not in _EXR and k not in _U16 and k not in META_KEYS]
+    unknown = [k for k in sample if k not in _RGB and _base(k) not in _EXR and _base(k) not in _U16
+               and k not in META_KEYS and k not in TRACK_KEYS]
     if unknown:
         raise ExportError(f"no export format for key(s) {unknown}; known keys are rgb, {', '.join(_EXR)}, "
                           f"{', '.join(_U16)}, {', '.join(META_KEYS)} (add a format in flowsynth/sampleio.py)")
@@ -70,15 +100,18 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
     meta: dict = {"keys": list(sample)}
     for key, value in sample.items():
         a = value.numpy()
-        if key == "rgb":
+        if key in _RGB:
             for t in range(a.shape[0]):
-                names.append(f"rgb_{t:04d}.png")
+                names.append(f"{key}_{t:04d}.png")
                 write_rgb_png(folder / names[-1], a[t])
-        elif key in _EXR:
+        elif _base(key) in _EXR:
             for t in range(a.shape[0]):
                 names.append(f"{key}_{t:04d}.exr")
-                write_tensor_exr(folder / names[-1], a[t], CHANNEL_NAMES[_EXR[key]], compression=exr_compression)
-        elif key in _U16:
+                write_tensor_exr(folder / names[-1], a[t], CHANNEL_NAMES[_EXR[_base(key)]],
+                                 compression=exr_compression)
+        elif key in TRACK_KEYS:
+            continue  # tracks.npz below
+        elif _base(key) in _U16:
             for t in range(a.shape[0]):
                 names.append(f"{key}_{t:04d}.png")
                 write_u16_png(folder / names[-1], a[t, 0].astype(np.int64))
@@ -93,9 +126,35 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
             sample["box2d_visible"], sample["object_valid"], sample["object_category"],
             sample["visible_pixels"], width=W, height=H, file_names=frames))
         names.append("boxes_coco.json")
+    tracks = {k: sample[k].numpy() for k in TRACK_KEYS if k in sample}
+    if tracks:
+        buf = io.BytesIO()
+        np.savez(buf, **tracks)
+        atomic_write_bytes(folder / "tracks.npz", buf.getvalue())
+        names.append("tracks.npz")
+    if len(tracks) == len(TRACK_KEYS):
+        atomic_write_bytes(folder / "tapvid.pkl", pickle.dumps(tapvid_dict(sample), protocol=4))
+        names.append("tapvid.pkl")
     write_json(folder / "meta.json", meta)
     names.append("meta.json")
     return names
+
+
+def tapvid_dict(sample: dict) -> dict[str, np.ndarray]:
+    """The TAP-Vid (Kubric) dict of a sample with ``target_points``, ``occluded``, ``query_points`` (and
+    optionally ``rgb``): raster coordinates (+ 0.5 px), see the module docstring."""
+    target = sample["target_points"].numpy().astype(np.float64)
+    occ = sample["occluded"].numpy().astype(bool)
+    H, W = _image_size(sample)
+    raster = target + 0.5
+    out = {"query_points": (sample["query_points"].numpy() + np.array([0.0, 0.5, 0.5])).astype(np.float32),
+           "target_points": raster.astype(np.float32), "occluded": occ}
+    if H and W:
+        out["points"] = (raster / np.array([W, H])).astype(np.float32)
+    if "rgb" in sample:
+        rgb = sample["rgb"].numpy().transpose(0, 2, 3, 1)
+        out["video"] = np.rint(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)
+    return out
 
 
 def _image_size(sample: dict) -> tuple[int, int]:
@@ -110,7 +169,14 @@ def read_sample(folder: Path) -> dict[str, torch.Tensor]:
     folder = Path(folder)
     meta = read_json(folder / "meta.json")
     out: dict[str, torch.Tensor] = {}
+    tracks: dict = {}
+    if (folder / "tracks.npz").exists():
+        with np.load(folder / "tracks.npz") as z:
+            tracks = {k: z[k] for k in z.files}
     for key in meta["keys"]:
+        if key in TRACK_KEYS:
+            out[key] = torch.from_numpy(tracks[key])
+            continue
         if key in meta:
             m = meta[key]
             dtype = getattr(torch, m["dtype"])
@@ -118,10 +184,10 @@ def read_sample(folder: Path) -> dict[str, torch.Tensor]:
             out[key] = torch.from_numpy(np.asarray(m["data"], dtype=np_dtype).reshape(m["shape"]))
             continue
         files = sorted(folder.glob(f"{key}_[0-9][0-9][0-9][0-9].*"))
-        if key == "rgb":
+        if key in _RGB:
             arr = np.stack([read_rgb_png(f) for f in files]).astype(np.float32)
-        elif key in _EXR:
-            arr = np.stack([read_tensor_exr(f, CHANNEL_NAMES[_EXR[key]]) for f in files]).astype(np.float32)
+        elif _base(key) in _EXR:
+            arr = np.stack([read_tensor_exr(f, CHANNEL_NAMES[_EXR[_base(key)]]) for f in files]).astype(np.float32)
         else:
             arr = np.stack([read_u16_png(f) for f in files])[:, None]
             arr = arr.astype(bool) if key not in ("instance", "category", "asset") else arr.astype(np.int32)

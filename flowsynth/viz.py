@@ -17,11 +17,13 @@ from PIL import Image, ImageDraw, ImageFont
 
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.io.atomic import atomic_write_bytes
+from flowsynth.plan import split_gap_key
 
 __all__ = [
     "contact_sheet",
     "depth_to_color",
     "draw_boxes",
+    "draw_tracks",
     "flow_to_color",
     "ids_to_color",
     "make_colorwheel",
@@ -29,6 +31,7 @@ __all__ = [
     "normals_to_color",
     "sample_preview",
     "save_png",
+    "vectors_to_color",
 ]
 
 # Middlebury colour wheel (Baker et al. 2011), segment lengths in hues: red-yellow, yellow-green, ...
@@ -164,6 +167,45 @@ def normals_to_color(normals: Any) -> np.ndarray:
     return rgb
 
 
+def vectors_to_color(vec: Any) -> np.ndarray:
+    """Colour (3, H, W) vectors (scene flow [m]) as RGB = (v / max|v| + 1) / 2: zero motion is grey."""
+    v = _np(vec).astype(np.float64)
+    if v.ndim != 3 or v.shape[0] != 3:
+        raise ShapeError(f"vectors_to_color expects (3, H, W), got {v.shape}")
+    v = np.where(np.isfinite(v), v, 0.0)
+    norm = float(np.linalg.norm(v, axis=0).max(initial=0.0))
+    v = v / norm if norm > 0 else v
+    return np.rint(np.clip((v.transpose(1, 2, 0) + 1) / 2, 0, 1) * 255).astype(np.uint8)
+
+
+def draw_tracks(img: np.ndarray, points: Any, occluded: Any, *, max_tracks: int = 64) -> np.ndarray:
+    """Draw point tracks on a copy of ``img`` (H, W, 3) uint8: each track's visible positions joined by
+    lines, a dot where it is in the first frame, colour by track (``ids_to_color`` of track number + 1).
+
+    Args:
+        points: (Q, T, 2) float (x, y) [px], TAP-Vid ``target_points``.
+        occluded: (Q, T) bool; occluded positions are not drawn.
+        max_tracks: draw at most the first this many tracks.
+    """
+    p = _np(points).astype(np.float64)
+    occ = _np(occluded).astype(bool)
+    if p.ndim != 3 or p.shape[2] != 2 or occ.shape != p.shape[:2]:
+        raise ShapeError(f"draw_tracks expects points (Q, T, 2) and occluded (Q, T), got {p.shape}, {occ.shape}")
+    q = min(len(p), max_tracks)
+    colors = ids_to_color(np.arange(1, q + 1)[None])[0]
+    im = Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8))
+    draw = ImageDraw.Draw(im)
+    for n in range(q):
+        c = tuple(int(x) for x in colors[n])
+        for t in range(p.shape[1] - 1):
+            if not (occ[n, t] or occ[n, t + 1]):
+                draw.line([tuple(p[n, t]), tuple(p[n, t + 1])], fill=c, width=1)
+        if not occ[n, 0]:
+            x, y = p[n, 0]
+            draw.ellipse([x - 1.5, y - 1.5, x + 1.5, y + 1.5], fill=c)
+    return np.asarray(im)
+
+
 def mask_to_color(mask: Any) -> np.ndarray:
     """(H, W) or (1, H, W) bool mask -> (H, W, 3) uint8: True white, False black."""
     m = _plane(mask, "mask").astype(bool)
@@ -254,10 +296,13 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
 
     Uses whichever of these keys are present: ``rgb`` (T,3,H,W) frames 0 and 1; ``flow_fw`` /
     ``flow_bw`` (T-1,2,H,W) pair 0 with one shared ``max_flow``; masks ``valid_fw``, ``occ_fw``,
-    ``occ_bw``, ``motion`` (T-1,1,H,W) pair 0; ``depth`` / ``distance`` (T,1,H,W), ``normals``
-    (T,3,H,W), id maps ``instance`` / ``category`` / ``asset`` (T,1,H,W), frame 0;
+    ``occ_bw``, ``motion`` (T-1,1,H,W) pair 0; flows at frame gaps k >= 2 (``flow_fw_k2`` ...) pair 0;
+    ``scene_flow_fw`` / ``scene_flow_bw`` (T-1,3,H,W) pair 0; stereo ``rgb_right``, ``depth_right``,
+    ``disparity``, ``disparity_right``, ``disparity_occ``, ``disparity_occ_right`` frame 0; ``depth`` /
+    ``distance`` (T,1,H,W), ``normals`` (T,3,H,W), id maps ``instance`` / ``category`` / ``asset`` (T,1,H,W), frame 0;
     ``box2d_visible`` (T,N,4) with ``object_valid`` (N,) (and ``visible_pixels`` (T,N) if present)
-    drawn on rgb frame 0, or on the instance map when there is no rgb.
+    drawn on rgb frame 0, or on the instance map when there is no rgb; point tracks ``target_points``
+    (Q,T,2) with ``occluded`` (Q,T) drawn the same way (first 64 tracks, visible segments).
 
     Returns:
         (H', W', 3) uint8 RGB, see :func:`contact_sheet`.
@@ -269,18 +314,35 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
     tiles: list[tuple[str, np.ndarray]] = []
     if "rgb" in s:
         tiles += [(f"rgb t={t}", _rgb_tile(s["rgb"][t])) for t in range(min(2, len(s["rgb"])))]
+    if "rgb_right" in s:
+        tiles.append(("rgb_right t=0", _rgb_tile(s["rgb_right"][0])))
     flows = [k for k in ("flow_fw", "flow_bw") if k in s and len(s[k])]
     if flows:
         mags = [np.hypot(*np.nan_to_num(s[k][0], posinf=0.0, neginf=0.0)).max(initial=0.0) for k in flows]
         shared = float(max(mags))
         for k in flows:
             tiles.append((f"{k} 0 (max {shared:.1f} px)", flow_to_color(s[k][0], max_flow=shared or None)))
+    gapped = [k for k in s if split_gap_key(k) and split_gap_key(k)[1] > 1 and k.startswith("flow_") and len(s[k])]
+    for k in gapped:
+        tiles.append((f"{k} 0", flow_to_color(s[k][0])))
     for k in ("valid_fw", "occ_fw", "occ_bw", "motion"):
         if k in s and len(s[k]):
             tiles.append((f"{k} 0", mask_to_color(s[k][0])))
+    for k in ("scene_flow_fw", "scene_flow_bw"):
+        if k in s and len(s[k]):
+            mx = float(np.linalg.norm(s[k][0], axis=0).max(initial=0.0))
+            tiles.append((f"{k} 0 (max {mx:.2g} m)", vectors_to_color(s[k][0])))
     for k in ("depth", "distance"):
         if k in s:
             tiles.append((f"{k} t=0", depth_to_color(s[k][0])))
+    for k in ("depth_right", "disparity", "disparity_right"):  # disparity ~ 1 / depth: same colouring
+        if k in s:
+            d = s[k][0].astype(np.float64)
+            tiles.append((f"{k} t=0", depth_to_color(1.0 / np.where(d > 0, d, np.inf)) if k != "depth_right"
+                          else depth_to_color(d)))
+    for k in ("disparity_occ", "disparity_occ_right"):
+        if k in s:
+            tiles.append((f"{k} t=0", mask_to_color(s[k][0])))
     if "normals" in s:
         tiles.append(("normals t=0", normals_to_color(s["normals"][0])))
     for k in ("instance", "category", "asset"):
@@ -293,6 +355,10 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
             keep = keep & (s["visible_pixels"][0] > 0)
         base = _rgb_tile(s["rgb"][0]) if "rgb" in s else ids_to_color(s["instance"][0])
         tiles.append(("box2d_visible t=0", draw_boxes(base, boxes, keep)))
+    if "target_points" in s and "occluded" in s and ("rgb" in s or "instance" in s):
+        base = _rgb_tile(s["rgb"][0]) if "rgb" in s else ids_to_color(s["instance"][0])
+        tiles.append((f"tracks ({len(s['target_points'])}) on t=0", draw_tracks(base, s["target_points"],
+                                                                               s["occluded"])))
     if not tiles:
         raise ConfigError(f"sample_preview: no previewable key (rgb, flow_fw, depth, ...) in {sorted(s)}")
     return contact_sheet(tiles, columns=columns, scale=scale)

@@ -85,10 +85,16 @@ class BouncingThings(IterableDataset):
         self.plan = make_plan(
             tuple(dict.fromkeys(requested + ["K", "cam_T_world"])), occlusion=occlusion,
             max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, shutter=cfg.shutter,
-            bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure, threads=threads)
+            bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure, threads=threads,
+            flow_gaps=cfg.flow_gaps, num_tracks=cfg.num_tracks, track_sampling=cfg.track_sampling,
+            stereo_baseline=cfg.stereo_baseline)
         if cfg.num_frames < 2 and self.plan.flow_stage:
             raise ConfigError(f"flow outputs need num_frames >= 2, got {cfg.num_frames}; raise num_frames "
                               "(--num-frames) or leave the flow outputs out")
+        gaps = [k for _, k in self.plan.pair_jobs]
+        if gaps and max(gaps) >= cfg.num_frames:
+            raise ConfigError(f"frame gap {max(gaps)} (flow_gaps) needs num_frames > {max(gaps)}, "
+                              f"got {cfg.num_frames}")
         self.cfg, self.seed, self.length, self.start, self.device = cfg, int(seed), length, int(start), device
         self.outputs = self.plan.outputs
         self._epoch = 0

@@ -21,6 +21,8 @@ distance      ``D``                        ray length [m], 0 = no hit
 flow          ``flow.x``, ``flow.y``       (dx, dy) [px] (flow_fw and flow_bw go in separate files)
 normals       ``N.X``, ``N.Y``, ``N.Z``    unit normal, camera frame, 0 = no hit
 position      ``P.X``, ``P.Y``, ``P.Z``    world point [m], 0 = no hit
+scene_flow    ``SF.X``, ``SF.Y``, ``SF.Z``  3D motion [m], source camera frame, 0 = no hit
+disparity     ``disparity``                 stereo disparity or its change [px], 0 = no hit
 ============  ===========================  =====================================================
 """
 
@@ -44,6 +46,8 @@ CHANNEL_NAMES: dict[str, tuple[str, ...]] = {
     "flow": ("flow.x", "flow.y"),
     "normals": ("N.X", "N.Y", "N.Z"),
     "position": ("P.X", "P.Y", "P.Z"),
+    "scene_flow": ("SF.X", "SF.Y", "SF.Z"),
+    "disparity": ("disparity",),
 }
 """EXR channel names per flowsynth output, in channel order of the (C, H, W) tensor."""
 
