@@ -1,7 +1,8 @@
 """The ``flowsynth`` command: ``flowsynth export``, ``flowsynth preview`` and ``flowsynth stats``.
 
 Every BouncingThingsConfig field is also a flag (``--num-frames 8``, ``--object-size 0.3,1.0``,
-``--texture-dir none``); flags override values from ``--config FILE`` (JSON, TOML or YAML).
+``--texture-dir none``); flags override values from ``--config FILE`` (JSON, TOML or YAML), which override
+``--preset NAME`` (default, chairs, things; flowsynth.config.PRESETS).
 ``flowsynth export --help`` lists every flag with its type, default and meaning (from the field
 docstrings in flowsynth/config.py).
 
@@ -69,10 +70,15 @@ def _read_config_file(path: str) -> dict:
 
 
 def build_config(args: argparse.Namespace):
-    """BouncingThingsConfig from ``--config FILE`` overridden by explicit field flags."""
+    """BouncingThingsConfig from ``--preset NAME``, overridden by ``--config FILE``, then by field flags."""
     from flowsynth.config import BouncingThingsConfig
 
-    values = _read_config_file(args.config) if args.config else {}
+    from flowsynth.config import PRESETS
+
+    if args.preset not in PRESETS:
+        raise ConfigError(f"--preset: unknown preset {args.preset!r}; presets: {sorted(PRESETS)}")
+    values = dict(PRESETS[args.preset])
+    values.update(_read_config_file(args.config) if args.config else {})
     flags = {f.name: getattr(args, "cfg_" + f.name) for f in _config_fields()}
     values.update({k: v for k, v in flags.items() if v is not None})  # parsed by flowsynth._flags
     try:
@@ -138,8 +144,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="also compare OpenCV DIS flow with zero flow (needs opencv) [flag, default off]")
     st.add_argument("--json", default=None, help="also write the statistics to this JSON file [default: none]")
     for sp in (ex, pv, st):
+        sp.add_argument("--preset", default="default",
+                        help="named config to start from: default, chairs, things (BouncingThingsConfig.preset) "
+                             "[default: default]")
         sp.add_argument("--config", default=None,
-                        help="config file (.json, .toml, .yaml); flags override it [default: none]")
+                        help="config file (.json, .toml, .yaml); overrides the preset, flags override it "
+                             "[default: none]")
         add_config_flags(sp)
     return p
 

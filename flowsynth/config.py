@@ -24,7 +24,7 @@ from flowsynth.plan import (
     TRACK_SAMPLING,
 )
 
-__all__ = ["CAMERA_MOTIONS", "MOTIONS", "RENDER_MODES", "BouncingThingsConfig"]
+__all__ = ["CAMERA_MOTIONS", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig"]
 
 MOTIONS = ("physics", "kinematic", "static")
 CAMERA_MOTIONS = ("static", "moving")
@@ -57,10 +57,10 @@ class BouncingThingsConfig:
     size_levels: int = 8
     """Number of distinct object sizes, log-spaced over ``object_size`` [count]; sizes repeat so meshes are
     shared between instances and samples (renderer caches). 1 means always the min size."""
-    min_speed: float = 0.5
+    min_speed: float = 0.1
     """Lower bound of every object's linear speed [m/s], >= 0."""
-    max_speed: float = 2.0
-    """Upper bound of every object's linear speed [m/s], >= min_speed."""
+    max_speed: float = 8.0
+    """Upper bound of every object's linear speed [m/s], >= min_speed (also with ``flow_px``)."""
     angular_speed: tuple[float, float] = (0.0, 2.0)
     """(min, max) angular speed of an object [rad/s]."""
     motion: str = "physics"
@@ -73,10 +73,37 @@ class BouncingThingsConfig:
     """Coulomb friction coefficient of every contact, >= 0 (physics only)."""
     substeps: int | None = None
     """Physics substeps per frame [count]; None picks them from speeds and sizes (docs/scenes.md)."""
-    camera_motion: str = "static"
-    """"static" or "moving" (straight line at constant speed, reflected inside the camera zone)."""
+    flow_px: tuple[float, float] | None = (2.0, 48.0)
+    """(min, max) per-frame flow magnitude to aim for [px]; None sets speeds in m/s and rad/s directly.
+    When set, each object draws a target u log-uniformly from the range and its speed becomes
+    u * distance * fps / (f * max(0.5, sin angle(velocity, line of sight))) with f the focal length [px],
+    clipped into [min_speed, max_speed]; the camera draws its own u and its drawn path (directions and the
+    mix of translation, target motion and rotation from the camera fields below) is scaled so that the
+    median flow of the room between frames 0 and 1 is u (flowsynth/camerapath.py). What comes out is
+    measured by ``flowsynth stats``, not promised."""
+    camera_motion: str = "moving"
+    """"static" or "moving": the eye translates (reflected inside the camera zone), the look-at target
+    moves, and pan / tilt / roll offsets turn the camera (flowsynth/camerapath.py)."""
     camera_speed: tuple[float, float] = (0.2, 1.0)
-    """(min, max) camera speed when ``camera_motion == "moving"`` [m/s]."""
+    """(min, max) speed of the eye when ``camera_motion == "moving"`` [m/s] (with ``flow_px``: before scaling)."""
+    camera_target_speed: tuple[float, float] = (0.0, 1.0)
+    """(min, max) speed of the look-at target [m/s] (with ``flow_px``: before scaling)."""
+    camera_pan: float = 0.3
+    """Largest pan rate, turning about the image's vertical axis [rad/s], >= 0; a clip draws its rate
+    uniformly in [-camera_pan, camera_pan] (with ``flow_px``: before scaling)."""
+    camera_tilt: float = 0.15
+    """Largest tilt rate, turning about the image's horizontal axis [rad/s], >= 0 (as camera_pan)."""
+    camera_roll: float = 0.15
+    """Largest roll rate, turning about the optical axis [rad/s], >= 0 (as camera_pan)."""
+    camera_angle_limit: tuple[float, float, float] = (0.5, 0.3, 0.3)
+    """Bounds of the (pan, tilt, roll) offsets from the look-at direction [rad], each >= 0; offsets reflect
+    off ±limit, so the camera keeps facing the objects' region."""
+    planar_motion: bool = False
+    """Objects, the eye and the look-at target start moving parallel to the first frame's image plane
+    (FlyingChairs-like 2D motion); collisions and walls may turn them later."""
+    spawn_margin: float = 0.1
+    """Fraction of the image width / height kept free at each border when aiming objects' start positions
+    into the view, in (-0.5, 0.5); negative lets objects start partly out of frame."""
     room_size: tuple[float, float, float] = (10.0, 8.0, 6.0)
     """Room interior extent (x, y, z) [m]; the room spans x, y in [-size/2, size/2] and z in [0, size_z]."""
     camera_clearance: float = 2.0
@@ -126,6 +153,16 @@ class BouncingThingsConfig:
         (lx, ly, lz), hi = self.room_bounds
         return (lx + self.camera_clearance, ly, lz), hi
 
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> BouncingThingsConfig:
+        """A named preset (``PRESETS``: "default", "chairs", "things") with ``overrides`` applied.
+
+        Raises ConfigError for an unknown name or invalid overrides.
+        """
+        if name not in PRESETS:
+            raise ConfigError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
+        return cls.from_dict({**PRESETS[name], **overrides})
+
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-compatible dict (tuples become lists); ``from_dict(cfg.to_dict()) == cfg``."""
         return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
@@ -143,6 +180,32 @@ class BouncingThingsConfig:
         if unknown:
             raise ConfigError(f"unknown BouncingThingsConfig field(s) {unknown}; valid fields: {names}")
         return cls(**d)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "chairs": {
+        "width": 512, "height": 384, "num_frames": 2, "flow_px": (1.0, 40.0), "planar_motion": True,
+        "camera_target_speed": (0.0, 0.0), "camera_pan": 0.0, "camera_tilt": 0.0, "camera_roll": 0.3,
+        "num_objects": (8, 16), "motion": "kinematic",
+    },
+    "things": {
+        "width": 960, "height": 540, "num_frames": 10, "flow_px": (2.0, 100.0), "num_objects": (5, 20),
+        "camera_clearance": 1.0, "spawn_margin": -0.2, "camera_target_speed": (0.5, 2.0),
+        "camera_pan": 0.6, "camera_tilt": 0.3, "camera_roll": 0.3, "camera_angle_limit": (0.7, 0.4, 0.4),
+        "motion": "kinematic",
+    },
+}
+"""Named configs (``BouncingThingsConfig.preset(name)``, ``--preset NAME``): changes from the defaults.
+
+- "default": the recommended flow-training stream (moving, rotating camera; flow aimed at 2-48 px).
+- "chairs": FlyingChairs-like (Dosovitskiy et al. 2015): 512x384 pairs, large mostly planar motions of
+  objects and camera (image-plane translation and roll), flow aimed at 1-40 px.
+- "things": FlyingThings3D-like (Mayer et al. 2016): 960x540, 10-frame clips, 5-20 objects that
+  intersect freely (kinematic, as in FlyingThings3D), some near the camera and partly out of frame, a
+  moving and rotating camera, flow aimed at 2-100 px.
+docs/statistics.md lists what each one measures against the published datasets.
+"""
 
 
 def _plain(v: Any) -> Any:
@@ -243,6 +306,17 @@ def _validate(cfg: BouncingThingsConfig) -> None:
         _int(cfg, "substeps", 1, 10_000)
     _choice(cfg, "camera_motion", CAMERA_MOTIONS)
     _range(cfg, "camera_speed", lo=0.0)
+    _range(cfg, "camera_target_speed", lo=0.0)
+    for name in ("camera_pan", "camera_tilt", "camera_roll"):
+        _set(cfg, name, _float(cfg, name, lo=0.0))
+    limit = _tuple(cfg, "camera_angle_limit", 3)
+    _set(cfg, "camera_angle_limit", tuple(_float(cfg, f"camera_angle_limit[{i}]", v, lo=0.0, hi=math.pi / 2)
+                                          for i, v in enumerate(limit)))
+    if cfg.flow_px is not None:
+        _range(cfg, "flow_px", lo=0.0, lo_open=True)
+    if not isinstance(cfg.planar_motion, bool):
+        raise ConfigError(f"planar_motion must be True or False, got {cfg.planar_motion!r}")
+    _set(cfg, "spawn_margin", _float(cfg, "spawn_margin", lo=-0.5, hi=0.5, lo_open=True, hi_open=True))
     room = tuple(_float(cfg, f"room_size[{i}]", v, lo=0.0, lo_open=True)
                  for i, v in enumerate(_tuple(cfg, "room_size", 3)))
     _set(cfg, "room_size", room)

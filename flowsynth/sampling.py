@@ -12,28 +12,32 @@ index]))`` in a fixed order (below), runs the motion and returns a :class:`flows
 World frame: +z up, floor at z = 0, room centred on x = y = 0. The camera sits in the camera zone
 (the first ``cfg.camera_clearance`` metres along +x from the wall x = -room_x / 2), which objects never
 enter, and looks at a point near the centre of the objects' region; OpenCV axes (x right, y down,
-z forward) with world +z pointing up in the image. A moving camera travels in a straight line at a
-speed drawn from ``cfg.camera_speed``, reflected inside the camera zone, and keeps looking at the same
-point. Objects start inside the objects' region with disjoint bounding spheres, preferably inside the
-camera's view frustum.
+z forward) with world +z pointing up in the image. A moving camera translates, follows a moving look-at
+target and pans, tilts and rolls (flowsynth/camerapath.py). Objects start inside the objects' region
+with disjoint bounding spheres, preferably inside the camera's view frustum (aimed at the image inset by
+``cfg.spawn_margin``, at a distance drawn log-uniformly along the ray, so near objects are common).
+With ``cfg.flow_px`` set, the camera's path and every object's speed are scaled to per-frame flow
+targets in pixels (config docstring); the targets drawn are kept in ``scene.meta["motion"]``.
 
-Draw order (changing it changes every dataset): n, asset indices, size levels, camera position,
-target, camera velocity, object positions (rejection sampling), orientations, linear velocities,
-angular velocities, texture seeds (n objects, then the room).
+Draw order (changing it changes every dataset): n, asset indices, size levels, camera path
+(flowsynth.camerapath.sample_camera_motion), camera flow target, object positions (rejection sampling),
+orientations, linear velocity directions and speeds, object flow targets, angular velocities, texture
+seeds (n objects, then the room).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from flowsynth.assets import Asset, get_asset, resolve_assets, room_mesh
 from flowsynth.camera import Camera
+from flowsynth.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
 from flowsynth.materials import sample_lights
-from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, reflect_in_box, simulate
+from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, simulate
 from flowsynth.scene import Scene
 
 __all__ = [
@@ -58,8 +62,9 @@ FRUSTUM_TRIES = 200
 """Placement attempts per object inside the camera's view before trying the whole region [count]."""
 REGION_TRIES = 5000
 """Further placement attempts per object anywhere in the objects' region [count]."""
-VIEW_MARGIN = 0.1
-"""Fraction of the image width/height kept free at each border when aiming initial positions."""
+MIN_SIN_SIGHT = 0.5
+"""Floor of sin(angle between velocity and line of sight) when deriving speeds from ``flow_px``: motion
+along the line of sight moves few pixels, and its speed must stay finite."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,8 @@ class Layout:
         initial: objects' state at t = 0.
         world_T_cam: (T, 4, 4) float64 camera poses, OpenCV axes.
         texture_seeds: (n + 1,) int texture seeds, objects then the room.
+        motion: what ``cfg.flow_px`` resolved to (empty without it): "camera_flow_px" (target),
+            "camera_flow_px_achieved" (median room flow, frames 0-1), "object_flow_px" (targets) [px].
     """
 
     asset_keys: tuple[str, ...]
@@ -81,6 +88,7 @@ class Layout:
     initial: InitialState
     world_T_cam: np.ndarray
     texture_seeds: np.ndarray
+    motion: dict = field(default_factory=dict)
 
 
 def make_rng(seed: int, index: int) -> np.random.Generator:
@@ -95,11 +103,17 @@ def sample_scene(cfg: BouncingThingsConfig, seed: int, index: int) -> Scene:
     """Sample, simulate and assemble scene ``index`` of the dataset ``(cfg, seed)``, bit for bit
     reproducible."""
     layout = sample_layout(cfg, seed, index)
-    trajectory = simulate(cfg, layout.assets, layout.initial)
+    sim_cfg = cfg
+    if cfg.flow_px is not None and cfg.motion == "physics" and len(layout.assets):
+        speed = np.linalg.norm(layout.initial.velocity, axis=1)  # physics keeps speeds in the drawn band
+        sim_cfg = replace(cfg, min_speed=float(speed.min()), max_speed=float(speed.max()))
+    trajectory = simulate(sim_cfg, layout.assets, layout.initial)
     scene = build_scene(cfg, layout, trajectory)
     scene.lights = sample_lights(np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 2])),
                                  cfg.room_size)
     scene.meta.update(config=cfg.to_dict(), seed=int(seed), index=int(index), substeps=trajectory.substeps)
+    if layout.motion:
+        scene.meta["motion"] = layout.motion
     return scene
 
 
@@ -120,16 +134,48 @@ def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> Layout:
     sizes = size_levels(cfg)[rng.integers(cfg.size_levels, size=n)]
     assets = tuple(get_asset(keys[a], float(s)) for a, s in zip(asset_index, sizes))
     camera = Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg)
-    world_T_cam = _sample_camera_path(cfg, rng)
+    path = sample_camera_motion(cfg, rng)
+    motion: dict = {}
+    if cfg.flow_px is not None:
+        motion["camera_flow_px"] = _log_uniform(rng, cfg.flow_px)
+        if cfg.camera_motion == "moving":
+            path, motion["camera_flow_px_achieved"] = scale_to_flow(cfg, path, motion["camera_flow_px"])
+    world_T_cam = camera_poses(cfg, path)
     position = _place_objects(cfg, rng, sizes, camera, world_T_cam[0])
     quat = rng.normal(size=(n, 4))
     rotation = quat_to_rotation(quat)  # normal 4-vectors: uniform random rotations
-    velocity = _unit(rng.normal(size=(n, 3))) * rng.uniform(cfg.min_speed, cfg.max_speed, size=(n, 1))
+    direction = _unit(rng.normal(size=(n, 3)))
+    if cfg.planar_motion:
+        forward = world_T_cam[0, :3, 2]
+        direction = _unit(direction - (direction @ forward)[:, None] * forward)
+    speed = rng.uniform(cfg.min_speed, cfg.max_speed, size=(n, 1))
+    if cfg.flow_px is not None:
+        u = np.array([_log_uniform(rng, cfg.flow_px) for _ in range(n)])
+        motion["object_flow_px"] = u.tolist()
+        speed = np.clip(_speed_for_flow(cfg, camera, world_T_cam[0], position, direction, u),
+                        cfg.min_speed, cfg.max_speed)[:, None]
+    velocity = direction * speed
     w_lo, w_hi = cfg.angular_speed
     angular = _unit(rng.normal(size=(n, 3))) * rng.uniform(w_lo, w_hi, size=(n, 1))
     seeds = rng.integers(0, 2**31 - 1, size=n + 1)
     return Layout(keys, asset_index, assets, InitialState(position, rotation, velocity, angular), world_T_cam,
-                  seeds)
+                  seeds, motion)
+
+
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    lo, hi = bounds
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+
+def _speed_for_flow(cfg: BouncingThingsConfig, camera: Camera, world_T_cam: np.ndarray, position: np.ndarray,
+                    direction: np.ndarray, flow_px: np.ndarray) -> np.ndarray:
+    """(n,) speeds [m/s] that move objects at ``position`` (n, 3) along unit ``direction`` (n, 3) by
+    ``flow_px`` (n,) pixels per frame, seen from ``world_T_cam`` (pinhole, small-motion approximation)."""
+    sight = position - world_T_cam[:3, 3]
+    dist = np.linalg.norm(sight, axis=1)
+    cos = np.abs(np.sum(direction * sight, axis=1)) / np.maximum(dist, 1e-9)
+    sin = np.sqrt(np.clip(1.0 - cos**2, 0.0, 1.0))
+    return flow_px * dist * cfg.fps / (camera.fx * np.maximum(sin, MIN_SIN_SIGHT))
 
 
 def build_scene(cfg: BouncingThingsConfig, layout: Layout, trajectory: Trajectory) -> Scene:
@@ -150,41 +196,6 @@ def build_scene(cfg: BouncingThingsConfig, layout: Layout, trajectory: Trajector
     return scene
 
 
-def look_at(eye: np.ndarray, target: np.ndarray,
-            up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """world_T_cam (..., 4, 4) for cameras at ``eye`` (..., 3) looking at ``target`` [m], OpenCV axes:
-    z forward, x right, y down, with ``up`` (world) pointing up in the image."""
-    eye, target = np.broadcast_arrays(np.asarray(eye, np.float64), np.asarray(target, np.float64))
-    z = _unit(target - eye)
-    x = _unit(np.cross(z, np.asarray(up, np.float64)))
-    y = np.cross(z, x)
-    T = np.zeros(eye.shape[:-1] + (4, 4))
-    T[..., :3, 0], T[..., :3, 1], T[..., :3, 2], T[..., :3, 3] = x, y, z, eye
-    T[..., 3, 3] = 1.0
-    return T
-
-
-def _camera_box(cfg: BouncingThingsConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) of the box the camera centre moves in: the inner 70% of the camera zone."""
-    (x0, y0, z0), (_, y1, z1) = cfg.room_bounds
-    lo = np.array([x0 + 0.15 * cfg.camera_clearance, y0 + 0.15 * (y1 - y0), z0 + 0.15 * (z1 - z0)])
-    hi = np.array([x0 + 0.85 * cfg.camera_clearance, y1 - 0.15 * (y1 - y0), z1 - 0.15 * (z1 - z0)])
-    return lo, hi
-
-
-def _sample_camera_path(cfg: BouncingThingsConfig, rng: np.random.Generator) -> np.ndarray:
-    lo, hi = _camera_box(cfg)
-    eye0 = lo + (hi - lo) * rng.uniform([0.3, 0.25, 0.25], [0.7, 0.75, 0.75])
-    olo, ohi = (np.asarray(b) for b in cfg.object_bounds)
-    target = (olo + ohi) / 2.0 + (ohi - olo) * rng.uniform(-0.1, 0.1, size=3)
-    direction = _unit(rng.normal(size=3))
-    speed = rng.uniform(*cfg.camera_speed)
-    velocity = direction * speed if cfg.camera_motion == "moving" else np.zeros(3)
-    t = np.arange(cfg.num_frames, dtype=np.float64)[:, None] / cfg.fps
-    eye, _ = reflect_in_box(eye0, velocity, t, lo, hi)
-    return look_at(eye, target)
-
-
 def _place_objects(cfg: BouncingThingsConfig, rng: np.random.Generator, sizes: np.ndarray, camera: Camera,
                    world_T_cam: np.ndarray) -> np.ndarray:
     """Centres (n, 3) [m] with disjoint bounding spheres inside the objects' region, largest first."""
@@ -202,13 +213,14 @@ def _place_objects(cfg: BouncingThingsConfig, rng: np.random.Generator, sizes: n
         lo, hi = olo + r, ohi - r
         for attempt in range(FRUSTUM_TRIES + REGION_TRIES):
             if attempt < FRUSTUM_TRIES:
-                u = rng.uniform(VIEW_MARGIN, 1.0 - VIEW_MARGIN, size=2)
+                u = rng.uniform(cfg.spawn_margin, 1.0 - cfg.spawn_margin, size=2)
                 u = u * [camera.width - 1, camera.height - 1]
                 ray = R @ (K_inv @ np.array([u[0], u[1], 1.0]))
                 span = _ray_box(eye, ray, lo, hi)
                 if span is None:
                     continue
-                p = eye + ray * rng.uniform(*span)
+                near = max(span[0], 1e-3)
+                p = eye + ray * float(np.exp(rng.uniform(np.log(near), np.log(max(span[1], near)))))
             else:
                 p = rng.uniform(lo, hi)
             others = position[placed]

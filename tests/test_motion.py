@@ -40,7 +40,7 @@ CHORD_RTOL = 1e-3
 SLOW = BouncingThingsConfig(room_size=(4.0, 3.5, 3.0), camera_clearance=1.0, num_objects=(8, 10),
                             object_size=(0.3, 0.6), angular_speed=(0.0, 3.0), num_frames=24, width=64,
                             height=48,
-                            min_speed=1.0, max_speed=3.0)
+                            min_speed=1.0, max_speed=3.0, flow_px=None)
 # One frame's motion (up to 12 / 24 = 0.5 m) exceeds the smallest object (0.3 m).
 FAST = replace(SLOW, min_speed=6.0, max_speed=12.0)
 FALLING = replace(SLOW, min_speed=0.5, max_speed=4.0, gravity=(0.0, 0.0, -9.81), restitution=0.6,

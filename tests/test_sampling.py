@@ -143,11 +143,12 @@ def test_look_at_uses_opencv_axes_with_world_up_up_in_the_image():
 
 def test_moving_camera_speed_in_range_and_static_camera_still():
     cfg = BouncingThingsConfig(motion="static", camera_motion="moving", camera_speed=(0.5, 1.0),
-                               num_frames=12)
+                               num_frames=12, flow_px=None)
     eye = sample_layout(cfg, 0, 0).world_T_cam[:, :3, 3]
     step = np.linalg.norm(np.diff(eye, axis=0), axis=1) * cfg.fps
     assert step.max() <= 1.0 + 1e-9 and np.median(step) >= 0.5 - 1e-9
-    static = sample_layout(BouncingThingsConfig(motion="static", num_frames=4), 0, 0).world_T_cam
+    static = sample_layout(BouncingThingsConfig(motion="static", camera_motion="static", num_frames=4), 0,
+                           0).world_T_cam
     assert (static == static[0]).all()
 
 
