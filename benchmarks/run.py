@@ -25,8 +25,7 @@ sys.path.insert(0, str(HERE))
 from _common import RESULTS_DIR, machine_info
 
 BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "ray_export",
-              "scaling", "physics_graph", "png_level", "tiles",
-              "outputs_cost"]
+              "scaling", "physics_graph", "png_level", "tiles", "outputs_cost", "datastats", "learning"]
 
 
 def main() -> int:

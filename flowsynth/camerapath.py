@@ -21,21 +21,24 @@ of pixels of frame 0 into frame 1 (:func:`room_flow_median`).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from flowsynth.camera import Camera
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import reflect_in_box, rotation_exp
+from flowsynth.motion import reflect_in_box
 
 __all__ = ["CameraMotion", "camera_box", "camera_poses", "look_at", "room_flow_median", "sample_camera_motion",
            "scale_to_flow"]
 
 PROBE_GRID = (16, 12)
 """Pixels (columns, rows) of the grid whose room points measure the camera's flow [count]."""
-SCALE_ITERATIONS = 4
-"""Fixed-point iterations s <- s * u / median_flow(s) when matching the camera's flow to a target."""
+SCALE_ITERATIONS = 6
+"""Most fixed-point iterations s <- s * u / median_flow(s) when matching the camera's flow to a target."""
+SCALE_RTOL = 0.005
+"""Relative tolerance of that match; the flow is nearly linear in s, so one or two iterations suffice."""
 
 
 @dataclass(frozen=True)
@@ -70,8 +73,8 @@ def look_at(eye: np.ndarray, target: np.ndarray,
     z forward, x right, y down, with ``up`` (world) pointing up in the image."""
     eye, target = np.broadcast_arrays(np.asarray(eye, np.float64), np.asarray(target, np.float64))
     z = _unit(target - eye)
-    x = _unit(np.cross(z, np.asarray(up, np.float64)))
-    y = np.cross(z, x)
+    x = _unit(_cross(z, np.broadcast_to(np.asarray(up, np.float64), z.shape)))
+    y = _cross(z, x)
     T = np.zeros(eye.shape[:-1] + (4, 4))
     T[..., :3, 0], T[..., :3, 1], T[..., :3, 2], T[..., :3, 3] = x, y, z, eye
     T[..., 3, 3] = 1.0
@@ -126,50 +129,76 @@ def camera_poses(cfg: BouncingThingsConfig, m: CameraMotion, num_frames: int | N
 
 def _offset(angles: np.ndarray) -> np.ndarray:
     """(T, 3, 3) Ry(pan) @ Rx(tilt) @ Rz(roll) of (T, 3) (pan, tilt, roll) angles [rad]."""
-    e = np.eye(3)
-    return (rotation_exp(angles[:, 0:1] * e[1]) @ rotation_exp(angles[:, 1:2] * e[0])
-            @ rotation_exp(angles[:, 2:3] * e[2]))
+    c, s = np.cos(angles), np.sin(angles)
+    cp, ct, cr = c.T
+    sp, st, sr = s.T
+    # Ry(p) Rx(t) Rz(r), multiplied out
+    R = np.empty(angles.shape[:-1] + (3, 3))
+    R[:, 0, 0] = cp * cr + sp * st * sr
+    R[:, 0, 1] = -cp * sr + sp * st * cr
+    R[:, 0, 2] = sp * ct
+    R[:, 1, 0] = ct * sr
+    R[:, 1, 1] = ct * cr
+    R[:, 1, 2] = -st
+    R[:, 2, 0] = -sp * cr + cp * st * sr
+    R[:, 2, 1] = sp * sr + cp * st * cr
+    R[:, 2, 2] = cp * ct
+    return R
 
 
 def room_flow_median(cfg: BouncingThingsConfig, world_T_cam: np.ndarray) -> float:
     """Median |flow| [px] from frame 0 to frame 1 of the room points seen through a ``PROBE_GRID`` of pixels.
 
-    Each probe ray of frame 0 is cut with the room box (the camera is inside it); the exit point is projected
-    with frame 1's camera. Objects are ignored: this is the flow of the background.
+    Each probe ray of frame 0 (``world_T_cam[0]``) is cut with the room box (the camera is inside it); the
+    exit point is projected with frame 1's camera (``world_T_cam[1]``). Objects are ignored: this is the
+    flow of the background.
     """
-    cam = Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg)
-    K = cam.K
-    gu, gv = np.meshgrid(np.linspace(0.05, 0.95, PROBE_GRID[0]) * (cfg.width - 1),
-                         np.linspace(0.05, 0.95, PROBE_GRID[1]) * (cfg.height - 1))
-    uv = np.stack([gu.ravel(), gv.ravel()], 1)
-    rays = np.concatenate([uv, np.ones((len(uv), 1))], 1) @ np.linalg.inv(K).T @ world_T_cam[0, :3, :3].T
-    eye = world_T_cam[0, :3, 3]
-    lo, hi = (np.asarray(b, np.float64) for b in cfg.room_bounds)
-    with np.errstate(divide="ignore"):
-        t_exit = np.min(np.where(rays > 0, (hi - eye) / rays, np.where(rays < 0, (lo - eye) / rays, np.inf)), 1)
-    X = eye + rays * t_exit[:, None]
-    cam_T_world = np.linalg.inv(world_T_cam[1])
-    Xc = X @ cam_T_world[:3, :3].T + cam_T_world[:3, 3]
-    z = np.maximum(Xc[:, 2], 1e-9)
-    uv1 = (Xc @ K.T)[:, :2] / z[:, None]
-    return float(np.median(np.linalg.norm(uv1 - uv, axis=1)))
+    uv, X = _room_probe(cfg, world_T_cam[0])
+    return _median_flow(cfg, uv, X, world_T_cam[1])
 
 
 def scale_to_flow(cfg: BouncingThingsConfig, m: CameraMotion, target_px: float) -> tuple[CameraMotion, float]:
-    """``m`` scaled so that :func:`room_flow_median` of its first two frames is ``target_px`` [px].
-
-    Returns (scaled motion, achieved median [px]). A motion without velocities or rates is returned as is.
-    """
+    """``m`` scaled so that :func:`room_flow_median` of its first two frames is ``target_px`` [px], within
+    ``SCALE_RTOL``. Returns (scaled motion, achieved median [px]). A motion without velocities or rates is
+    returned as is."""
+    uv, X = _room_probe(cfg, camera_poses(cfg, m, 1)[0])  # frame 0 does not depend on the scale
     s = 1.0
-    achieved = room_flow_median(cfg, camera_poses(cfg, m, 2))
-    if achieved <= 0.0:
-        return m, achieved
+    achieved = _median_flow(cfg, uv, X, camera_poses(cfg, m, 2)[1])
     for _ in range(SCALE_ITERATIONS):
-        s *= target_px / achieved
-        achieved = room_flow_median(cfg, camera_poses(cfg, m.scaled(s), 2))
-        if achieved <= 0.0:
+        if achieved <= 0.0 or abs(achieved / target_px - 1.0) <= SCALE_RTOL:
             break
-    return m.scaled(s), achieved
+        s *= target_px / achieved
+        achieved = _median_flow(cfg, uv, X, camera_poses(cfg, m.scaled(s), 2)[1])
+    return (m.scaled(s), achieved) if achieved > 0.0 else (m, achieved)
+
+
+def _room_probe(cfg: BouncingThingsConfig, world_T_cam0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(uv (P, 2) probe pixels [px], X (P, 3) room points they see from world_T_cam0 [m])."""
+    uv, rays_cam = _probe_rays(cfg.width, cfg.height, cfg.fov_deg)
+    rays = rays_cam @ world_T_cam0[:3, :3].T
+    eye = world_T_cam0[:3, 3]
+    lo, hi = (np.asarray(b, np.float64) for b in cfg.room_bounds)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_exit = np.min(np.where(rays > 0, (hi - eye) / rays, np.where(rays < 0, (lo - eye) / rays, np.inf)), 1)
+    return uv, eye + rays * t_exit[:, None]
+
+
+def _median_flow(cfg: BouncingThingsConfig, uv: np.ndarray, X: np.ndarray, world_T_cam1: np.ndarray) -> float:
+    K = Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg).K
+    R, t = world_T_cam1[:3, :3], world_T_cam1[:3, 3]
+    Xc = (X - t) @ R  # cam_T_world applied: R^T (X - t)
+    uv1 = (Xc @ K.T)[:, :2] / np.maximum(Xc[:, 2:], 1e-9)
+    return float(np.median(np.linalg.norm(uv1 - uv, axis=1)))
+
+
+@functools.lru_cache(maxsize=64)
+def _probe_rays(width: int, height: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Probe pixels (P, 2) [px] and their camera-frame ray directions (P, 3), z = 1."""
+    K = Camera.from_fov(width, height, fov_deg).K
+    gu, gv = np.meshgrid(np.linspace(0.05, 0.95, PROBE_GRID[0]) * (width - 1),
+                         np.linspace(0.05, 0.95, PROBE_GRID[1]) * (height - 1))
+    uv = np.stack([gu.ravel(), gv.ravel()], 1)
+    return uv, np.concatenate([uv, np.ones((len(uv), 1))], 1) @ np.linalg.inv(K).T
 
 
 def _direction(rng: np.random.Generator, normal: np.ndarray | None) -> np.ndarray:
@@ -181,4 +210,10 @@ def _direction(rng: np.random.Generator, normal: np.ndarray | None) -> np.ndarra
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
-    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+    return x / np.sqrt(np.sum(x * x, axis=-1, keepdims=True))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (np.cross without its axis bookkeeping, which dominates for 3-vectors)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)

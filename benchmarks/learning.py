@@ -1,0 +1,319 @@
+"""Does a flow network learn from flowsynth? Same net, same budget, two training sets, real photos as the test.
+
+    python benchmarks/learning.py [--quick] [--seeds 0,1]
+
+Training sets (each a pool of pre-generated pairs at 128x96, the same size for both):
+
+- flowsynth: the default config (``BouncingThingsConfig()``) at 1/4 of its 512x384 scale: width, height
+  and ``flow_px`` divided by 4, so motion and image size keep their proportions. Procedural textures
+  only (no ``texture_dir``): no evaluation photo can reach the training data.
+- chairs2d: a FlyingChairs-style 2D baseline built from the same textures: frame 0 of other flowsynth
+  samples as backgrounds, ellipses and polygons cut from yet other flowsynth frames as foreground
+  "chairs"; background and every shape move by their own random affine map (exact flow, painter's order).
+
+Network: a small coarse-to-fine cost-volume flow net (PWC-Net-like: 4-level feature pyramid; at strides 16,
+8 and 4 a local correlation of radius 3 after warping, then a residual flow estimator; output upsampled
+from stride 4 as in PWC-Net; ~0.4 M parameters),
+initialised to output zero flow, trained with Adam on a multi-scale EPE loss over valid pixels.
+
+Test set: photographs that ship with scikit-image (``skimage.data``; none of them is a texture of either
+training set), random 128x96 crops warped by random homographies with exact ground truth
+(cv2.warpPerspective), EPE over pixels whose flow lands inside the image.
+
+Reports the test EPE of zero flow, of the net trained on each set, and the ratio flowsynth / chairs2d
+(< 1: flowsynth trains the better flow network). Writes results/learning.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import machine_info, print_table, write_json
+
+W, H = 128, 96
+SCALE = 512 // W  # the default config's 512x384 scale over the training scale
+PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "immunohistochemistry", "camera", "coins", "grass",
+          "gravel", "brick")
+
+
+# -- network ----------------------------------------------------------------------------------------------
+def build_net():
+    import torch
+    from torch import nn
+    from torch.nn import functional as F
+
+    def conv(cin, cout, stride=1):
+        return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1), nn.LeakyReLU(0.1))
+
+    R = 3  # correlation radius at every level [px of that level]
+
+    def correlate(f1, f2):
+        """(B, (2R+1)^2, h, w) mean products of f1 with f2 shifted by (dx, dy) in [-R, R]^2."""
+        h, w = f1.shape[-2:]
+        p = F.pad(f2, (R, R, R, R))
+        return torch.cat([(f1 * p[:, :, dy:dy + h, dx:dx + w]).mean(1, keepdim=True)
+                          for dy in range(2 * R + 1) for dx in range(2 * R + 1)], 1)
+
+    def warp(x, flow):
+        """x (B, C, h, w) sampled at pixel + flow (B, 2, h, w) [px of x]; zeros outside."""
+        b, _, h, w = x.shape
+        ys, xs = torch.meshgrid(torch.arange(h, dtype=x.dtype), torch.arange(w, dtype=x.dtype), indexing="ij")
+        gx = (xs + flow[:, 0]) / max(w - 1, 1) * 2 - 1
+        gy = (ys + flow[:, 1]) / max(h - 1, 1) * 2 - 1
+        return F.grid_sample(x, torch.stack([gx, gy], -1), align_corners=True, padding_mode="zeros")
+
+    class FlowNet(nn.Module):
+        def __init__(self):
+            super().__init__()
+            chans = (16, 32, 48, 64)  # features at strides 2, 4, 8, 16; flow estimated at 16, 8, 4
+            self.pyramid = nn.ModuleList()
+            cin = 3
+            for c in chans:
+                self.pyramid.append(nn.Sequential(conv(cin, c, 2), conv(c, c)))
+                cin = c
+            self.estimators = nn.ModuleList()
+            for c in chans[1:]:
+                head = nn.Conv2d(32, 2, 3, 1, 1)
+                nn.init.zeros_(head.weight)
+                nn.init.zeros_(head.bias)  # starts as zero flow
+                self.estimators.append(nn.Sequential(conv((2 * R + 1) ** 2 + c + 2, 64), conv(64, 32),
+                                                     conv(32, 32), head))
+
+        def forward(self, img1, img2):
+            """img (B, 3, H, W) in [0, 1] -> list of flows (B, 2, h, w) [full-res px], coarse to fine."""
+            feats = []
+            a, b = img1 * 2 - 1, img2 * 2 - 1
+            for level in self.pyramid:
+                a, b = level(a), level(b)
+                feats.append((a, b))
+            flow, out = None, []
+            for k in reversed(range(1, len(feats))):
+                f1, f2 = feats[k]
+                s = 2 ** (k + 1)  # this level's stride
+                if flow is None:
+                    flow = torch.zeros(f1.shape[0], 2, *f1.shape[-2:], dtype=f1.dtype)
+                else:
+                    flow = F.interpolate(flow, size=f1.shape[-2:], mode="bilinear", align_corners=False)
+                cost = correlate(f1, warp(f2, flow / s))
+                flow = flow + self.estimators[k - 1](torch.cat([cost, f1, flow / s], 1)) * s
+                out.append(flow)
+            out.append(F.interpolate(flow, size=img1.shape[-2:], mode="bilinear", align_corners=False))
+            return out
+
+    return FlowNet()
+
+
+def multiscale_loss(preds, flow, valid):
+    """Mean EPE over valid pixels at every scale (ground truth average-pooled), finest weighted most."""
+    import torch
+    from torch.nn import functional as F
+
+    total = 0.0
+    for k, p in enumerate(preds):
+        weight = 2.0 ** (k - len(preds) + 1)
+        if p.shape[-1] != flow.shape[-1]:
+            f = F.adaptive_avg_pool2d(flow, p.shape[-2:])
+            v = F.adaptive_avg_pool2d(valid, p.shape[-2:]) > 0.99
+        else:
+            f, v = flow, valid > 0.5
+        err = torch.linalg.vector_norm(p - f, dim=1, keepdim=True)
+        total = total + weight * (err * v).sum() / v.sum().clamp(min=1)
+    return total
+
+
+# -- data ---------------------------------------------------------------------------------------------------
+def flowsynth_pairs(n: int, seed: int, workers: int):
+    """n flowsynth pairs: (img1, img2, flow, valid) tensors (n, C, H, W); and the config used."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    import flowsynth as fs
+
+    base = fs.BouncingThingsConfig()
+    cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2,
+                                  flow_px=tuple(x / SCALE for x in base.flow_px))
+    assert cfg.texture_dir is None
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, length=n)
+    batches = list(DataLoader(ds, batch_size=16, num_workers=workers))
+    rgb = torch.cat([b["rgb"] for b in batches])
+    return (rgb[:, 0], rgb[:, 1], torch.cat([b["flow_fw"][:, 0] for b in batches]),
+            torch.cat([b["valid_fw"][:, 0] for b in batches]).float()), cfg
+
+
+def _affine(rng, shift_px: float, rot: float, zoom: float):
+    """2x3 affine map of pixel coordinates about the image centre: rotation, scale, translation."""
+    import numpy as np
+
+    a = rng.uniform(-rot, rot)
+    s = np.exp(rng.uniform(-zoom, zoom))
+    c = np.array([(W - 1) / 2, (H - 1) / 2])
+    R = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    t = c - R @ c + rng.normal(size=2) * shift_px
+    return np.concatenate([R, t[:, None]], 1)
+
+
+def chairs2d_pairs(n: int, seed: int, sources):
+    """n FlyingChairs-style pairs from ``sources`` (m, 3, H, W) images: a background and 2-5 shapes, each under
+    its own random affine map; flow exact for every pixel of frame 0 (all valid, as in FlyingChairs)."""
+    import cv2
+    import numpy as np
+    import torch
+
+    rng = np.random.default_rng(seed)
+    src = sources.permute(0, 2, 3, 1).numpy()
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    grid = np.stack([xs, ys, np.ones_like(xs)], -1)  # (H, W, 3)
+    out = [[], [], [], []]
+    for _ in range(n):
+        bg = src[rng.integers(len(src))]
+        # frame 0 is the source itself (so it looks like the flowsynth frames); frame 1 = warped by A
+        A = _affine(rng, 1.5, 0.05, 0.05)
+        img1, img2 = bg.copy(), cv2.warpAffine(bg, A, (W, H), borderMode=cv2.BORDER_REFLECT)
+        flow = grid @ A.T - grid[..., :2]
+        for _ in range(rng.integers(2, 6)):
+            tex = src[rng.integers(len(src))]
+            mask = np.zeros((H, W), np.uint8)
+            centre = (int(rng.uniform(0.1, 0.9) * W), int(rng.uniform(0.1, 0.9) * H))
+            if rng.uniform() < 0.5:
+                axes = (int(rng.uniform(6, 30)), int(rng.uniform(6, 30)))
+                cv2.ellipse(mask, centre, axes, rng.uniform(0, 180), 0, 360, 1, -1)
+            else:
+                k = rng.integers(3, 8)
+                ang = np.sort(rng.uniform(0, 2 * np.pi, k))
+                r = rng.uniform(6, 30, k)
+                pts = np.stack([centre[0] + r * np.cos(ang), centre[1] + r * np.sin(ang)], 1).astype(np.int32)
+                cv2.fillPoly(mask, [pts], 1)
+            B = _affine(rng, rng.uniform(1.0, 6.0), 0.15, 0.1)
+            m1 = mask.astype(bool)
+            img1[m1] = tex[m1]
+            m2 = cv2.warpAffine(mask, B, (W, H), flags=cv2.INTER_NEAREST).astype(bool)
+            tex2 = cv2.warpAffine(tex, B, (W, H))
+            img2[m2] = tex2[m2]
+            flow[m1] = (grid @ B.T - grid[..., :2])[m1]
+        for lst, x in zip(out, (img1, img2, flow, np.ones((H, W, 1)))):
+            lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
+    return tuple(torch.stack(x) for x in out)
+
+
+def photo_pairs(n: int, seed: int):
+    """n test pairs: crops of scikit-image photos warped by random homographies; flow of frame 0 exact."""
+    import cv2
+    import numpy as np
+    import skimage.data
+    import torch
+
+    rng = np.random.default_rng(10_000 + seed)
+    photos = []
+    for name in PHOTOS:
+        im = getattr(skimage.data, name)()
+        im = np.stack([im] * 3, -1) if im.ndim == 2 else im[..., :3]
+        photos.append(im.astype(np.float32) / 255.0)
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    pts = np.stack([xs, ys, np.ones_like(xs)], -1)
+    out = [[], [], [], []]
+    for i in range(n):
+        im = photos[i % len(photos)]
+        s = rng.uniform(0.25, 0.6) * min(im.shape[0] / H, im.shape[1] / W)  # source pixels per test pixel
+        h, w = int(H * s), int(W * s)
+        y0, x0 = rng.integers(0, im.shape[0] - h + 1), rng.integers(0, im.shape[1] - w + 1)
+        img1 = cv2.resize(im[y0:y0 + h, x0:x0 + w], (W, H), interpolation=cv2.INTER_AREA)
+        corners = np.array([[0, 0], [W - 1, 0], [W - 1, H - 1], [0, H - 1]], np.float32)
+        moved = corners + rng.normal(size=2) * 3.0 + rng.uniform(-6, 6, size=(4, 2))
+        Hm = cv2.getPerspectiveTransform(corners, moved.astype(np.float32)).astype(np.float64)
+        img2 = cv2.warpPerspective(img1, Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        q = pts @ Hm.T
+        q = q[..., :2] / q[..., 2:]
+        flow = q - pts[..., :2]
+        valid = (q[..., 0] >= 0) & (q[..., 0] <= W - 1) & (q[..., 1] >= 0) & (q[..., 1] <= H - 1)
+        for lst, x in zip(out, (img1, img2, flow, valid[..., None])):
+            lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
+    return tuple(torch.stack(x) for x in out)
+
+
+# -- train and test -----------------------------------------------------------------------------------------
+def evaluate(net, test) -> float:
+    import torch
+
+    img1, img2, flow, valid = test
+    with torch.no_grad():
+        err = sum(float((torch.linalg.vector_norm(net(img1[i:i + 16], img2[i:i + 16])[-1] - flow[i:i + 16], dim=1,
+                                                  keepdim=True) * valid[i:i + 16]).sum())
+                  for i in range(0, len(img1), 16))
+    return err / float(valid.sum())
+
+
+def train(data, test, steps: int, batch: int, seed: int) -> dict:
+    import torch
+
+    torch.manual_seed(seed)
+    net = build_net()
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=1e-3, total_steps=steps, pct_start=0.1)
+    g = torch.Generator().manual_seed(seed)
+    img1, img2, flow, valid = data
+    t = time.perf_counter()
+    curve = []
+    for step in range(1, steps + 1):
+        idx = torch.randint(len(img1), (batch,), generator=g)
+        loss = multiscale_loss(net(img1[idx], img2[idx]), flow[idx], valid[idx])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step % max(1, steps // 4) == 0 or step == steps:
+            curve.append({"step": step, "train_loss": float(loss), "test_epe": evaluate(net, test)})
+    return {"test_epe": curve[-1]["test_epe"], "curve": curve, "train_s": time.perf_counter() - t,
+            "parameters": sum(p.numel() for p in net.parameters())}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--seeds", default="0")
+    p.add_argument("--workers", type=int, default=2, help="DataLoader workers generating flowsynth pairs")
+    p.add_argument("--threads", type=int, default=1, help="torch threads for training (1: steady on a shared box)")
+    args = p.parse_args()
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(args.threads)
+    pool, steps, batch, n_test = (128, 100, 4, 40) if args.quick else (384, 300, 6, 100)
+    load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    rows, runs = [], []
+    for seed in (int(s) for s in args.seeds.split(",")):
+        t = time.perf_counter()
+        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers)
+        gen_s = time.perf_counter() - t
+        fs_train = tuple(x[:pool] for x in synth)
+        chairs = chairs2d_pairs(pool, seed, synth[0][pool:])  # textures from flowsynth frames not trained on
+        test = photo_pairs(n_test, seed)
+        zero = float((torch.linalg.vector_norm(test[2], dim=1, keepdim=True) * test[3]).sum() / test[3].sum())
+        res = {name: train(data, test, steps, batch, seed) for name, data in
+               (("flowsynth", fs_train), ("chairs2d", chairs))}
+        mags = {name: float(torch.linalg.vector_norm(d[2], dim=1)[d[3][:, 0] > 0.5].mean())
+                for name, d in (("flowsynth", fs_train), ("chairs2d", chairs), ("photos (test)", test))}
+        runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "mean_flow_px": mags,
+                     "flowsynth_generation_s": gen_s})
+        rows.append({"seed": seed, "zero-flow EPE": zero, "flowsynth EPE": res["flowsynth"]["test_epe"],
+                     "chairs2d EPE": res["chairs2d"]["test_epe"],
+                     "ratio fs/chairs": res["flowsynth"]["test_epe"] / res["chairs2d"]["test_epe"]})
+    print(f"\nTest EPE [px] on {n_test} homography-warped scikit-image photos ({W}x{H}) after {steps} steps of "
+          f"batch {batch} from pools of {pool} pairs; net of {runs[0]['results']['flowsynth']['parameters']} "
+          f"parameters. Load: {load}")
+    print_table(rows, ["seed", "zero-flow EPE", "flowsynth EPE", "chairs2d EPE", "ratio fs/chairs"])
+    ratio = float(np.mean([r["ratio fs/chairs"] for r in rows]))
+    print(f"mean ratio flowsynth / chairs2d: {ratio:.3f} ({'flowsynth better' if ratio < 1 else 'baseline better'})")
+    print("mean |flow| [px]: " + ", ".join(f"{k} {v:.2f}" for k, v in runs[0]["mean_flow_px"].items()))
+    write_json("learning", {"machine": machine_info(), "load": load, "resolution": [W, H], "steps": steps,
+                            "batch": batch, "pool": pool, "test_pairs": n_test, "photos": list(PHOTOS),
+                            "flowsynth_config": cfg.to_dict(), "runs": runs, "mean_ratio": ratio})
+
+
+if __name__ == "__main__":
+    main()
