@@ -39,8 +39,6 @@ def cli_form(value: Any) -> str:
     """A config value as it is typed on the command line: ``4,12`` for tuples, ``none`` for None."""
     if value is None:
         return "none"
-    if isinstance(value, bool):
-        return "true" if value else "false"
     if isinstance(value, tuple):
         return ",".join(cli_form(v) for v in value)
     return str(value)
