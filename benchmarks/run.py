@@ -71,7 +71,8 @@ def main() -> int:
             "| benchmark | status | seconds |", "|---|---|---|"]
     rows = {n: f"| {n} | {'ok' if ok else 'FAILED'} | {dt:.0f} |" for n, ok, dt in status}
     done = dict(zip(names, sections))
-    order = [n for n in BENCHMARKS if n in rows or n in kept_rows] + [n for n in names if n not in BENCHMARKS]
+    order = [n for n in BENCHMARKS if n in rows or n in kept_rows]
+    order += [n for n in [*kept_rows, *names] if n not in order]
     head += [rows.get(n) or kept_rows[n] for n in order]
     body = [done.get(n) or kept_sections.get(n, "") for n in order]
     (RESULTS_DIR / "SUMMARY.md").write_text("\n".join(head) + "\n\n" + "\n".join(b for b in body if b))
