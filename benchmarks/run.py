@@ -25,7 +25,8 @@ sys.path.insert(0, str(HERE))
 from _common import RESULTS_DIR, machine_info
 
 BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "ray_export",
-              "scaling", "physics_graph", "png_level", "tiles", "outputs_cost", "datastats", "learning"]
+              "scaling", "physics_graph", "png_level", "tiles", "outputs_cost", "datastats", "learning",
+              "texture"]
 
 
 def main() -> int:

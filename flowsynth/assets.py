@@ -34,12 +34,13 @@ __all__ = [
     "BUILTIN_ASSETS",
     "HULL_MAX_VERTICES",
     "PRIMITIVE_ASSETS",
+    "ROOM_WALLS",
     "Asset",
     "Collider",
     "get_asset",
     "load_user_mesh",
     "resolve_assets",
-    "room_mesh",
+    "room_walls",
     "unit_hull",
     "unit_mesh",
 ]
@@ -203,14 +204,29 @@ def _farthest_points(V: np.ndarray, k: int) -> np.ndarray:
     return np.asarray(idx)
 
 
+ROOM_WALLS = ("floor", "ceiling", "wall_x-", "wall_x+", "wall_y-", "wall_y+")
+"""Names of the room's six faces, in the order of ``room_walls`` (wall_x- is the wall at x = lo[0], ...)."""
+
+
 @functools.lru_cache(maxsize=64)
-def room_mesh(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> trimesh.Trimesh:
-    """Axis-aligned box from ``lo`` to ``hi`` [m] with inward-facing triangles (seen from inside), cached."""
+def room_walls(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[trimesh.Trimesh, ...]:
+    """The six faces of the axis-aligned box from ``lo`` to ``hi`` [m], one two-triangle mesh each, in
+    ``ROOM_WALLS`` order, with normals facing into the box (seen from inside); cached."""
     lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    box = trimesh.creation.box(extents=hi_a - lo_a)
-    box.apply_translation((lo_a + hi_a) / 2.0)
-    box.invert()
-    return trimesh.Trimesh(vertices=box.vertices, faces=box.faces, process=False, validate=False)
+    walls = []
+    for axis, side in ((2, 0), (2, 1), (0, 0), (0, 1), (1, 0), (1, 1)):
+        u, v = [a for a in range(3) if a != axis]
+        corners = np.zeros((4, 3))
+        corners[:, axis] = (lo_a, hi_a)[side][axis]
+        corners[:, u] = [lo_a[u], hi_a[u], hi_a[u], lo_a[u]]
+        corners[:, v] = [lo_a[v], lo_a[v], hi_a[v], hi_a[v]]
+        faces = np.array([[0, 1, 2], [0, 2, 3]])
+        normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+        inward = 1.0 if side == 0 else -1.0
+        if normal[axis] * inward < 0:
+            faces = faces[:, ::-1]
+        walls.append(trimesh.Trimesh(vertices=corners, faces=faces, process=False, validate=False))
+    return tuple(walls)
 
 
 # Built-in shapes, proportions before normalisation. Primitive parameters are stored at unit size.

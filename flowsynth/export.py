@@ -111,7 +111,7 @@ def _init_worker(cfg, outputs, seed, occlusion, layout) -> None:
 
     torch.set_num_threads(1)
     _WORKER["ds"] = BouncingThings(cfg, outputs=cheap_stats_outputs(outputs), seed=seed, occlusion=occlusion)
-    _WORKER["keep"] = set(outputs) | {"index", "seed", "K", "cam_T_world"}
+    _WORKER["keep"] = set(outputs) | {"index", "seed", "K", "cam_T_world", "provenance"}
     _WORKER["layout"] = layout
 
 

@@ -29,6 +29,7 @@ __all__ = [
     "default_material",
     "list_textures",
     "load_texture",
+    "mip_pyramid",
     "resolve_lights",
     "resolve_material",
     "sample_lights",
@@ -47,10 +48,17 @@ MAX_TEXTURE_SIZE = 1024
 DEFAULT_ROUGHNESS = 0.5
 DEFAULT_SPECULAR = 0.0
 DEFAULT_OCTAVES = 4
+DEFAULT_GAIN = 0.5
 # Default pattern frequency: this many cycles across an object's longest side.
 DEFAULT_CYCLES_PER_OBJECT = 4.0
+# A random palette's two colours differ by at least this in grey level (mean of the sRGB channels).
+MIN_PALETTE_CONTRAST = 0.25
+# Screen-space sampling (sample_material with pixel_size): feature sizes [px] at the expected distance.
+DEFAULT_TEXTURE_PX = (2.0, 64.0)
+# Octaves of a fractal layer at most (each costs one noise evaluation per lookup).
+MAX_OCTAVES = 8
 
-_LAYER_KEYS = {"texture", "colors", "scale", "angle", "octaves", "seed", "image"}
+_LAYER_KEYS = {"texture", "colors", "scale", "angle", "octaves", "gain", "grain", "grain_scale", "seed", "image"}
 _MATERIAL_KEYS = _LAYER_KEYS | {"layers", "mask_scale", "roughness", "specular"}
 # Shorthand: {"texture_seed": s} (optionally with the families and folder) is sample_material(default_rng(s)).
 _SEEDED_KEYS = {"texture_seed", "texture_families", "texture_dir"}
@@ -93,7 +101,9 @@ class Light:
             raise ConfigError("Light.direction of a directional light must be a non-zero vector")
         object.__setattr__(self, "color", tuple(float(c) for c in color))
         object.__setattr__(self, "intensity", float(self.intensity))
-        object.__setattr__(self, "direction", tuple(float(c) for c in direction / max(norm, 1e-300)))
+        if abs(norm - 1.0) > 1e-12:  # a unit direction is kept bit for bit (Scene.from_meta re-renders exactly)
+            direction = direction / max(norm, 1e-300)
+        object.__setattr__(self, "direction", tuple(float(c) for c in direction))
         object.__setattr__(self, "position", tuple(float(c) for c in _vec3(self.position, "Light.position")))
 
 
@@ -204,7 +214,8 @@ def _perpendicular(up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 # ------------------------------------------------------------------------------------------- materials
 
 def sample_material(rng: np.random.Generator, texture_families=PROCEDURAL_FAMILIES, texture_dir=None, *,
-                    size: float = 1.0) -> dict:
+                    size: float = 1.0, pixel_size: float | None = None,
+                    texture_px: tuple[float, float] = DEFAULT_TEXTURE_PX) -> dict:
     """A random material dict (schema: docs/rendering.md).
 
     Args:
@@ -212,47 +223,78 @@ def sample_material(rng: np.random.Generator, texture_families=PROCEDURAL_FAMILI
         texture_families: names to draw the texture family from, uniformly; see ``TEXTURE_FAMILIES``.
             "blend" mixes two layers drawn from the other listed families.
         texture_dir: folder of image textures; required when "image" is among the families.
-        size: the object's size [m] (longest side); pattern periods are drawn relative to it.
+        size: the object's size [m] (longest side); without ``pixel_size``, pattern periods are drawn
+            relative to it (1-12 cycles per object).
+        pixel_size: the width [m] one pixel covers on the surface at its expected viewing distance
+            (distance / focal length in px). When given, pattern frequencies are set in screen terms: fractal
+            layers (noise, value, cells) span ``texture_px`` over several octaves (largest features 60-100% of
+            ``texture_px[1]``, octaves down to ``texture_px[0]``), stripes and checks have periods
+            log-uniform in [max(4 texture_px[0], 8), texture_px[1] / 2] px, every procedural layer but
+            "solid" gets a fine grain (amplitude 0.25-0.5, periods 4-8 ``texture_px[0]`` and two octaves
+            finer), an image shows 0.7-1.4 px per texel (tiled, not stretched) and a blend's mask has
+            features 2-6 times ``texture_px[1]``.
+        texture_px: (min, max) feature size on screen [px] (screen terms only).
     """
     families = check_texture_families(texture_families, texture_dir)
     files = list_textures(texture_dir) if "image" in families else []
     family = str(rng.choice(families))
+    px = None if pixel_size is None else (float(pixel_size), float(texture_px[0]), float(texture_px[1]))
     mat: dict = {}
     if family == "blend":
         simple = [f for f in families if f != "blend"] or ["noise", "cells"]
         mat["texture"] = "blend"
-        mat["layers"] = [_sample_layer(rng, str(rng.choice(simple)), files, size) for _ in range(2)]
-        mat["mask_scale"] = float(rng.uniform(0.5, 2.0) / size)
+        mat["layers"] = [_sample_layer(rng, str(rng.choice(simple)), files, size, px) for _ in range(2)]
+        mat["mask_scale"] = float(rng.uniform(0.5, 2.0) / size if px is None else
+                                  1.0 / (rng.uniform(2.0, 6.0) * px[2] * px[0]))
         mat["seed"] = int(rng.integers(0, 2**31 - 1))
     else:
-        mat.update(_sample_layer(rng, family, files, size))
+        mat.update(_sample_layer(rng, family, files, size, px))
     mat["roughness"] = float(rng.uniform(0.15, 0.9))
     mat["specular"] = float(rng.uniform(0.0, 0.4)) if rng.uniform() < 0.6 else 0.0
     return mat
 
 
-def _sample_layer(rng: np.random.Generator, family: str, files: list, size: float) -> dict:
+def _sample_layer(rng: np.random.Generator, family: str, files: list, size: float, px) -> dict:
     colors = _palette(rng)
     if family == "solid":
         colors = [list(map(float, colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(0.1, 0.8),
                                                        rng.uniform(0.3, 0.95))))] * 2
     layer = {"texture": family, "colors": colors, "seed": int(rng.integers(0, 2**31 - 1)),
              "angle": float(rng.uniform(0.0, math.pi)), "octaves": int(rng.integers(3, 7))}
-    cycles = {"noise": (1.0, 4.0), "value": (2.0, 8.0), "cells": (3.0, 12.0), "stripes": (2.0, 10.0),
-              "checks": (2.0, 8.0), "image": (0.5, 2.0), "solid": (1.0, 1.0)}[family]
-    layer["scale"] = float(rng.uniform(*cycles) / size)
     if family == "image":
         layer["image"] = str(files[int(rng.integers(0, len(files)))])
+    if px is None:
+        cycles = {"noise": (1.0, 4.0), "value": (2.0, 8.0), "cells": (3.0, 12.0), "stripes": (2.0, 10.0),
+                  "checks": (2.0, 8.0), "image": (0.5, 2.0), "solid": (1.0, 1.0)}[family]
+        layer["scale"] = float(rng.uniform(*cycles) / size)
+        return layer
+    metres, lo, hi = px
+    if family not in ("image", "solid"):  # fine grain: 3 octaves of value noise from 2-4 texture_px[0] down
+        layer["grain"] = float(rng.uniform(0.25, 0.5))
+        layer["grain_scale"] = 1.0 / (rng.uniform(4.0, 8.0) * lo * metres)
+    if family in ("noise", "value", "cells"):
+        largest = hi * rng.uniform(0.6, 1.0)  # [px]
+        layer["octaves"] = int(np.clip(math.floor(math.log2(largest / lo)) + 1, 1, MAX_OCTAVES))
+        layer["gain"] = float(rng.uniform(0.7, 0.9))
+        layer["scale"] = 1.0 / (largest * metres)
+    elif family == "image":
+        width = load_texture(layer["image"]).shape[1]
+        layer["scale"] = 1.0 / (width * rng.uniform(0.7, 1.4) * metres)
+    else:  # stripes, checks, solid
+        top = max(hi / 2.0, lo)
+        period = math.exp(rng.uniform(math.log(min(max(4.0 * lo, 8.0), top)), math.log(top)))
+        layer["scale"] = 1.0 / (period * metres)
     return layer
 
 
 def _palette(rng: np.random.Generator) -> list:
-    """Two sRGB colours with a clear difference in brightness."""
+    """Two sRGB colours whose grey levels (channel means) differ by at least MIN_PALETTE_CONTRAST."""
     h1 = rng.uniform()
     h2 = (h1 + (0.5 if rng.uniform() < 0.3 else rng.uniform(-0.15, 0.15))) % 1.0
-    c1 = colorsys.hsv_to_rgb(h1, rng.uniform(0.15, 0.9), rng.uniform(0.6, 0.95))
-    c2 = colorsys.hsv_to_rgb(h2, rng.uniform(0.15, 0.9), rng.uniform(0.08, 0.45))
-    pair = [list(map(float, c1)), list(map(float, c2))]
+    c1 = np.array(colorsys.hsv_to_rgb(h1, rng.uniform(0.15, 0.9), rng.uniform(0.6, 0.95)))
+    c2 = np.array(colorsys.hsv_to_rgb(h2, rng.uniform(0.15, 0.9), rng.uniform(0.08, 0.45)))
+    c2 *= min(1.0, (c1.mean() - MIN_PALETTE_CONTRAST) / max(c2.mean(), 1e-6))  # grey levels differ clearly
+    pair = [list(map(float, c1)), list(map(float, np.maximum(c2, 0.0)))]
     return pair[::-1] if rng.uniform() < 0.5 else pair
 
 
@@ -319,7 +361,10 @@ def _resolve_layer(layer: dict, seed: int, size: float, where: str) -> dict:
     out = {"texture": family, "colors": colors.tolist(),
            "scale": _number(layer, "scale", DEFAULT_CYCLES_PER_OBJECT / size, 0.0, math.inf, where),
            "angle": _number(layer, "angle", 0.0, -math.inf, math.inf, where),
-           "octaves": int(_number(layer, "octaves", DEFAULT_OCTAVES, 1, 8, where)),
+           "octaves": int(_number(layer, "octaves", DEFAULT_OCTAVES, 1, MAX_OCTAVES, where)),
+           "gain": _number(layer, "gain", DEFAULT_GAIN, 0.0, 1.0, where),
+           "grain": _number(layer, "grain", 0.0, 0.0, 1.0, where),
+           "grain_scale": _number(layer, "grain_scale", 0.0, 0.0, math.inf, where),
            "seed": int(layer.get("seed", seed)), "image": None}
     if family == "image":
         if "image" not in layer:
@@ -376,12 +421,7 @@ def load_texture(path) -> np.ndarray:
 
     Cached per process by path, size and modification time. Raises AssetError if Pillow cannot read it.
     """
-    p = Path(path)
-    try:
-        st = p.stat()
-    except OSError as e:
-        raise AssetError(f"image texture {str(p)!r} cannot be read: {e}") from e
-    return _load_texture(str(p.resolve()), st.st_size, st.st_mtime_ns)
+    return _load_texture(*_texture_key(path))
 
 
 @functools.lru_cache(maxsize=64)
@@ -398,6 +438,37 @@ def _load_texture(path: str, _size: int, _mtime: int) -> np.ndarray:
     except (OSError, UnidentifiedImageError) as e:
         raise AssetError(f"image texture {path!r} cannot be decoded by Pillow: {e}") from e
     return srgb_to_linear(srgb)
+
+
+def mip_pyramid(path) -> list[np.ndarray]:
+    """Mip levels of an image texture: level 0 is ``load_texture(path)`` (h, w, 3) float32 linear RGB; level
+    l + 1 averages 2x2 texels of level l (an odd side wraps around, as the texture tiles), down to 1 x 1.
+    Cached with the texture."""
+    return _pyramid(*_texture_key(path))
+
+
+def _texture_key(path) -> tuple[str, int, int]:
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError as e:
+        raise AssetError(f"image texture {str(p)!r} cannot be read: {e}") from e
+    return str(p.resolve()), st.st_size, st.st_mtime_ns
+
+
+@functools.lru_cache(maxsize=64)
+def _pyramid(path: str, size: int, mtime: int) -> list[np.ndarray]:
+    levels = [_load_texture(path, size, mtime)]
+    while max(levels[-1].shape[:2]) > 1:
+        a = levels[-1].astype(np.float64)
+        if a.shape[0] % 2 and a.shape[0] > 1:
+            a = np.concatenate([a, a[:1]], 0)
+        if a.shape[1] % 2 and a.shape[1] > 1:
+            a = np.concatenate([a, a[:, :1]], 1)
+        h, w = max(a.shape[0] // 2, 1), max(a.shape[1] // 2, 1)
+        a = a.reshape(h, a.shape[0] // h, w, a.shape[1] // w, 3).mean(axis=(1, 3))
+        levels.append(a.astype(np.float32))
+    return levels
 
 
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:

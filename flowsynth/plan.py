@@ -69,7 +69,7 @@ class Plan:
     render_mode: str = DEFAULT_RENDER_MODE
     spp: int = 1
     shutter: float = 0.0
-    seed: int = 0
+    seed: int | None = None
     bounces: int = DEFAULT_BOUNCES
     tonemap: str = DEFAULT_TONEMAP
     exposure: float = 1.0
@@ -165,7 +165,7 @@ def expand_outputs(outputs, flow_gaps=(1,)) -> tuple[str, ...]:
 
 
 def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
-              render_mode: str = DEFAULT_RENDER_MODE, spp: int = 1, shutter: float = 0.0, seed: int = 0,
+              render_mode: str = DEFAULT_RENDER_MODE, spp: int = 1, shutter: float = 0.0, seed: int | None = None,
               bounces: int = DEFAULT_BOUNCES, tonemap: str = DEFAULT_TONEMAP, exposure: float = 1.0,
               threads: int | None = None, flow_gaps=(1,), num_tracks: int = 256,
               track_sampling: str = "uniform", stereo_baseline: float = 0.0) -> Plan:
@@ -178,7 +178,8 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
     a gap (``flow_fw_k3``) may also be requested directly. ``Plan.outputs`` holds the expanded keys.
 
     ``threads``: threads of every ray launch (None = all cores the process may use, 1 inside DataLoader and
-    export workers; flowsynth.parallel). Results do not depend on it."""
+    export workers; flowsynth.parallel). Results do not depend on it. ``seed``: the renderer's noise seed; None
+    (default) uses the scene's ``render_seed``."""
     if isinstance(outputs, str):
         outputs = [s for s in outputs.split(",") if s]
     outputs = tuple(dict.fromkeys(outputs))
@@ -218,5 +219,6 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
     stereo = [k for k in outputs if k in STEREO_KEYS]
     if stereo and stereo_baseline == 0:
         raise ConfigError(f"{stereo} need a right camera: set stereo_baseline > 0 [m] (e.g. 0.1)")
-    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter), int(seed), int(bounces),
+    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter),
+                None if seed is None else int(seed), int(bounces),
                 tonemap, float(exposure), threads, gaps, num_tracks, track_sampling, float(stereo_baseline))

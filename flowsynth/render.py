@@ -5,7 +5,7 @@ Output keys, shapes and meaning are those of docs/conventions.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -103,6 +103,8 @@ def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, d
 
 def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torch.Tensor]:
     """Run the stages of ``plan`` on ``scene``."""
+    if plan.seed is None:  # the renderer's noise seed: the scene's unless the plan sets one
+        plan = replace(plan, seed=int(scene.render_seed))
     meshes, cam_T_world, world_T_obj = scene_arrays(scene)
     accel = SceneAccel(meshes, cam_T_world, world_T_obj, device=device)
     gb = cast_gbuffer(accel, scene.camera, want_normals=plan.normals, want_points=plan.points, threads=plan.threads)

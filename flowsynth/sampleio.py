@@ -1,7 +1,8 @@
 """One sample dict <-> one folder of standard files (the ``native`` export layout).
 
 Per-frame keys are written one file per frame, per-pair keys one file per pair (index t = pair
-(t, t+1)); everything that is not an image (cameras, object tables, index, seed) goes to ``meta.json``:
+(t, t+1)); everything that is not an image (cameras, object tables, index, seed, provenance) goes to
+``meta.json``:
 
 | key                                   | file                    | format                              |
 |---------------------------------------|-------------------------|-------------------------------------|
@@ -17,6 +18,7 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 | disparity_occ, disparity_occ_right    |                         |                                     |
 | any of these per-pair keys at gap K   | KEY_kK_TTTT.*           | as the key at gap 1 (TTTT = pair t) |
 | K, cam_T_world, object tables, index  | meta.json               | JSON (float32 values, exact)        |
+| provenance                            | meta.json               | JSON object (Scene.from_meta reads) |
 | box2d_visible (when requested)        | boxes_coco.json         | COCO-style detection boxes          |
 | target_points, occluded, query_points | tracks.npz              | numpy .npz, the tensors as they are |
 | all three track keys (when requested) | tapvid.pkl              | TAP-Vid (Kubric) dict, see below    |
@@ -38,6 +40,7 @@ from __future__ import annotations
 import hashlib
 import io
 import pickle
+import json
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +62,7 @@ from flowsynth.errors import ExportError
 from flowsynth.io.atomic import atomic_write_bytes
 from flowsynth.plan import CAMERA_KEYS, FLOW_KEYS, GBUFFER_KEYS, TABLE_KEYS, TRACK_KEYS, split_gap_key
 
-__all__ = ["META_KEYS", "file_digest", "read_sample", "tapvid_dict", "write_sample"]
+__all__ = ["META_KEYS", "PROVENANCE_KEY", "file_digest", "read_sample", "tapvid_dict", "write_sample"]
 
 _EXR = {"depth": "depth", "distance": "distance", "normals": "normals", "position": "position",
         "flow_fw": "flow", "flow_bw": "flow", "scene_flow_fw": "scene_flow", "scene_flow_bw": "scene_flow",
@@ -70,6 +73,8 @@ _U16 = (("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.
         + ("disparity_occ", "disparity_occ_right"))
 # Keys stored as JSON arrays in meta.json: cameras, object tables, and the sample's index and seed.
 META_KEYS = CAMERA_KEYS + TABLE_KEYS + ("index", "seed")
+# The sample's provenance (flowsynth.scene.provenance_json: a JSON string), stored in meta.json as a JSON object.
+PROVENANCE_KEY = "provenance"
 
 
 def _base(key: str) -> str:
@@ -92,13 +97,16 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
     """
     folder = Path(folder)
     unknown = [k for k in sample if k not in _RGB and _base(k) not in _EXR and _base(k) not in _U16
-               and k not in META_KEYS and k not in TRACK_KEYS]
+               and k not in META_KEYS and k not in TRACK_KEYS and k != PROVENANCE_KEY]
     if unknown:
         raise ExportError(f"no export format for key(s) {unknown}; known keys are rgb, {', '.join(_EXR)}, "
                           f"{', '.join(_U16)}, {', '.join(META_KEYS)} (add a format in flowsynth/sampleio.py)")
     names: list[str] = []
     meta: dict = {"keys": list(sample)}
     for key, value in sample.items():
+        if key == PROVENANCE_KEY:
+            meta[key] = json.loads(value)
+            continue
         a = value.numpy()
         if key in _RGB:
             for t in range(a.shape[0]):
@@ -165,7 +173,8 @@ def _image_size(sample: dict) -> tuple[int, int]:
 
 
 def read_sample(folder: Path) -> dict[str, torch.Tensor]:
-    """Read a folder written by ``write_sample`` back into a sample dict (same keys, shapes, dtypes)."""
+    """Read a folder written by ``write_sample`` back into a sample dict (same keys, shapes, dtypes; the
+    ``provenance`` string is the one written, character for character)."""
     folder = Path(folder)
     meta = read_json(folder / "meta.json")
     out: dict[str, torch.Tensor] = {}
@@ -174,6 +183,9 @@ def read_sample(folder: Path) -> dict[str, torch.Tensor]:
         with np.load(folder / "tracks.npz") as z:
             tracks = {k: z[k] for k in z.files}
     for key in meta["keys"]:
+        if key == PROVENANCE_KEY:
+            out[key] = json.dumps(meta[key], separators=(",", ":"))
+            continue
         if key in TRACK_KEYS:
             out[key] = torch.from_numpy(tracks[key])
             continue

@@ -5,9 +5,15 @@ index]))`` in a fixed order (below), runs the motion and returns a :class:`flows
 
 - instances 1..n: the flying objects, category ``OBJECT_CATEGORY_OFFSET + a`` where ``a`` is the index
   of the object's asset in ``resolve_assets(cfg.assets)`` (globs expanded);
-- instance n + 1: the room, a box seen from inside (inward-facing triangles) spanning
-  ``cfg.room_bounds``, category ``ROOM_CATEGORY``, identity pose, ``background=True`` (rendered, but no
-  row in the object tables).
+- instances n + 1 .. n + 6: the room, a box seen from inside spanning ``cfg.room_bounds``, one object per
+  face in ``flowsynth.assets.ROOM_WALLS`` order (floor, ceiling, walls), each with its own material,
+  category ``ROOM_CATEGORY``, identity pose, ``background=True`` (rendered, but no row in the object tables).
+
+Materials, lights and the render seed are resolved here, so the scene is the whole description of what is
+rendered (``Scene.to_meta``). Texture detail is set in screen terms: each surface's material is drawn with
+``pixel_size`` = expected viewing distance / focal length (``flowsynth.materials.sample_material``), the
+distance being the object's centre from the first camera, or for a wall the median length of a 16 x 12
+grid of first-frame camera rays that end on it (the wall centre's distance when none does).
 
 World frame: +z up, floor at z = 0, room centred on x = y = 0. The camera sits in the camera zone
 (the first ``cfg.camera_clearance`` metres along +x from the wall x = -room_x / 2), which objects never
@@ -22,7 +28,8 @@ targets in pixels (config docstring); the targets drawn are kept in ``scene.meta
 Draw order (changing it changes every dataset): n, asset indices, size levels, camera path
 (flowsynth.camerapath.sample_camera_motion), camera flow target, object positions (rejection sampling),
 orientations, linear velocity directions and speeds, object flow targets, angular velocities, texture
-seeds (n objects, then the room).
+seeds (n objects, then the six room faces); then each surface's material from its own seed, the lights
+from ``SeedSequence([seed, index, 2])`` and the render seed (``sample_seed``).
 """
 
 from __future__ import annotations
@@ -31,25 +38,31 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from flowsynth.assets import Asset, get_asset, resolve_assets, room_mesh
+from flowsynth.assets import ROOM_WALLS, Asset, get_asset, resolve_assets, room_walls
 from flowsynth.camera import Camera
 from flowsynth.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
-from flowsynth.materials import sample_lights
+from flowsynth.materials import Light, sample_lights, sample_material
 from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, simulate
 from flowsynth.scene import Scene
 
 __all__ = [
+    "EXPOSURE",
     "OBJECT_CATEGORY_OFFSET",
     "ROOM_CATEGORY",
+    "WALL_NORMALS",
     "Layout",
     "build_scene",
+    "expose_lights",
     "look_at",
     "make_rng",
     "sample_layout",
     "sample_scene",
+    "sample_seed",
     "size_levels",
+    "view_grid",
+    "wall_distances",
 ]
 
 ROOM_CATEGORY = 1
@@ -77,7 +90,7 @@ class Layout:
         assets: the n objects' scaled assets.
         initial: objects' state at t = 0.
         world_T_cam: (T, 4, 4) float64 camera poses, OpenCV axes.
-        texture_seeds: (n + 1,) int texture seeds, objects then the room.
+        texture_seeds: (n + 6,) int texture seeds, objects then the room's faces (``ROOM_WALLS`` order).
         motion: what ``cfg.flow_px`` resolved to (empty without it): "camera_flow_px" (target),
             "camera_flow_px_achieved" (median room flow, frames 0-1), "object_flow_px" (targets) [px].
     """
@@ -109,12 +122,21 @@ def sample_scene(cfg: BouncingThingsConfig, seed: int, index: int) -> Scene:
         sim_cfg = replace(cfg, min_speed=float(speed.min()), max_speed=float(speed.max()))
     trajectory = simulate(sim_cfg, layout.assets, layout.initial)
     scene = build_scene(cfg, layout, trajectory)
-    scene.lights = sample_lights(np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 2])),
-                                 cfg.room_size)
+    light_rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 2]))
+    lights = sample_lights(light_rng, cfg.room_size)
+    points, face, _ = view_grid(scene.camera, scene.world_T_cam[0], *cfg.room_bounds)
+    scene.lights = expose_lights(lights, points, WALL_NORMALS[face], float(light_rng.uniform(*EXPOSURE)))
+    scene.render_seed = sample_seed(seed, index)
     scene.meta.update(config=cfg.to_dict(), seed=int(seed), index=int(index), substeps=trajectory.substeps)
     if layout.motion:
         scene.meta["motion"] = layout.motion
     return scene
+
+
+def sample_seed(seed: int, index: int) -> int:
+    """The 32-bit render seed of sample ``index`` (the renderer's noise: anti-aliasing, path tracing, motion
+    blur); scene sampling uses ``SeedSequence([seed, index])`` directly."""
+    return int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
 
 
 def size_levels(cfg: BouncingThingsConfig) -> np.ndarray:
@@ -157,7 +179,7 @@ def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> Layout:
     velocity = direction * speed
     w_lo, w_hi = cfg.angular_speed
     angular = _unit(rng.normal(size=(n, 3))) * rng.uniform(w_lo, w_hi, size=(n, 1))
-    seeds = rng.integers(0, 2**31 - 1, size=n + 1)
+    seeds = rng.integers(0, 2**31 - 1, size=n + len(ROOM_WALLS))
     return Layout(keys, asset_index, assets, InitialState(position, rotation, velocity, angular), world_T_cam,
                   seeds, motion)
 
@@ -179,21 +201,98 @@ def _speed_for_flow(cfg: BouncingThingsConfig, camera: Camera, world_T_cam: np.n
 
 
 def build_scene(cfg: BouncingThingsConfig, layout: Layout, trajectory: Trajectory) -> Scene:
-    """Assemble a Scene: objects (ids 1..n) with ``trajectory.poses``, then the room (id n + 1, marked
-    ``background``: rendered, not in the object tables). Materials are ``{"texture_seed", "texture_families",
-    "texture_dir"}`` (see flowsynth.materials)."""
-    scene = Scene(Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg), num_frames=cfg.num_frames, fps=cfg.fps)
+    """Assemble a Scene: objects (ids 1..n) with ``trajectory.poses``, then the room's six faces (ids n + 1 ..
+    n + 6, marked ``background``: rendered, not in the object tables), each with a resolved material drawn in
+    screen terms (module docstring)."""
+    camera = Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg)
+    scene = Scene(camera, num_frames=cfg.num_frames, fps=cfg.fps)
     scene.set_camera_poses(layout.world_T_cam)
-    def material(i: int) -> dict:
-        return {"texture_seed": int(layout.texture_seeds[i]), "texture_families": cfg.texture_families,
-                "texture_dir": cfg.texture_dir}
+    focal = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    eye = layout.world_T_cam[0, :3, 3]
 
+    def material(i: int, size: float, distance: float) -> dict:
+        rng = np.random.default_rng(int(layout.texture_seeds[i]))
+        return sample_material(rng, cfg.texture_families, cfg.texture_dir, size=size,
+                               pixel_size=max(distance, 1e-3) / focal, texture_px=cfg.texture_px)
+
+    n = len(layout.assets)
     for i, asset in enumerate(layout.assets):
-        scene.add_object(asset.mesh, trajectory.poses[:, i], material=material(i),
-                         category=OBJECT_CATEGORY_OFFSET + int(layout.asset_index[i]))
+        distance = float(np.linalg.norm(trajectory.poses[0, i, :3, 3] - eye))
+        scene.add_object(asset.mesh, trajectory.poses[:, i], material=material(i, asset.size, distance),
+                         category=OBJECT_CATEGORY_OFFSET + int(layout.asset_index[i]),
+                         source={"asset": asset.name, "size": asset.size})
     lo, hi = cfg.room_bounds
-    scene.add_object(room_mesh(lo, hi), None, category=ROOM_CATEGORY, material=material(-1), background=True)
+    distances = wall_distances(camera, layout.world_T_cam[0], lo, hi)
+    for w, mesh in enumerate(room_walls(lo, hi)):
+        size = float(np.ptp(np.asarray(mesh.vertices), axis=0).max())
+        scene.add_object(mesh, None, category=ROOM_CATEGORY, material=material(n + w, size, distances[w]),
+                         background=True)
     return scene
+
+
+WALL_NORMALS = np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], np.float64)
+"""Inward unit normals of the room's faces, ``ROOM_WALLS`` order."""
+EXPOSURE = (0.5, 0.8)
+"""Range of the radiance [linear] a white diffuse surface gets from the point and directional lights (no
+shadows) at the median of the room points the first camera sees; the lights are scaled to a value drawn
+from it (``expose_lights``), so images have natural brightness whatever the room and light positions."""
+
+
+def view_grid(camera: Camera, world_T_cam: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the rays of a 16 x 12 pixel grid of a camera inside the box [lo, hi] leave it.
+
+    Returns points (192, 3) [m] world frame, face (192,) int index into ``ROOM_WALLS``, distance (192,) [m]."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    u, v = np.meshgrid((np.arange(16) + 0.5) / 16 * camera.width - 0.5,
+                       (np.arange(12) + 0.5) / 12 * camera.height - 0.5)
+    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1)
+    d = pix @ np.linalg.inv(camera.K).T @ world_T_cam[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = world_T_cam[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d > 0, (hi - o) / d, np.where(d < 0, (lo - o) / d, np.inf))  # exit distance per axis
+    rows = np.arange(len(t))
+    axis = np.argmin(t, axis=1)
+    dist = t[rows, axis]
+    face = np.array([[2, 3], [4, 5], [0, 1]])[axis, (d[rows, axis] > 0).astype(int)]
+    return o + d * dist[:, None], face, dist
+
+
+def wall_distances(camera: Camera, world_T_cam: np.ndarray, lo, hi) -> np.ndarray:
+    """(6,) expected viewing distance [m] of each face of the room box [lo, hi] (``ROOM_WALLS`` order) from a
+    camera inside it: the median length of the ``view_grid`` rays that end on the face, or the distance to
+    the face's centre when none does."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    _, face, dist = view_grid(camera, world_T_cam, lo, hi)
+    out = np.zeros(6)
+    for w in range(6):
+        centre = (lo + hi) / 2
+        axis = int(np.argmax(np.abs(WALL_NORMALS[w])))
+        centre[axis] = (lo if WALL_NORMALS[w, axis] > 0 else hi)[axis]
+        out[w] = float(np.median(dist[face == w])) if (face == w).any() else \
+            float(np.linalg.norm(centre - world_T_cam[:3, 3]))
+    return out
+
+
+def expose_lights(lights: list[Light], points: np.ndarray, normals: np.ndarray, target: float) -> list[Light]:
+    """``lights`` with the point and directional intensities scaled by one factor so that a white diffuse
+    surface at ``points`` (M, 3) [m] with unit ``normals`` (M, 3) has median radiance ``target`` from them
+    (unshadowed; radiance of a light = intensity x mean colour x cos / r^2 for a point light). Ambient lights
+    are kept; unchanged when no point sees a light."""
+    radiance = np.zeros(len(points))
+    for light in lights:
+        c = float(np.mean(light.color)) * light.intensity
+        if light.kind == "point":
+            v = np.asarray(light.position) - points
+            r2 = np.maximum(np.einsum("ij,ij->i", v, v), 1e-12)
+            radiance += c * np.maximum(np.einsum("ij,ij->i", v, normals), 0.0) / r2 ** 1.5
+        elif light.kind == "directional":
+            radiance += c * np.maximum(normals @ -np.asarray(light.direction), 0.0)
+    median = float(np.median(radiance)) if len(radiance) else 0.0
+    if median <= 0.0:
+        return list(lights)
+    k = target / median
+    return [x if x.kind == "ambient" else replace(x, intensity=x.intensity * k) for x in lights]
 
 
 def _place_objects(cfg: BouncingThingsConfig, rng: np.random.Generator, sizes: np.ndarray, camera: Camera,

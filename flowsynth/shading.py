@@ -21,7 +21,7 @@ from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
-from flowsynth.materials import load_texture, resolve_lights, resolve_material, srgb_to_linear
+from flowsynth.materials import mip_pyramid, resolve_lights, resolve_material, srgb_to_linear
 from flowsynth.plan import TONEMAPS
 
 __all__ = ["MAX_TIME_SLICES", "pack_materials", "poses_at", "render_radiance", "render_rgb", "shutter_times",
@@ -88,6 +88,8 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
     sc.light_vec = wp.array(vec, dtype=wp.vec3, device=device)
     sc.light_irr = wp.array(irr, dtype=wp.vec3, device=device)
     sc.sky = wp.vec3(*sky.astype(np.float32))
+    # Ray-cone spread per metre of one sample: a pixel's angle shared by spp samples (texture filtering).
+    sc.pix_angle = float(1.0 / np.sqrt(scene.camera.K[0, 0] * scene.camera.K[1, 1] * spp))
 
     def gbuf(a, dtype, fill):
         if reuse:
@@ -171,8 +173,9 @@ def tonemap_srgb(radiance: np.ndarray, method: str = "clamp", exposure: float = 
 def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Kernel tables of the objects' materials (layout in ``flowsynth.kernels.texture``).
 
-    Returns mat_f (N, MAT_F) float32, mat_i (N, MAT_I) int32, img_data (P, 3) float32 linear RGB atlas,
-    img_info (K, 3) int32 (offset, width, height); dummy one-entry atlas when no object uses an image.
+    Returns mat_f (N, MAT_F) float32, mat_i (N, MAT_I) int32, img_data (P, 3) float32 linear RGB atlas of mip
+    pyramids, img_info (rows, 4) int32 (offset, width, height, levels), one row per level; a dummy one-entry
+    atlas when no object uses an image.
     """
     from flowsynth.kernels.texture import FAMILIES, FAMILY_NONE, LAYER_F, LAYER_I, MAT_F, MAT_I
 
@@ -180,6 +183,7 @@ def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     mat_f = np.zeros((max(N, 1), MAT_F), np.float32)
     mat_i = np.zeros((max(N, 1), MAT_I), np.int32)
     images: dict[str, int] = {}
+    pyramids: list[list[np.ndarray]] = []
     for n, obj in enumerate(scene.objects):
         V = np.asarray(obj.mesh.vertices)
         size = float(np.ptp(V, axis=0).max()) or 1.0
@@ -189,20 +193,24 @@ def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
         for li, layer in enumerate(layers):
             cf, ci = li * LAYER_F, li * LAYER_I
             mat_f[n, cf:cf + 6] = srgb_to_linear(np.asarray(layer["colors"])).reshape(-1)
-            mat_f[n, cf + 6] = layer["scale"]
-            mat_f[n, cf + 7] = layer["angle"]
+            mat_f[n, cf + 6:cf + 11] = (layer["scale"], layer["angle"], layer["gain"], layer["grain"],
+                                        layer["grain_scale"])
             mat_i[n, ci:ci + 3] = FAMILIES[layer["texture"]], layer["octaves"], _seed32(layer["seed"])
             if layer["image"] is not None:
-                mat_i[n, ci + 3] = images.setdefault(layer["image"], len(images))
+                if layer["image"] not in images:
+                    images[layer["image"]] = sum(len(p) for p in pyramids)
+                    pyramids.append(mip_pyramid(layer["image"]))
+                mat_i[n, ci + 3] = images[layer["image"]]
         mat_f[n, 2 * LAYER_F:] = mat.get("mask_scale", 0.0), mat["roughness"], mat["specular"]
         mat_i[n, 2 * LAYER_I] = _seed32(mat["seed"])
-    pics = [load_texture(p) for p in images]
-    if not pics:
-        return mat_f, mat_i, np.zeros((1, 3), np.float32), np.array([[0, 1, 1]], np.int32)
-    sizes = np.array([p.shape[0] * p.shape[1] for p in pics])
+    levels = [lv for p in pyramids for lv in p]
+    if not levels:
+        return mat_f, mat_i, np.zeros((1, 3), np.float32), np.array([[0, 1, 1, 1]], np.int32)
+    sizes = np.array([lv.shape[0] * lv.shape[1] for lv in levels])
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    info = np.array([[o, p.shape[1], p.shape[0]] for o, p in zip(offsets, pics)], np.int32)
-    return mat_f, mat_i, np.concatenate([p.reshape(-1, 3) for p in pics]).astype(np.float32), info
+    counts = [len(p) for p in pyramids for _ in p]
+    info = np.array([[o, lv.shape[1], lv.shape[0], c] for o, lv, c in zip(offsets, levels, counts)], np.int32)
+    return mat_f, mat_i, np.concatenate([lv.reshape(-1, 3) for lv in levels]).astype(np.float32), info
 
 
 def _seed32(seed: int) -> int:

@@ -12,7 +12,8 @@ from flowsynth.assets import (
     get_asset,
     load_user_mesh,
     resolve_assets,
-    room_mesh,
+    ROOM_WALLS,
+    room_walls,
     unit_mesh,
 )
 from flowsynth.errors import AssetError
@@ -107,11 +108,17 @@ def test_unloadable_file_raises_asset_error(tmp_path):
         load_user_mesh(str(bad))
 
 
-def test_room_mesh_faces_inward():
+def test_room_walls_tile_the_box_and_face_inward():
     lo, hi = (-2.0, -1.5, 0.0), (2.0, 1.5, 3.0)
-    room = room_mesh(lo, hi)
+    walls = room_walls(lo, hi)
+    assert len(walls) == len(ROOM_WALLS) == 6
+    room = trimesh.util.concatenate(list(walls))
     np.testing.assert_allclose(room.bounds, [lo, hi])
+    assert room.area == pytest.approx(2 * (4 * 3 + 4 * 3 + 3 * 3))  # the box's surface, each face once
     centre = (np.asarray(lo) + np.asarray(hi)) / 2
     to_centre = centre - room.triangles_center
     assert (np.einsum("ij,ij->i", room.face_normals, to_centre) > 0).all()
-    assert room is room_mesh(lo, hi)
+    floor = walls[ROOM_WALLS.index("floor")]
+    np.testing.assert_allclose(floor.vertices[:, 2], 0.0)
+    np.testing.assert_allclose(floor.face_normals, [[0, 0, 1]] * 2, atol=1e-12)
+    assert walls is room_walls(lo, hi)

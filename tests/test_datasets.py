@@ -23,6 +23,9 @@ OUTS = ["depth", "flow_fw", "valid_fw", "occ_fw", "instance", "box2d_visible", "
 def assert_sample_equal(a: dict, b: dict):
     assert set(a) == set(b)
     for k in a:
+        if k == "provenance":  # the scene record: a JSON string (tests/test_provenance.py)
+            assert isinstance(a[k], str) and a[k] == b[k]
+            continue
         assert a[k].dtype == b[k].dtype, k
         assert torch.equal(a[k], b[k]), k
 
@@ -73,7 +76,8 @@ def test_keys_shapes_dtypes_follow_design():
     subsets = [["depth"], ["flow_fw", "occ_bw", "motion"], [k for k in expect if k not in ("index", "seed")]]
     for outs in subsets:
         s = BouncingThings(CFG, outputs=outs, seed=1).sample(3)
-        assert set(s) == set(outs) | {"index", "seed", "K", "cam_T_world"}
+        assert set(s) == set(outs) | {"index", "seed", "K", "cam_T_world", "provenance"}
+        assert isinstance(s.pop("provenance"), str)
         for k, v in s.items():
             assert (tuple(v.shape), v.dtype) == expect[k], k
             if v.is_floating_point():

@@ -54,6 +54,7 @@ def test_exported_equals_stream(tmp_path):
     for i in range(3):
         a, b = ex[i], ds.sample(i)
         assert set(a) == set(b)
+        assert a.pop("provenance") == b.pop("provenance")  # the scene record, character for character
         for k in b:
             assert a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]), k
 

@@ -162,14 +162,23 @@ def test_shadows_match_geometric_oracle():
 
 
 def test_antialiasing_converges():
-    scene = moving_boxes(1, W=64, H=48, camera_motion=False)
-    for obj in scene.objects:
-        obj.material.update(texture="checks", scale=2.0)
-    lin = {spp: to_linear(fs.render(scene, ["rgb"], render_mode="flat", spp=spp, seed=spp)["rgb"].numpy())
-           for spp in (1, 4, 16, 256)}
-    err = {spp: float(np.sqrt(np.mean((lin[spp] - lin[256]) ** 2))) for spp in (1, 4, 16)}
-    print("AA rms error vs spp 256:", err)
+    def errors(material: dict) -> dict:
+        scene = moving_boxes(1, W=64, H=48, camera_motion=False)
+        for obj in scene.objects:
+            obj.material.update(material)
+        lin = {spp: to_linear(fs.render(scene, ["rgb"], render_mode="flat", spp=spp, seed=spp)["rgb"].numpy())
+               for spp in (1, 4, 16, 256)}
+        return {spp: float(np.sqrt(np.mean((lin[spp] - lin[256]) ** 2))) for spp in (1, 4, 16)}
+
+    # Silhouettes only (solid colours): only more samples anti-alias them.
+    err = errors({"texture": "solid"})
+    print("AA rms error vs spp 256, solid:", err)
     assert err[4] < 0.6 * err[1] and err[16] < 0.6 * err[4]
+    # Checks: the texture is also pre-filtered over each sample's footprint (tests/test_texture.py), so
+    # spp 1 is already close; more samples still converge.
+    err = errors({"texture": "checks", "scale": 2.0})
+    print("AA rms error vs spp 256, checks:", err)
+    assert err[4] < err[1] < 0.02 and err[16] < 0.6 * err[4]
 
 
 def test_motion_blur_equals_mean_of_sharp_frames():

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flowsynth.assets import resolve_assets
+from flowsynth.assets import ROOM_WALLS, resolve_assets
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
 from flowsynth.sampling import (
@@ -39,6 +39,7 @@ def scene_digest(scene) -> str:
         h.update(np.asarray(o.mesh.vertices).tobytes())
         h.update(np.asarray(o.mesh.faces).tobytes())
         h.update(repr((o.instance, o.category, o.asset, sorted(o.material.items()), o.background)).encode())
+    h.update(repr((scene.lights, scene.render_seed)).encode())
     return h.hexdigest()
 
 
@@ -74,17 +75,20 @@ def test_layout_objects_room_and_ids(index):
     layout = sample_layout(cfg, 0, index)
     n = len(layout.assets)
     assert cfg.num_objects[0] <= n <= cfg.num_objects[1]
-    assert len(scene.objects) == n + 1
+    assert len(scene.objects) == n + len(ROOM_WALLS)
     keys = resolve_assets(cfg.assets)
     for i, o in enumerate(scene.objects[:n]):
         assert o.instance == i + 1 and not o.background
         assert o.category == OBJECT_CATEGORY_OFFSET + int(layout.asset_index[i])
         assert keys[layout.asset_index[i]] == layout.assets[i].name
-        assert set(o.material) == {"texture_seed", "texture_families", "texture_dir"}
-    room = scene.objects[-1]
-    assert room.instance == n + 1 and room.category == ROOM_CATEGORY and room.background
-    np.testing.assert_array_equal(room.poses, np.tile(np.eye(4), (cfg.num_frames, 1, 1)))
-    np.testing.assert_allclose(room.mesh.bounds, cfg.room_bounds)
+        assert "texture_seed" not in o.material and {"texture", "roughness", "specular", "seed"} <= set(o.material)
+        assert o.source == {"asset": layout.assets[i].name, "size": layout.assets[i].size}
+    walls = scene.objects[n:]
+    for w, room in enumerate(walls):
+        assert room.instance == n + 1 + w and room.category == ROOM_CATEGORY and room.background
+        np.testing.assert_array_equal(room.poses, np.tile(np.eye(4), (cfg.num_frames, 1, 1)))
+    bounds = np.concatenate([np.asarray(o.mesh.vertices) for o in walls])
+    np.testing.assert_allclose([bounds.min(0), bounds.max(0)], cfg.room_bounds)
     assert scene.meta["seed"] == 0 and scene.meta["index"] == index
     assert BouncingThingsConfig.from_dict(scene.meta["config"]) == cfg
 

@@ -27,15 +27,10 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
 from flowsynth.plan import make_plan
-from flowsynth.scene import Scene
+from flowsynth.sampling import sample_seed
+from flowsynth.scene import Scene, provenance_json
 
 __all__ = ["BouncingThings", "sample_seed"]
-
-
-def sample_seed(seed: int, index: int) -> int:
-    """The 32-bit seed of sample ``index`` (used for rendering noise); scene sampling uses
-    ``SeedSequence([seed, index])`` directly."""
-    return int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
 
 
 def _shard() -> tuple[int, int]:
@@ -113,16 +108,15 @@ class BouncingThings(IterableDataset):
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
         """Sample ``i``: exactly the item the stream yields for index ``i``."""
-        from dataclasses import replace
-
         from flowsynth.render import render_plan
 
         if not isinstance(i, (int, np.integer)) or i < 0:
             raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
         scene = self.scene(i)
-        out = render_plan(scene, replace(self.plan, seed=sample_seed(self.seed, int(i))), device=self.device)
+        out = render_plan(scene, self.plan, device=self.device)
         out["index"] = torch.tensor(int(i), dtype=torch.int64)
         out["seed"] = torch.tensor(self.seed, dtype=torch.int64)
+        out["provenance"] = provenance_json(scene)
         return out
 
     # -- iteration ---------------------------------------------------------------------------------

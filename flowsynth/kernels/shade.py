@@ -47,6 +47,10 @@ INDIRECT_CLAMP = wp.constant(2.0)
 # Surfaces reached by a bounce shade with roughness at least this ("filter glossy", as in Blender Cycles):
 # a sharp highlight seen only indirectly is a rare, very bright sample (a firefly). First hits are exact.
 MIN_INDIRECT_ROUGHNESS = wp.constant(0.5)
+# Texture filtering (flowsynth.kernels.texture): the pixel footprint on a surface is spread / sqrt(max(|cos|,
+# MIN_FOOTPRINT_COS)), spread = ray length x ``pix_angle``; a bounce widens the spread by BOUNCE_SPREAD per metre.
+MIN_FOOTPRINT_COS = wp.constant(0.05)
+BOUNCE_SPREAD = wp.constant(0.1)
 # Point lights closer than sqrt(this) [m] to a surface point are skipped (inverse-square singularity).
 MIN_LIGHT_DIST2 = wp.constant(1.0e-12)
 PI = wp.constant(3.14159265358979)
@@ -67,6 +71,7 @@ class ShadeScene:
     light_vec: wp.array2d[wp.vec3]
     light_irr: wp.array[wp.vec3]
     sky: wp.vec3
+    pix_angle: wp.float32
 
 
 @wp.func
@@ -128,18 +133,21 @@ def brdf(n: wp.vec3, wi: wp.vec3, wo: wp.vec3, albedo: wp.vec3, spec: wp.float32
 
 
 @wp.func
-def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: wp.vec3):
-    """Shading normal (camera frame, facing against d), albedo, specular weight, roughness at a hit."""
+def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: wp.vec3, spread: wp.float32):
+    """Shading normal (camera frame, facing against d), albedo, specular weight, roughness at a hit; the
+    texture is filtered over the footprint of a ray cone of width ``spread`` [m] at the hit."""
     m = wp.mesh_get(sc.inst.item_mesh[item])
     a = m.points[m.indices[3 * face + 0]]
     b = m.points[m.indices[3 * face + 1]]
     c = m.points[m.indices[3 * face + 2]]
     n_obj = wp.normalize(wp.cross(b - a, c - a))
     n = wp.normalize(wp.transform_vector(sc.inst.ref_T_obj[item], n_obj))
-    if wp.dot(n, d) > 0.0:
+    cos = wp.dot(n, d)
+    if cos > 0.0:
         n = -n
     inst = item % sc.inst.n_inst
-    albedo = base_color(sc.mat_f, sc.mat_i, sc.img_data, sc.img_info, inst, p_obj, n_obj)
+    fw = spread / wp.sqrt(wp.max(wp.abs(cos), MIN_FOOTPRINT_COS))
+    albedo = base_color(sc.mat_f, sc.mat_i, sc.img_data, sc.img_info, inst, p_obj, n_obj, fw)
     return n, albedo, sc.mat_f[inst, COL_SPECULAR], sc.mat_f[inst, COL_ROUGHNESS]
 
 
@@ -183,7 +191,7 @@ def clamp_indirect(c: wp.vec3):
 
 @wp.func
 def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp.vec3, albedo0: wp.vec3,
-                  spec0: wp.float32, rough0: wp.float32, bounces: wp.int32, rng: wp.uint32):
+                  spec0: wp.float32, rough0: wp.float32, bounces: wp.int32, rng: wp.uint32, spread0: wp.float32):
     """Path-traced radiance towards wo0 from hit x0: next-event estimation at every vertex, ``bounces``
     BRDF-sampled bounces (one-sample mixture of cosine and GGX half-vector sampling), Russian roulette,
     roughness at least MIN_INDIRECT_ROUGHNESS after a bounce, indirect contributions clamped to
@@ -196,6 +204,7 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
     rough = rough0
     L = direct_light(sc, g, x, n, wo, albedo, spec, rough, True)
     beta = wp.vec3(1.0)
+    spread = spread0
     for b in range(bounces):
         p_spec = wp.where(spec <= 0.0, 0.0, wp.where(spec >= 1.0, 1.0, wp.clamp(spec, 0.1, 0.9)))
         u1 = wp.randf(rng)
@@ -238,8 +247,9 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
             break
         x = o + wi * dist
         wo = -wi
-        n, albedo, spec, rough = surface(sc, item, face, wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv),
-                                         wi)
+        spread += dist * BOUNCE_SPREAD
+        p_hit = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
+        n, albedo, spec, rough = surface(sc, item, face, p_hit, wi, spread)
         rough = wp.max(rough, MIN_INDIRECT_ROUGHNESS)
         L += clamp_indirect(wp.cw_mul(beta, direct_light(sc, g, x, n, wo, albedo, spec, rough, True)))
     return L
@@ -310,11 +320,12 @@ def shade_kernel(mode: str):
             if item < 0:
                 acc += sc.sky
                 continue
-            n, albedo, spec, rough = surface(sc, item, face, p_obj, d)
+            spread = dist * sc.pix_angle
+            n, albedo, spec, rough = surface(sc, item, face, p_obj, d, spread)
             x = d * dist
             L = wp.vec3(0.0)
             if wp.static(path):
-                L = path_radiance(sc, g, x, n, -d, albedo, spec, rough, bounces, rng)
+                L = path_radiance(sc, g, x, n, -d, albedo, spec, rough, bounces, rng, spread)
             else:
                 L = wp.cw_mul(sc.sky, albedo * (1.0 - spec) + wp.vec3(spec))
                 L += direct_light(sc, g, x, n, -d, albedo, spec, rough, wp.static(shadows))

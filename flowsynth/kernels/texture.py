@@ -9,8 +9,17 @@ z = 0 as (p.y, p.z), (p.z, p.x), (p.x, p.y); the three 2-D lookups are blended w
 |n_i|^4 / sum_k |n_k|^4 of the object-frame face normal n. Each layer multiplies these coordinates
 by its ``scale`` [cycles / m], so a pattern period is 1 / scale metres on the object's surface.
 
-Images are stored in one atlas: ``img_data`` (sum of w*h,) vec3 linear RGB, rows top to bottom, and
-``img_info`` (K, 3) int32 (offset, width, height); they tile with period 1 in texture coordinates.
+Filtering (no aliasing at any distance): every lookup gets the pixel footprint ``fw`` [m], the width of
+the surface patch one pixel (sample) covers. Fractal octaves (noise, value, cells) whose period spans fewer
+than FADE_HI footprints fade out linearly, and are gone (not evaluated) below FADE_LO: the pattern keeps
+its mean and loses only detail the pixel grid cannot carry. Stripes and checks are box-filtered exactly
+over the footprint (closed-form integral of the square wave). Images are mip-mapped: trilinear lookup at
+level log2(footprint in texels).
+
+Images are stored in one atlas of mip pyramids: ``img_data`` (sum of w*h over all levels,) vec3 linear RGB,
+rows top to bottom, and ``img_info`` (rows, 4) int32 (offset, width, height, levels), one row per level,
+an image's levels in consecutive rows (a material stores its level-0 row). An image tiles with period 1
+along the first texture coordinate and height / width along the second (square texels, no stretch).
 """
 
 from __future__ import annotations
@@ -32,10 +41,11 @@ F_STRIPES = wp.constant(4)
 F_CHECKS = wp.constant(5)
 F_IMAGE = wp.constant(6)
 
-# Packed layout. Per layer, floats: colour a (3, linear RGB), colour b (3), scale [1/m], angle [rad];
-# ints: family, octaves, seed, image index. Per material after the two layers, floats: mask scale [1/m],
-# roughness, specular; ints: mask seed.
-LAYER_F = 8
+# Packed layout. Per layer, floats: colour a (3, linear RGB), colour b (3), scale [1/m], angle [rad],
+# gain (amplitude ratio of successive octaves), grain (relative amplitude), grain scale [1/m]; ints: family,
+# octaves, seed, image row. Per material after the two layers, floats: mask scale [1/m], roughness, specular;
+# ints: mask seed.
+LAYER_F = 11
 LAYER_I = 4
 MAT_F = 2 * LAYER_F + 3
 MAT_I = 2 * LAYER_I + 1
@@ -48,6 +58,11 @@ COL_MASK_SEED = wp.constant(2 * LAYER_I)
 NOISE_GAIN = wp.constant(1.6)
 # Triplanar weights below this are skipped (the largest weight is >= 1/9 for a unit normal).
 TRIPLANAR_MIN_WEIGHT = wp.constant(1.0e-3)
+# Octave fading: an octave whose period spans >= FADE_HI pixel footprints is fully present, < FADE_LO absent.
+FADE_LO = wp.constant(2.0)
+FADE_HI = wp.constant(4.0)
+# Box filters narrower than this [cycles] are point samples (avoids 0/0).
+MIN_FILTER = wp.constant(1.0e-6)
 
 
 @wp.func
@@ -86,25 +101,6 @@ def value_noise(q: wp.vec2, seed: wp.int32) -> wp.float32:
 
 
 @wp.func
-def fractal(q: wp.vec2, seed: wp.int32, octaves: wp.int32, gradient: wp.bool) -> wp.float32:
-    """Fractal sum (lacunarity 2, gain 1/2) of Perlin gradient noise or value noise, mapped to [0, 1]."""
-    total = wp.float32(0.0)
-    norm = wp.float32(0.0)
-    amp = wp.float32(1.0)
-    freq = wp.float32(1.0)
-    for o in range(wp.max(octaves, 1)):
-        if gradient:
-            n = wp.noise(wp.rand_init(seed, o), q * freq)
-        else:
-            n = value_noise(q * freq, seed + 7919 * o) - 0.5
-        total += amp * n
-        norm += amp
-        amp *= 0.5
-        freq *= 2.0
-    return wp.clamp(0.5 + NOISE_GAIN * total / norm, 0.0, 1.0)
-
-
-@wp.func
 def cells(q: wp.vec2, seed: wp.int32) -> wp.float32:
     """Worley cells: the random value in [0, 1) of the nearest jittered lattice feature point."""
     fx = wp.floor(q[0])
@@ -126,11 +122,61 @@ def cells(q: wp.vec2, seed: wp.int32) -> wp.float32:
 
 
 @wp.func
-def image_sample(img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], k: wp.int32, q: wp.vec2):
-    """Bilinear, tiling lookup of atlas image k at texture coordinates q (period 1)."""
-    off = img_info[k, 0]
-    w = img_info[k, 1]
-    h = img_info[k, 2]
+def octave_weight(period: wp.float32, fw: wp.float32) -> wp.float32:
+    """Weight in [0, 1] of a pattern octave of ``period`` seen through a footprint ``fw`` (same units)."""
+    return wp.clamp((period / wp.max(fw, 1.0e-30) - FADE_LO) / (FADE_HI - FADE_LO), 0.0, 1.0)
+
+
+@wp.func
+def fractal(q: wp.vec2, seed: wp.int32, octaves: wp.int32, fam: wp.int32, gain: wp.float32,
+            fw: wp.float32) -> wp.float32:
+    """Fractal sum (lacunarity 2, amplitude ratio ``gain``) of Perlin gradient noise (F_NOISE), value noise
+    (F_VALUE) or Worley cells (F_CELLS) at q [cycles], normalised by the root sum of squared amplitudes (so the
+    contrast does not shrink with the number of octaves) and mapped to [0, 1]; octaves finer than the
+    footprint ``fw`` [cycles] fade out (see the module docstring)."""
+    total = wp.float32(0.0)
+    norm = wp.float32(0.0)
+    amp = wp.float32(1.0)
+    freq = wp.float32(1.0)
+    for o in range(wp.max(octaves, 1)):
+        w = octave_weight(1.0 / freq, fw)
+        if w > 0.0:
+            n = wp.float32(0.0)
+            if fam == F_NOISE:
+                n = wp.noise(wp.rand_init(seed, o), q * freq)
+            elif fam == F_VALUE:
+                n = value_noise(q * freq, seed + 7919 * o) - 0.5
+            else:
+                n = cells(q * freq, seed + 7919 * o) - 0.5
+            total += w * amp * n
+        norm += amp * amp
+        amp *= gain
+        freq *= 2.0
+    g = wp.where(fam == F_CELLS, 1.0, NOISE_GAIN)
+    return wp.clamp(0.5 + g * total / wp.sqrt(norm), 0.0, 1.0)
+
+
+@wp.func
+def stripe_integral(x: wp.float32) -> wp.float32:
+    """Integral from 0 to x of the square wave that is 1 where frac(x) >= 1/2, else 0."""
+    fx = wp.floor(x)
+    return 0.5 * fx + wp.max(x - fx - 0.5, 0.0)
+
+
+@wp.func
+def box_stripes(x: wp.float32, w: wp.float32) -> wp.float32:
+    """Mean of that square wave over [x - w/2, x + w/2] (w [cycles]): exactly box-filtered stripes."""
+    if w < MIN_FILTER:
+        return wp.where(x - wp.floor(x) < 0.5, 0.0, 1.0)
+    return (stripe_integral(x + 0.5 * w) - stripe_integral(x - 0.5 * w)) / w
+
+
+@wp.func
+def image_level(img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], row: wp.int32, q: wp.vec2):
+    """Bilinear, tiling lookup of one mip level (atlas row ``row``) at texture coordinates q."""
+    off = img_info[row, 0]
+    w = img_info[row, 1]
+    h = img_info[row, 2]
     x = wp.frac(q[0]) * wp.float32(w) - 0.5
     y = (1.0 - wp.frac(q[1])) * wp.float32(h) - 0.5
     fx = wp.floor(x)
@@ -147,9 +193,26 @@ def image_sample(img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], k:
 
 
 @wp.func
+def image_sample(img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], k: wp.int32, q: wp.vec2,
+                 fw: wp.float32):
+    """Trilinear (mip-mapped), tiling lookup of the image whose level 0 is atlas row k, at q [tiles along
+    the width], footprint fw [tiles]."""
+    w0 = wp.float32(img_info[k, 1])
+    levels = img_info[k, 3]
+    qq = wp.vec2(q[0], q[1] * w0 / wp.float32(img_info[k, 2]))
+    lod = wp.clamp(wp.log2(wp.max(fw * w0, 1.0)), 0.0, wp.float32(levels - 1))
+    l0 = wp.min(wp.int32(lod), levels - 1)
+    a = image_level(img_data, img_info, k + l0, qq)
+    t = lod - wp.float32(l0)
+    if t > 0.0 and l0 + 1 < levels:
+        a = wp.lerp(a, image_level(img_data, img_info, k + l0 + 1, qq), t)
+    return a
+
+
+@wp.func
 def layer_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
-                img_info: wp.array2d[wp.int32], m: wp.int32, layer: wp.int32, q: wp.vec2):
-    """Linear RGB of one texture layer at object-plane coordinates q [m]."""
+                img_info: wp.array2d[wp.int32], m: wp.int32, layer: wp.int32, q: wp.vec2, fw: wp.float32):
+    """Linear RGB of one texture layer at object-plane coordinates q [m], footprint fw [m]."""
     cf = layer * LAYER_F
     ci = layer * LAYER_I
     fam = mat_i[m, ci]
@@ -162,51 +225,58 @@ def layer_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_
     c = wp.cos(ang)
     sn = wp.sin(ang)
     r = wp.vec2(c * q[0] - sn * q[1], sn * q[0] + c * q[1]) * s
+    fc = fw * s  # footprint [cycles]
     seed = mat_i[m, ci + 2]
     if fam == F_IMAGE:
-        return image_sample(img_data, img_info, mat_i[m, ci + 3], r)
+        return image_sample(img_data, img_info, mat_i[m, ci + 3], r, fc)
     v = wp.float32(0.0)
-    if fam == F_NOISE:
-        v = fractal(r, seed, mat_i[m, ci + 1], True)
-    elif fam == F_VALUE:
-        v = fractal(r, seed, mat_i[m, ci + 1], False)
-    elif fam == F_CELLS:
-        v = cells(r, seed)
-    elif fam == F_STRIPES:
-        v = wp.where(wp.frac(r[0]) < 0.5, 0.0, 1.0)
-    elif fam == F_CHECKS:
-        v = wp.float32((wp.int32(wp.floor(r[0])) + wp.int32(wp.floor(r[1]))) & 1)
-    return wp.lerp(ca, cb, v)
+    if fam == F_STRIPES:
+        v = box_stripes(r[0], fc)
+    elif fam == F_CHECKS:  # cells of side 1: parity of floor(x) + floor(y) = XOR of two period-2 square waves
+        a = box_stripes(0.5 * r[0], 0.5 * fc)
+        b = box_stripes(0.5 * r[1], 0.5 * fc)
+        v = a + b - 2.0 * a * b
+    else:
+        v = fractal(r, seed, mat_i[m, ci + 1], fam, mat_f[m, cf + 8], fc)
+    col = wp.lerp(ca, cb, v)
+    grain = mat_f[m, cf + 9]
+    if grain > 0.0:  # fine value-noise grain multiplying the colour: 3 octaves from 1 / grain scale down
+        gs = mat_f[m, cf + 10]
+        col = col * wp.max(1.0 + 2.0 * grain * (fractal(q * gs, seed + 1, 3, F_VALUE, 0.7, fw * gs) - 0.5), 0.0)
+    return col
 
 
 @wp.func
 def planar_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
-                 img_info: wp.array2d[wp.int32], m: wp.int32, q: wp.vec2):
-    """Material colour at object-plane coordinates q [m]: layer a, or a noise-masked blend of a and b."""
-    a = layer_color(mat_f, mat_i, img_data, img_info, m, 0, q)
+                 img_info: wp.array2d[wp.int32], m: wp.int32, q: wp.vec2, fw: wp.float32):
+    """Material colour at object-plane coordinates q [m], footprint fw [m]: layer a, or a noise-masked blend
+    of a and b."""
+    a = layer_color(mat_f, mat_i, img_data, img_info, m, 0, q, fw)
     if mat_i[m, LAYER_I] == FAMILY_NONE:
         return a
-    b = layer_color(mat_f, mat_i, img_data, img_info, m, 1, q)
-    t = fractal(q * mat_f[m, COL_MASK_SCALE], mat_i[m, COL_MASK_SEED], 3, True)
+    b = layer_color(mat_f, mat_i, img_data, img_info, m, 1, q, fw)
+    ms = mat_f[m, COL_MASK_SCALE]
+    t = fractal(q * ms, mat_i[m, COL_MASK_SEED], 3, F_NOISE, 0.5, fw * ms)
     return wp.lerp(a, b, wp.smoothstep(0.4, 0.6, t))
 
 
 @wp.func
 def base_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
-               img_info: wp.array2d[wp.int32], m: wp.int32, p: wp.vec3, n: wp.vec3):
-    """Triplanar base colour (linear RGB) of material m at object-frame point p with object-frame normal n."""
+               img_info: wp.array2d[wp.int32], m: wp.int32, p: wp.vec3, n: wp.vec3, fw: wp.float32):
+    """Triplanar base colour (linear RGB) of material m at object-frame point p [m] with object-frame normal n,
+    filtered over a pixel footprint fw [m]."""
     w = wp.vec3(n[0] * n[0], n[1] * n[1], n[2] * n[2])
     w = wp.cw_mul(w, w)
     w = w / wp.max(w[0] + w[1] + w[2], 1.0e-30)
     col = wp.vec3(0.0)
     total = wp.float32(0.0)
     if w[0] > TRIPLANAR_MIN_WEIGHT:
-        col += w[0] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[1], p[2]))
+        col += w[0] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[1], p[2]), fw)
         total += w[0]
     if w[1] > TRIPLANAR_MIN_WEIGHT:
-        col += w[1] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[2], p[0]))
+        col += w[1] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[2], p[0]), fw)
         total += w[1]
     if w[2] > TRIPLANAR_MIN_WEIGHT:
-        col += w[2] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[0], p[1]))
+        col += w[2] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[0], p[1]), fw)
         total += w[2]
     return col / wp.max(total, 1.0e-30)

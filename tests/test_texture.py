@@ -1,0 +1,172 @@
+"""Texture at pixel scale: screen-space material sampling, per-wall materials, footprint filtering against a
+supersampled reference (no aliasing), mip-mapped photographs tiled at pixel scale, light exposure."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+import flowsynth as fs
+from flowsynth.assets import ROOM_WALLS, room_walls
+from flowsynth.config import BouncingThingsConfig
+from flowsynth.materials import Light, mip_pyramid, sample_material
+from flowsynth.sampling import ROOM_CATEGORY, expose_lights, sample_scene, wall_distances
+from flowsynth.stats import textureless_fraction
+
+AMBIENT = [Light("ambient", (1.0, 1.0, 1.0), 1.0)]  # flat mode then renders radiance = albedo exactly
+
+
+def tilted_plane(W: int, H: int, material: dict, tilt_deg: float = 60.0) -> tuple[fs.Scene, np.ndarray]:
+    """A 40 m square plane 4 m in front of the camera, tilted about the image x axis (receding upwards).
+    Returns the scene and the plane's world_T_obj (object frame: the plane is z = 0)."""
+    cam = fs.Camera.from_fov(W, H, 60.0)
+    scene = fs.Scene(cam, num_frames=1)
+    quad = trimesh.Trimesh([[-20, -20, 0], [20, -20, 0], [20, 20, 0], [-20, 20, 0]], [[0, 1, 2], [0, 2, 3]],
+                           process=False)
+    a = math.radians(tilt_deg)
+    P = np.eye(4)
+    P[:3, :3] = [[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]]
+    P[:3, 3] = [0.0, 0.0, 4.0]
+    scene.add_object(quad, P, material=material)
+    scene.lights = AMBIENT
+    return scene, P
+
+
+def pixel_centre_points(scene: fs.Scene, P: np.ndarray) -> np.ndarray:
+    """Object-frame (x, y) [m] where each pixel-centre ray meets the plane z_obj = 0 (numpy ray casting)."""
+    K = scene.camera.K
+    W, H = scene.camera.width, scene.camera.height
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    n, o = P[:3, 2], P[:3, 3]
+    t = (o @ n) / (d @ n)
+    X = d * t[..., None] - o
+    return np.stack([X @ P[:3, 0], X @ P[:3, 1]], -1)
+
+
+def to_linear(rgb: torch.Tensor) -> np.ndarray:
+    c = rgb[0].numpy().astype(np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def test_checks_are_filtered_like_a_supersampled_reference():
+    W, H = 64, 48
+    colors = [[1.0, 1.0, 1.0], [0.0, 0.0, 0.0]]
+    mat = {"texture": "checks", "scale": 9.0, "colors": colors, "specular": 0.0}  # cells of 11 cm: 0.3-10 px
+    scene, P = tilted_plane(W, H, mat)
+    one = to_linear(fs.render(scene, ["rgb"], render_mode="flat")["rgb"])[0]
+    ref = to_linear(fs.render(scene, ["rgb"], render_mode="flat", spp=256)["rgb"])[0]
+    xy = pixel_centre_points(scene, P) * 9.0
+    parity = (np.floor(xy[..., 0]).astype(int) + np.floor(xy[..., 1]).astype(int)) & 1
+    point = np.where(parity == 1, 0.0, 1.0)  # the unfiltered lookup at the pixel centre (colour a where even)
+    err_filtered = np.abs(one - ref).mean()
+    err_point = np.abs(point - ref).mean()
+    print(f"checks: |filtered - ref| {err_filtered:.4f}, |point - ref| {err_point:.4f}")
+    assert err_point > 0.15  # the pattern does alias when point sampled
+    assert err_filtered < 0.3 * err_point
+    far = xy[..., 1] > np.percentile(xy[..., 1], 75)  # the distant quarter: sub-pixel cells
+    assert np.abs(one - ref)[far].mean() < 0.3 * np.abs(point - ref)[far].mean()
+
+
+def test_image_is_mip_mapped_like_a_supersampled_reference(tmp_path):
+    W, H = 64, 48
+    rng = np.random.default_rng(3)
+    Image.fromarray(rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)).save(tmp_path / "noise.png")
+    mat = {"texture": "image", "image": str(tmp_path / "noise.png"), "scale": 0.25, "specular": 0.0}
+    scene, P = tilted_plane(W, H, mat, tilt_deg=30.0)  # 128 texels per 4 m: ~5-25 texels per pixel
+    one = to_linear(fs.render(scene, ["rgb"], render_mode="flat")["rgb"])
+    ref = to_linear(fs.render(scene, ["rgb"], render_mode="flat", spp=256)["rgb"])
+    img = mip_pyramid(tmp_path / "noise.png")[0].astype(np.float64)  # linear RGB, (h, w, 3)
+    xy = pixel_centre_points(scene, P) * 0.25
+    cols = np.floor((xy[..., 0] % 1.0) * 128).astype(int)
+    rows = np.floor((1.0 - xy[..., 1] % 1.0) * 128).astype(int) % 128
+    point = img[rows, cols].transpose(2, 0, 1)  # nearest texel: what an unfiltered lookup sees
+    err_filtered = np.abs(one - ref).mean()
+    err_point = np.abs(point - ref).mean()
+    print(f"image: |mip - ref| {err_filtered:.4f}, |point - ref| {err_point:.4f}")
+    assert err_filtered < 0.3 * err_point
+
+
+def test_mip_pyramid_levels_halve_and_keep_the_mean(tmp_path):
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 256, (37, 50, 3), dtype=np.uint8)).save(tmp_path / "odd.png")
+    levels = mip_pyramid(tmp_path / "odd.png")
+    assert [lv.shape[:2] for lv in levels][:3] == [(37, 50), (19, 25), (10, 13)] and levels[-1].shape[:2] == (1, 1)
+    base = levels[0].astype(np.float64)
+    np.testing.assert_allclose(levels[1][3, 4], base[6:8, 8:10].reshape(-1, 3).mean(0), rtol=1e-5)
+    for lv in levels:
+        assert abs(lv.mean() - base.mean()) < 0.05
+
+
+def test_screen_space_materials_follow_the_pixel_size(tmp_path):
+    Image.fromarray(np.zeros((30, 80, 3), np.uint8)).save(tmp_path / "flat.png")
+    for fam in ("noise", "value", "cells", "stripes", "checks", "image"):
+        for pixel_size in (0.002, 0.02):
+            for s in range(5):
+                m = sample_material(np.random.default_rng(s), [fam], tmp_path, pixel_size=pixel_size,
+                                    texture_px=(2.0, 64.0))
+                px = 1.0 / (m["scale"] * pixel_size)  # the pattern's period on screen [px]
+                if fam in ("noise", "value", "cells"):
+                    assert 0.6 * 64 <= px <= 64 and px / 2 ** (m["octaves"] - 1) >= 2.0
+                    assert px / 2 ** m["octaves"] < 2.0  # octaves reach down to the smallest size
+                elif fam == "image":
+                    assert 0.7 * 80 <= px <= 1.4 * 80  # 0.7-1.4 px per texel: tiled, not stretched
+                else:
+                    assert 8.0 <= px <= 32.0
+                if fam != "image":
+                    assert 2.0 * 4 <= 1.0 / (m["grain_scale"] * pixel_size) <= 2.0 * 8
+
+
+def test_each_room_face_is_its_own_textured_object():
+    cfg = BouncingThingsConfig(width=64, height=48, num_frames=2, motion="kinematic")
+    scene = sample_scene(cfg, 0, 1)
+    walls = [o for o in scene.objects if o.background]
+    assert len(walls) == len(ROOM_WALLS) and all(o.category == ROOM_CATEGORY for o in walls)
+    assert len({repr(o.material) for o in walls}) == 6 and all(o.material["texture"] != "solid" for o in walls)
+    expected = room_walls(*cfg.room_bounds)
+    for o, m in zip(walls, expected):
+        np.testing.assert_array_equal(o.mesh.vertices, m.vertices)
+    solid = BouncingThingsConfig(width=64, height=48, num_frames=2, motion="kinematic", texture_families=("solid",))
+    assert all(o.material["texture"] == "solid" for o in sample_scene(solid, 0, 1).objects)
+
+
+def test_wall_distances_match_the_ray_caster():
+    cfg = BouncingThingsConfig(width=64, height=48, num_frames=1, motion="static")
+    scene = sample_scene(cfg, 0, 2)
+    room = fs.Scene(scene.camera, num_frames=1)
+    room.set_camera_poses(scene.world_T_cam)
+    for m in room_walls(*cfg.room_bounds):
+        room.add_object(m)
+    out = fs.render(room, ["distance", "instance"])
+    dist, inst = out["distance"][0, 0].numpy(), out["instance"][0, 0].numpy()
+    got = wall_distances(scene.camera, scene.world_T_cam[0], *cfg.room_bounds)
+    for w in range(6):
+        seen = dist[inst == w + 1]
+        if seen.size > 0.05 * dist.size:  # a face that fills a good share of the image
+            assert got[w] == pytest.approx(float(np.median(seen)), rel=0.15), ROOM_WALLS[w]
+
+
+def test_expose_lights_sets_the_median_radiance():
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    nrm = np.tile([0.0, 0.0, 1.0], (3, 1))
+    lights = [Light("point", (1.0, 1.0, 1.0), 2.0, position=(0.0, 0.0, 2.0)), Light("ambient", (1, 1, 1), 0.1)]
+    out = expose_lights(lights, pts, nrm, 0.5)
+    I = out[0].intensity
+    radiance = [I * 2.0 / r ** 3 for r in (2.0, 5.0 ** 0.5, 13.0 ** 0.5)]  # I cos / r^2 with cos = 2 / r
+    assert np.median(radiance) == pytest.approx(0.5) and out[1] == lights[1]
+
+
+def test_default_samples_carry_texture_in_every_render_mode():
+    # The measured 512x384 figures are in benchmarks/texture.py; this small run guards the mechanism.
+    for mode in ("flat", "direct"):
+        cfg = BouncingThingsConfig(width=128, height=96, num_frames=1, render_mode=mode, motion="static")
+        ds = fs.datasets.BouncingThings(cfg, outputs=["rgb"], seed=0)
+        flat = np.mean([textureless_fraction(ds.sample(i)["rgb"]) for i in range(3)])
+        grey = np.mean([float(ds.sample(i)["rgb"].mean()) for i in range(3)])
+        print(mode, flat, grey)
+        assert flat < 0.45 and 0.3 < grey < 0.7
