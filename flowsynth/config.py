@@ -133,16 +133,16 @@ class BouncingThingsConfig:
     stereo_baseline: float = 0.0
     """Distance of a rectified right camera along the left camera's +x [m], >= 0; 0 = no right camera.
     Needed (> 0) for rgb_right, depth_right, disparity* (flowsynth/stereo.py)."""
+    texture_px: tuple[float, float] = (2.0, 64.0)
+    """(min, max) size on screen [px] of texture features at each surface's expected viewing distance: fractal
+    patterns span the range over several octaves, stripes/checks and image texels fall inside it. Larger values
+    (e.g. (50, 500)) give large-scale patterns."""
     texture_dir: str | None = None
     """Folder of image textures (jpg/png) for objects and walls (add "image" to ``texture_families``); None
     uses procedural textures only. Images are tiled at ``texture_px`` scale, not stretched (docs/rendering.md)."""
     texture_families: tuple[str, ...] = ("noise", "value", "cells", "stripes", "checks", "blend")
     """Texture families to draw each surface's material from (non-empty; flowsynth.materials.TEXTURE_FAMILIES).
     "solid" (one flat colour) is drawn only when listed."""
-    texture_px: tuple[float, float] = (2.0, 64.0)
-    """(min, max) size on screen [px] of texture features at each surface's expected viewing distance: fractal
-    patterns span the range over several octaves, stripes/checks and image texels fall inside it. Larger values
-    (e.g. (50, 500)) give large-scale patterns."""
 
     def __post_init__(self) -> None:
         _validate(self)

@@ -113,6 +113,7 @@ def test_every_layout_round_trips_and_keeps_books(tmp_path, name):
     for i in range(2):
         a, b = ex[i], stream.sample(i)
         assert set(a) <= set(b) and {"rgb", "flow_fw"} <= set(a)
+        assert a.pop("provenance", b["provenance"]) == b.pop("provenance")  # the scene record, where kept
         for k in a:
             assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype, k
         assert (a["rgb"] - b["rgb"]).abs().max() <= 0.5 / 255 + 1e-6
