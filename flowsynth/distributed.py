@@ -81,7 +81,8 @@ class SampleRenderer:
         import numpy as np
 
         samples = [self.ds.sample(int(i)) for i in batch["item"]]
-        return {k: np.stack([s[k].numpy() for s in samples]) for k in samples[0]}
+        return {k: np.array([s[k] for s in samples]) if isinstance(samples[0][k], str)  # provenance: JSON text
+                else np.stack([s[k].numpy() for s in samples]) for k in samples[0]}
 
 
 def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] = ("rgb", "flow_fw"), *,

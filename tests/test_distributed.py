@@ -95,6 +95,7 @@ def test_ray_dataset_equals_stream(cluster):
     for r in rows:
         s = ds.sample(int(r["index"]))
         assert set(r) == set(s)
+        assert str(r.pop("provenance")) == s.pop("provenance")
         for k, v in s.items():
             got = torch.as_tensor(r[k])
             assert got.dtype == v.dtype and torch.equal(got, v), k
