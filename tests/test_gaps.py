@@ -216,6 +216,7 @@ def test_dataset_collate_and_native_export_of_gaps(tmp_path):
     write_sample(a, tmp_path)
     back = read_sample(tmp_path)
     assert list(back) == list(a)
+    assert back.pop("provenance") == a.pop("provenance")  # the scene record (tests/test_provenance.py)
     for k, v in a.items():
         assert back[k].dtype == v.dtype and torch.equal(back[k], v), k
     exp = tmp_path / "exp"

@@ -161,6 +161,7 @@ def test_validation_dataset_and_export(tmp_path):
     assert batch["rgb_right"].shape == (2, 2, 3, 24, 32) and batch["disparity_change"].shape == (2, 1, 1, 24, 32)
     write_sample(a, tmp_path)
     back = read_sample(tmp_path)
+    assert back.pop("provenance") == a.pop("provenance")  # the scene record (tests/test_provenance.py)
     for k, v in a.items():
         assert back[k].dtype == v.dtype and back[k].shape == v.shape, k
         if k not in ("rgb", "rgb_right"):

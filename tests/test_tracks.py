@@ -176,6 +176,7 @@ def test_dataset_collate_export_and_tapvid_file(tmp_path):
     assert batch["target_points"].shape == (2, 50, 4, 2) and batch["occluded"].shape == (2, 50, 4)
     write_sample(a, tmp_path)
     back = read_sample(tmp_path)
+    assert back.pop("provenance") == a.pop("provenance")  # the scene record (tests/test_provenance.py)
     for k, v in a.items():
         assert back[k].dtype == v.dtype and back[k].shape == v.shape, k
     for k in ("target_points", "occluded", "query_points"):
