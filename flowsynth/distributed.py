@@ -45,8 +45,8 @@ def connect(address: str | None = None):
     None, the one this process already joined, else start a local one on this machine's CPUs.
     Returns the ``ray`` module."""
     ray = require_ray()
-    if not ray.is_initialized():
-        ray.init(address=address, log_to_driver=False, include_dashboard=False)
+    if not ray.is_initialized():  # a cluster we start here needs no dashboard; one we join keeps its own
+        ray.init(address=address, log_to_driver=False, **({} if address else {"include_dashboard": False}))
     return ray
 
 
