@@ -7,7 +7,9 @@ process with every core (the default ``threads``): the scene is sampled (physics
 request is a typical mono training sample: rgb (flat shading), depth, flow both ways with exact occlusion.
 Each variant adds one family to it; all variants of one T render the same scenes, called in turn each round
 (``_common.time_round_robin``) so the machine's load hits them alike. Goals (issue 17): stereo <= 2x the
-mono cost, scene flow and one extra gap <= +15 % each, 256 tracks over 24 frames <= +20 %.
+mono cost, scene flow and one extra gap <= +15 % each, 256 tracks over 24 frames <= +20 %. The goal is judged
+on process CPU time (the work, all threads), since wall time on the shared 2-core machine mostly measures
+the other processes.
 
 Writes benchmarks/results/outputs_cost.json (or outputs_cost_quick.json) with the load average.
 """
@@ -48,7 +50,7 @@ def main() -> None:
 
     W, H = (256, 192) if args.quick else (512, 384)
     rows = []
-    for T, repeat in ((2, 5 if args.quick else 7), (24, 2 if args.quick else 3)):
+    for T, repeat, warmup in ((2, 5 if args.quick else 7, 1), (24, 2, 0)):  # T=2's warm-up loads the kernels
         cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=T, render_mode="flat")
         counter = {"i": 0}
 
@@ -60,17 +62,18 @@ def main() -> None:
             render_plan(scene, plan)
 
         fns = {name: (lambda e=e, o=o: run(e, o)) for name, (e, o, _) in VARIANTS.items()}
-        res = time_round_robin(fns, repeat=repeat, warmup=1)
-        base = res["mono (base)"]["wall_s"]
+        res = time_round_robin(fns, repeat=repeat, warmup=warmup)
+        base, base_cpu = res["mono (base)"]["wall_s"], res["mono (base)"]["cpu_s"]
         for name, (_, _, goal) in VARIANTS.items():
-            ratio = res[name]["wall_s"] / base
-            rows.append({"T": T, "variant": name, "s/sample": res[name]["wall_s"], "cpu s": res[name]["cpu_s"],
-                         "vs base": ratio, "goal": goal,
-                         "met": None if goal is None else ("yes" if ratio <= goal else "NO")})
+            ratio = res[name]["cpu_s"] / base_cpu
+            rows.append({"T": T, "variant": name, "cpu s": res[name]["cpu_s"], "wall s": res[name]["wall_s"],
+                         "cpu vs base": ratio, "wall vs base": res[name]["wall_s"] / base, "goal": goal,
+                         "met (cpu)": None if goal is None else ("yes" if ratio <= goal else "NO")})
     load = os.getloadavg()
-    print(f"\nWhat each output adds to a sample at {W}x{H} (scene sampling + render, median wall time, "
-          f"{os.cpu_count()} cores, load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f})")
-    print_table(rows, ["T", "variant", "s/sample", "cpu s", "vs base", "goal", "met"])
+    print(f"\nWhat each output adds to a sample at {W}x{H} (scene sampling + render; medians of process CPU time "
+          f"(all threads: the work) and wall time; {os.cpu_count()} cores shared, load average {load[0]:.1f} / "
+          f"{load[1]:.1f} / {load[2]:.1f}, so wall time is the noisier)")
+    print_table(rows, ["T", "variant", "cpu s", "wall s", "cpu vs base", "wall vs base", "goal", "met (cpu)"])
     write_json("outputs_cost_quick" if args.quick else "outputs_cost",
                {"machine": machine_info(), "load_average": load, "resolution": [W, H], "base_outputs": BASE,
                 "rows": rows})

@@ -85,7 +85,8 @@ def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compressio
         from flowsynth.distributed import require_ray
 
         require_ray()
-    outputs = make_plan(lay.default_outputs if outputs is None else outputs, flow_gaps=cfg.flow_gaps).outputs
+    outputs = make_plan(lay.default_outputs if outputs is None else outputs, flow_gaps=cfg.flow_gaps,
+                        stereo_baseline=cfg.stereo_baseline).outputs
     lay.check(cfg, outputs, num)
     check_sample_memory(cfg, processes=min(workers or 1, num))
     return lay, outputs

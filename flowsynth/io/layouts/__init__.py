@@ -6,7 +6,8 @@ layout with :func:`register`; adding a layout is adding one module (and its test
 - ``native``: one folder per sample, every output lossless (:mod:`flowsynth.sampleio`);
 - ``flyingchairs``: ``FlyingChairs/data/NNNNN_img1.ppm`` ... for ``torchvision.datasets.FlyingChairs``;
 - ``kitti``: ``KittiFlow/training/image_2`` + ``flow_occ`` for ``torchvision.datasets.KittiFlow``;
-- ``sintel``: ``Sintel/training/clean`` + ``flow`` + ``occlusions`` for ``torchvision.datasets.Sintel``.
+- ``sintel``: ``Sintel/training/clean`` + ``flow`` + ``occlusions`` for ``torchvision.datasets.Sintel``;
+- ``flyingthings3d``: FlyingThings3D's "subset" tree, stereo (PFM disparity, disparity change) + flow.
 """
 
 from __future__ import annotations
