@@ -102,7 +102,7 @@ def test_every_layout_round_trips_and_keeps_books(tmp_path, name):
     and dtypes; 3 frames so layouts that store frame pairs write several per sample."""
     from flowsynth.export import export
 
-    cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "num_frames": 3})
+    cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "num_frames": 3, "stereo_baseline": 0.1})  # for flyingthings3d
     lay = layouts.get(name)
     root = export(cfg, tmp_path / name, 2, seed=1, layout=name, progress=False)
     manifest = check_manifest(root, 2)
@@ -125,7 +125,8 @@ def test_layout_checks_refuse_before_writing(tmp_path):
     from flowsynth.errors import ConfigError
     from flowsynth.export import export
 
-    one = fs.BouncingThingsConfig(**{**CFG.to_dict(), "num_frames": 1})
+    cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "stereo_baseline": 0.1})  # flyingthings3d needs stereo
+    one = fs.BouncingThingsConfig(**{**cfg.to_dict(), "num_frames": 1})
     for name in layouts.names():
         lay = layouts.get(name)
         if lay.min_frames > 1:
@@ -133,10 +134,10 @@ def test_layout_checks_refuse_before_writing(tmp_path):
                 export(one, tmp_path / name, 1, layout=name, progress=False)
         if lay.required_outputs:
             with pytest.raises(ConfigError, match="needs the outputs"):
-                export(CFG, tmp_path / name, 1, layout=name, outputs=["depth"], progress=False)
+                export(cfg, tmp_path / name, 1, layout=name, outputs=["depth"], progress=False)
         if lay.stored_outputs is not None:
             with pytest.raises(ConfigError, match="stores only"):
-                export(CFG, tmp_path / name, 1, layout=name, outputs=[*lay.required_outputs, "depth"], progress=False)
+                export(cfg, tmp_path / name, 1, layout=name, outputs=[*lay.required_outputs, "depth"], progress=False)
         assert not (tmp_path / name).exists()
     with pytest.raises(ConfigError, match="unknown layout"):
         layouts.get("nope")
