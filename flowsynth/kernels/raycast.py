@@ -60,18 +60,21 @@ class Pinhole:
 
 
 @wp.func
-def trace_closest(inst: Instances, g: wp.int32, o: wp.vec3, d: wp.vec3, max_t: wp.float32):
-    """Closest hit along o + t d, t in [0, max_t), in group (frame) g. Returns (item or -1, t, face, u, v)."""
+def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
+                  o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+    """Closest hit along o + t d, t in [0, max_t), below BVH node ``root`` (a frame's group root).
+    Returns (item or -1, t, face, u, v). Takes the ``Instances`` arrays it reads, not the struct: Warp
+    passes a struct to a function by value, a copy per ray on this hot path."""
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
     best_u = wp.float32(0.0)
     best_v = wp.float32(0.0)
-    query = wp.bvh_query_ray(inst.bvh, o, d, inst.roots[g])
+    query = wp.bvh_query_ray(bvh, o, d, root)
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, best_t):
-        X = inst.obj_T_ref[item]
-        hit = wp.mesh_query_ray(inst.item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), best_t)
+        X = obj_T_ref[item]
+        hit = wp.mesh_query_ray(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), best_t)
         if hit.result and hit.t < best_t:
             best_t = hit.t
             best_item = item
@@ -82,13 +85,15 @@ def trace_closest(inst: Instances, g: wp.int32, o: wp.vec3, d: wp.vec3, max_t: w
 
 
 @wp.func
-def trace_any(inst: Instances, g: wp.int32, o: wp.vec3, d: wp.vec3, max_t: wp.float32):
-    """True when anything in group (frame) g is hit along o + t d with t in [0, max_t)."""
-    query = wp.bvh_query_ray(inst.bvh, o, d, inst.roots[g])
+def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
+              o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+    """True when anything below BVH node ``root`` is hit along o + t d with t in [0, max_t) (first blocker
+    ends the ray). Takes the arrays it reads, like ``trace_closest``."""
+    query = wp.bvh_query_ray(bvh, o, d, root)
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, max_t):
-        X = inst.obj_T_ref[item]
-        if wp.mesh_query_ray_anyhit(inst.item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), max_t):
+        X = obj_T_ref[item]
+        if wp.mesh_query_ray_anyhit(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), max_t):
             return True
     return False
 
@@ -124,7 +129,7 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
     queries per ray instead of one per box crossed.
     """
     if inst.use_bvh != 0:
-        return trace_closest(inst, g, wp.vec3(0.0), d, max_t)
+        return trace_closest(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
@@ -153,7 +158,7 @@ def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32)
     """``trace_any`` for a ray leaving the camera centre of frame g: the frame's instances near to far,
     first blocker ends the walk (any-hit mesh queries)."""
     if inst.use_bvh != 0:
-        return trace_any(inst, g, wp.vec3(0.0), d, max_t)
+        return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, wp.vec3(0.0), d, max_t)
     for k in range(inst.frame_start[g], inst.frame_start[g + 1]):
         item = inst.frame_items[k]
         if inst.near[item] >= max_t:
