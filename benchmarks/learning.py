@@ -267,7 +267,7 @@ def train(data, test, steps: int, batch: int, seed: int) -> dict:
         loss.backward()
         opt.step()
         sched.step()
-        if step % max(1, steps // 4) == 0 or step == steps:
+        if step % max(1, steps // 2) == 0 or step == steps:
             curve.append({"step": step, "train_loss": loss.item(), "test_epe": evaluate(net, test)})
     return {"test_epe": curve[-1]["test_epe"], "curve": curve, "train_s": time.perf_counter() - t,
             "parameters": sum(p.numel() for p in net.parameters())}
@@ -278,7 +278,7 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--seeds", default="0")
     p.add_argument("--workers", type=int, default=2, help="DataLoader workers generating flowsynth pairs")
-    p.add_argument("--threads", type=int, default=1, help="torch threads for training (1: steady on a shared box)")
+    p.add_argument("--threads", type=int, default=2, help="torch threads for training")
     args = p.parse_args()
     import numpy as np
     import torch
