@@ -112,13 +112,26 @@ def test_ray_export_equals_local_export(cluster, tmp_path):
         _same_export(tmp_path / f"ray-{layout}", tmp_path / f"local-{layout}")
 
 
+def _parent(pid: int) -> int:
+    return int((Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+def _ours(pid: int) -> bool:
+    """``pid`` descends from this test process (so it belongs to this test's cluster, not another run's)."""
+    while pid > 1:
+        pid = _parent(pid)
+        if pid == os.getpid():
+            return True
+    return False
+
+
 def _actor_pids(name: str) -> list[int]:
-    """PIDs of Ray actor processes whose title names ``name`` (Ray titles them ``ray::MapWorker(...)``)."""
+    """PIDs of this cluster's Ray actor processes whose title names ``name`` (``ray::MapWorker(...)``)."""
     pids = []
     for d in Path("/proc").iterdir():
         if d.name.isdigit():
             try:
-                if name.encode() in (d / "cmdline").read_bytes():
+                if name.encode() in (d / "cmdline").read_bytes() and _ours(int(d.name)):
                     pids.append(int(d.name))
             except OSError:
                 continue
