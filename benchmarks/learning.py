@@ -309,7 +309,11 @@ def main() -> None:
           f"parameters. Load: {load}")
     print_table(rows, ["seed", "zero-flow EPE", "flowsynth EPE", "chairs2d EPE", "ratio fs/chairs"])
     ratio = float(np.mean([r["ratio fs/chairs"] for r in rows]))
-    print(f"mean ratio flowsynth / chairs2d: {ratio:.3f} ({'flowsynth better' if ratio < 1 else 'baseline better'})")
+    verdict = "flowsynth better" if ratio < 0.98 else "baseline better" if ratio > 1.02 else "no clear difference"
+    learned = all(r["flowsynth EPE"] < 0.98 * r["zero-flow EPE"] or r["chairs2d EPE"] < 0.98 * r["zero-flow EPE"]
+                  for r in rows)
+    print(f"mean ratio flowsynth / chairs2d: {ratio:.3f} ({verdict})"
+          + ("" if learned else "; neither net beat zero flow by 2%: this budget did not train them"))
     print("mean |flow| [px]: " + ", ".join(f"{k} {v:.2f}" for k, v in runs[0]["mean_flow_px"].items()))
     write_json("learning", {"machine": machine_info(), "load": load, "resolution": [W, H], "steps": steps,
                             "batch": batch, "pool": pool, "test_pairs": n_test, "photos": list(PHOTOS),
