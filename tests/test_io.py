@@ -416,3 +416,33 @@ def test_atomic_path_temp_name_failure_and_permissions(tmp_path: Path) -> None:
     umask = os.umask(0)
     os.umask(umask)
     assert final.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_exr_write_failure_from_the_file_system_is_a_storage_error(tmp_path: Path, monkeypatch) -> None:
+    # OpenEXR reports a full disk as a RuntimeError carrying the OS text (seen on a full tmpfs);
+    # that is an I/O failure (CLI exit 3), not bad input, and no temporary file stays behind.
+    import errno
+    import types
+
+    import flowsynth.io.exr as exr_mod
+    from flowsynth.errors import StorageError
+
+    class FullDisk:
+        def __init__(self, *args):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *args):
+            return False
+
+        def write(self, name):
+            raise RuntimeError(f'Failed to write pixel data to image file "{name}". No space left on device.')
+
+    fake = types.SimpleNamespace(File=FullDisk, scanlineimage=OpenEXR.scanlineimage)
+    monkeypatch.setattr(exr_mod, "OpenEXR", fake)
+    with pytest.raises(StorageError) as info:
+        write_exr(tmp_path / "a.exr", {"Z": np.zeros((4, 5), np.float32)})
+    assert info.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []

@@ -28,6 +28,7 @@ disparity     ``disparity``                 stereo disparity or its change [px],
 
 from __future__ import annotations
 
+import errno
 import os
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -35,7 +36,7 @@ from typing import Any
 import numpy as np
 import OpenEXR
 
-from flowsynth.errors import ExportError, ShapeError
+from flowsynth.errors import ExportError, ShapeError, StorageError
 from flowsynth.io.atomic import atomic_path
 
 __all__ = ["CHANNEL_NAMES", "COMPRESSIONS", "read_exr", "read_tensor_exr", "write_exr", "write_tensor_exr"]
@@ -96,6 +97,7 @@ def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray], 
     Raises:
         ShapeError: no channels, a channel that is not 2-D, shapes differ, or a non-float dtype.
         ValueError: unknown ``compression``.
+        StorageError: the file system refused the write (disk full, permissions); ``errno`` set.
         ExportError: the file cannot be written.
     """
     if compression not in COMPRESSIONS:
@@ -112,8 +114,20 @@ def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray], 
         try:
             with OpenEXR.File(header, prepared) as exr:
                 exr.write(str(tmp))
-        except (RuntimeError, ValueError, TypeError) as exc:
+        except RuntimeError as exc:
+            # The channels were validated above, so OpenEXR failing now is the file system (disk full,
+            # permissions): a StorageError (CLI exit 3), with the errno recovered from OpenEXR's message.
+            raise StorageError(f"OpenEXR could not write {path}: {exc}", _errno_in(str(exc))) from exc
+        except (ValueError, TypeError) as exc:
             raise ExportError(f"OpenEXR could not write {path}: {exc}") from exc
+
+
+def _errno_in(message: str) -> int | None:
+    """The OS error number whose text (``os.strerror``) appears in ``message``, or None."""
+    for code in (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.EIO, errno.ENOENT):
+        if os.strerror(code) in message:
+            return code
+    return None
 
 
 def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
