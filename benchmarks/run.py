@@ -26,7 +26,10 @@ from _common import RESULTS_DIR, machine_info
 
 BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "ray_export",
               "scaling", "physics_graph", "png_level", "tiles", "outputs_cost", "datastats", "learning",
-              "texture"]
+              "texture", "cycles"]
+# Benchmarks that need an optional outside program print a line starting with this and exit 0 without it
+# (cycles: Blender); their row then reads "skipped".
+SKIP_MARK = "SKIPPED"
 
 
 def main() -> int:
@@ -47,11 +50,13 @@ def main() -> int:
         text = "\n".join(line for line in r.stdout.splitlines() if "CUDA" not in line)
         print(text, flush=True)
         ok = r.returncode == 0
-        status.append((name, ok, dt))
+        skipped = ok and any(line.startswith(SKIP_MARK) for line in r.stdout.splitlines())
+        status.append((name, ok, dt, skipped))
         (RESULTS_DIR / f"{name}.txt").write_text(text + ("" if ok else "\n" + r.stderr[-4000:]))
         plots = sorted(x.name for x in RESULTS_DIR.glob(f"{name}*.png"))
+        verdict = ("skipped" if skipped else "ok") if ok else f"FAILED (exit {r.returncode})"
         body = f"## {name}\n\n`python benchmarks/{name}.py{' --quick' if args.quick else ''}` — " \
-               f"{'ok' if ok else 'FAILED (exit ' + str(r.returncode) + ')'} in {dt:.0f} s; JSON: " \
+               f"{verdict} in {dt:.0f} s; JSON: " \
                f"[results/{name}.json]({name}.json)\n\n```\n{text.strip()}\n```\n"
         body += "".join(f"\n![{pl}]({pl})\n" for pl in plots)
         if not ok:
@@ -70,7 +75,7 @@ def main() -> int:
                                                                                "numpy", "trimesh")) + "  ",
             f"Mode: {'--quick' if args.quick else 'full'}", "",
             "| benchmark | status | seconds |", "|---|---|---|"]
-    rows = {n: f"| {n} | {'ok' if ok else 'FAILED'} | {dt:.0f} |" for n, ok, dt in status}
+    rows = {n: f"| {n} | {('skipped' if sk else 'ok') if ok else 'FAILED'} | {dt:.0f} |" for n, ok, dt, sk in status}
     done = dict(zip(names, sections))
     order = [n for n in BENCHMARKS if n in rows or n in kept_rows]
     order += [n for n in [*kept_rows, *names] if n not in order]
@@ -78,7 +83,7 @@ def main() -> int:
     body = [done.get(n) or kept_sections.get(n, "") for n in order]
     (RESULTS_DIR / "SUMMARY.md").write_text("\n".join(head) + "\n\n" + "\n".join(b for b in body if b))
     print(f"wrote {RESULTS_DIR / 'SUMMARY.md'}")
-    return 0 if all(ok for _, ok, _ in status) else 1
+    return 0 if all(ok for _, ok, _, _ in status) else 1
 
 
 def _kept(names: list[str]) -> tuple[dict, dict]:
