@@ -51,7 +51,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import machine_info, pin_single_core, print_table, time_calls, time_round_robin, write_json
+from _common import RESULTS_DIR, machine_info, pin_single_core, print_table, time_calls, time_round_robin, write_json
 
 OUTPUTS = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "valid_fw", "valid_bw"]
 NO_RGB = [k for k in OUTPUTS if k != "rgb"]
@@ -65,7 +65,8 @@ def _skip(blender: str, name: str) -> None:
     msg = f"SKIPPED: Blender not installed ({blender!r} not found); Cycles comparison not run"
     print(msg)
     print_table([{"engine": "Cycles", "what": "not installed"}], COLUMNS)
-    write_json(name, {"machine": machine_info(), "skipped": msg})
+    if not (RESULTS_DIR / f"{name}.json").exists():  # a machine without Blender keeps the measured record
+        write_json(name, {"machine": machine_info(), "skipped": msg})
 
 
 def export_scene(scene, path: Path, depth_median: float) -> None:
