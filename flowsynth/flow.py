@@ -25,7 +25,7 @@ from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.plan import gap_key
 
-__all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject"]
+__all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject", "reproject_pixels"]
 
 # A visibility ray is blocked only by a hit closer than (1 - tol) * distance to the point: this absorbs
 # float32 error of the hit point (~1e-7 relative) and grazing self-intersections, while an occluder
@@ -57,60 +57,102 @@ def reproject(points: np.ndarray, M: np.ndarray, K: np.ndarray) -> tuple[np.ndar
     return X, uv
 
 
+def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: int, P: int, *, accel=None,
+                     camera=None, flow: bool = False, occlusion: str | None = None, fB: float | None = None,
+                     threads: int | None = None) -> dict[str, np.ndarray]:
+    """Every hit pixel of G-buffer ``gb`` reprojected into a target frame, per pair: one Warp kernel thread per
+    (pair, pixel) (flowsynth/kernels/reproject.py), launched in row bands (bit-identical for any ``threads``).
+
+    Pair t maps frame s = src0 + t into frame s + step of the target view, whose (T, N, 4, 4) float64
+    ``cam_T_obj`` is given (the same view for flow, the other view for stereo). Definitions: module docstring.
+
+    Args:
+        gb: G-buffer with ``point``.
+        K: (3, 3) intrinsics of the target view (skew included).
+        accel, camera: the target view's ``SceneAccel`` and camera (visibility rays, occlusion="exact").
+        flow: also return ``flow``; occlusion: None, "exact" or "depth" (``occ``); fB: also return the
+            disparity change ``dc`` = fB / z_target - fB / z_source.
+    Returns:
+        ``valid``, ``oof`` (P, 1, H, W) bool; ``flow`` (P, 2, H, W) float32, ``occ`` (P, 1, H, W) bool,
+        ``dc`` (P, 1, H, W) float64 when asked; 0 where not hit (flow and dc also where not valid).
+    """
+    from flowsynth.kernels.raycast import Instances, TileLists
+    from flowsynth.kernels.reproject import OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
+
+    F, H, W = gb.item.shape
+    want_dc = fB is not None
+    occ_mode = {None: OCC_NONE, "exact": OCC_EXACT, "depth": OCC_DEPTH}[occlusion]
+    N = gb.num_instances
+    if P <= 0 or N == 0 or not gb.hit.any():
+        res = {"valid": np.zeros((P, 1, H, W), bool), "oof": np.zeros((P, 1, H, W), bool)}
+        if flow:
+            res["flow"] = np.zeros((P, 2, H, W), np.float32)
+        if occ_mode != OCC_NONE:
+            res["occ"] = np.zeros((P, 1, H, W), bool)
+        if want_dc:
+            res["dc"] = np.zeros((P, 1, H, W))
+        return res
+    wp = wp_runtime()
+    dev = accel.device if accel is not None and not accel.empty else "cpu"
+    cpu = dev == "cpu"
+    item = wp.array(np.ascontiguousarray(gb.item, np.int32), dtype=wp.int32, device=dev, copy=not cpu)
+    point = wp.array(np.ascontiguousarray(gb.point, np.float32), dtype=wp.vec3, device=dev, copy=not cpu)
+    M = wp.array(np.ascontiguousarray(cam_T_obj, np.float64), dtype=wp.mat44d, device=dev)
+    inst, tiles = Instances(), TileLists()
+    if occ_mode == OCC_EXACT:
+        inst, tiles = accel.instances(), accel.tile_lists(camera)
+    one = (1, 1, 1)
+    dist = wp.array(gb.dist, dtype=wp.float32, device=dev) if occ_mode == OCC_DEPTH else wp.empty(one, wp.float32, dev)
+    dz = wp.array(np.ascontiguousarray(camera.pixel_rays_numpy()[..., 2]) if occ_mode == OCC_DEPTH
+                  else np.zeros((1, 1)), dtype=wp.float64, device=dev)
+    shape = (P, H, W)
+    valid = wp.empty(shape, wp.uint8, dev)
+    oof = wp.empty(shape, wp.uint8, dev)
+    occ = wp.empty(shape if occ_mode != OCC_NONE else one, wp.uint8, dev)
+    fl = wp.empty((P, 2, H, W) if flow else (1, 1, 1, 1), wp.float32, dev)
+    dc = wp.empty(shape if want_dc else one, wp.float64, dev)
+    launch_bands(pair_kernel(flow, occ_mode, want_dc), shape, 1,
+                 [item, point, M, N, int(src0), int(step), wp.mat33d(*np.asarray(K, np.float64).ravel()),
+                  inst, tiles, VISIBILITY_REL_TOL, dist, dz, DEPTH_TEST_REL_TOL, float(fB or 0.0), BAND0],
+                 [valid, oof, occ, fl, dc], dev, threads)
+    res = {"valid": valid.numpy().view(bool)[:, None], "oof": oof.numpy().view(bool)[:, None]}
+    if flow:
+        res["flow"] = fl.numpy()
+    if occ_mode != OCC_NONE:
+        res["occ"] = occ.numpy().view(bool)[:, None]
+    if want_dc:
+        res["dc"] = dc.numpy()[:, None]
+    return res
+
+
 def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
     """Every flow-family key the plan asks for: per (direction, gap k) of ``plan.pair_jobs``, tensors of shape
     (max(T-k, 0), C, H, W) whose index t is the pair (t, t+k); ``motion`` (T-1, 1, H, W)."""
     T, H, W = gb.dist.shape
-    K = scene.camera.K
     want = set(plan.outputs)
     out: dict[str, torch.Tensor] = {}
-    idx = gb.instance_index
     cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)  # (T, N, 4, 4), once per frame and object
-    rays, jobs = [], []
     for name, k in plan.pair_jobs:
         P = max(T - k, 0)  # pairs (t, t+k); none when the clip is not longer than the gap
         key = {kind: gap_key(f"{kind}_{name}", k) for kind in ("flow", "valid", "occ", "oof", "scene_flow")}
-        src = np.arange(P) + (0 if name == "fw" else k)
-        f, i, j = np.nonzero(gb.hit[src])
-        s = src[f]
-        r = s + (k if name == "fw" else -k)
-        n = idx[s, i, j]
-        p = gb.point[s, i, j].astype(np.float64)
+        src0, step = (0, k) if name == "fw" else (k, -k)
         if key["scene_flow"] in want:
+            src = np.arange(P) + src0
+            f, i, j = np.nonzero(gb.hit[src])
+            s = src[f]
             out[key["scene_flow"]] = torch.from_numpy(
-                _scene_flow(f, i, j, src, k if name == "fw" else -k, n, p, world_T_obj, cam_T_world, (P, 3, H, W)))
+                _scene_flow(f, i, j, src, step, gb.instance_index[s, i, j], gb.point[s, i, j].astype(np.float64),
+                            world_T_obj, cam_T_world, (P, 3, H, W)))
         if not want & {key["flow"], key["valid"], key["occ"], key["oof"]}:
             continue
-        X, uv = reproject(p, cam_T_obj[r, n], K)
-        front = X[:, 2] > 0
-        inside = front & (uv[:, 0] >= -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < H - 0.5)
-        flow = np.zeros((P, 2, H, W), np.float32)
-        flow[f, 0, i, j] = np.where(front, uv[:, 0] - j, 0.0)
-        flow[f, 1, i, j] = np.where(front, uv[:, 1] - i, 0.0)
-        masks = {m: np.zeros((P, 1, H, W), bool) for m in ("valid", "oof", "occ")}
-        masks["valid"][f, 0, i, j] = front
-        masks["oof"][f, 0, i, j] = ~inside
-        jobs.append((key, f, i, j, r, X, uv, inside, flow, masks))
-        if key["occ"] in want and plan.occlusion == "exact":
-            rays.append((X[inside], r[inside]))
-    blocked_all = _visibility(accel, rays, plan.threads) if rays else None
-    offset = 0
-    for key, f, i, j, r, X, uv, inside, flow, masks in jobs:
-        if key["occ"] in want:
-            if plan.occlusion == "exact":
-                cnt = int(inside.sum())
-                blocked = blocked_all[offset:offset + cnt]
-                offset += cnt
-            else:
-                blocked = _depth_test(gb, r[inside], X[inside], uv[inside], scene.camera.pixel_rays_numpy()[..., 2])
-            occ = ~inside
-            occ[np.nonzero(inside)[0]] = blocked
-            masks["occ"][f, 0, i, j] = occ
-        out[key["flow"]] = torch.from_numpy(flow)
-        for m, a in masks.items():
-            out[key[m]] = torch.from_numpy(a)
+        res = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,
+                               flow=key["flow"] in want, occlusion=plan.occlusion if key["occ"] in want else None,
+                               threads=plan.threads)
+        for kind in ("flow", "valid", "oof", "occ"):
+            if kind in res:
+                out[key[kind]] = torch.from_numpy(res[kind])
     if "motion" in want:
-        out["motion"] = torch.from_numpy(_motion(gb, idx, world_T_obj))
+        out["motion"] = torch.from_numpy(_motion(gb, gb.instance_index, world_T_obj))
     return {k: v for k, v in out.items() if k in want}
 
 
@@ -146,14 +188,6 @@ def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int |
                   wp.array(r, dtype=wp.int32, device=dev), VISIBILITY_REL_TOL, BAND0],
                  [blocked], dev, threads)
     return blocked.numpy().astype(bool)
-
-
-def _depth_test(gb, r: np.ndarray, X: np.ndarray, uv: np.ndarray, dz: np.ndarray) -> np.ndarray:
-    """Cheap occlusion: compare the point's depth with the target frame's depth at the nearest pixel."""
-    jj = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, gb.dist.shape[2] - 1)
-    ii = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, gb.dist.shape[1] - 1)
-    target_depth = gb.dist[r, ii, jj].astype(np.float64) * dz[ii, jj]
-    return ~gb.hit[r, ii, jj] | (X[:, 2] > target_depth * (1.0 + DEPTH_TEST_REL_TOL))
 
 
 def _motion(gb, idx: np.ndarray, world_T_obj: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from flowsynth.accel import SceneAccel
-from flowsynth.flow import _visibility, reproject
+from flowsynth.flow import reproject_pixels
 
 __all__ = ["right_poses", "stereo_outputs"]
 
@@ -42,18 +42,8 @@ def right_poses(world_T_cam: np.ndarray, baseline: float) -> np.ndarray:
 
 def _occlusion(camera, accel, gb, cam_T_obj_target: np.ndarray, threads) -> np.ndarray:
     """(T, 1, H, W) bool: hit pixels of ``gb`` whose point is not visible from the target view (same frame)."""
-    T, H, W = gb.dist.shape
-    out = np.zeros((T, 1, H, W), bool)
-    f, i, j = np.nonzero(gb.hit)
-    if len(f) == 0:
-        return out
-    X, uv = reproject(gb.point[f, i, j].astype(np.float64), cam_T_obj_target[f, gb.instance_index[f, i, j]],
-                      camera.K)
-    inside = (X[:, 2] > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < H - 0.5)
-    occ = ~inside
-    occ[inside] = _visibility(accel, [(X[inside], f[inside])], threads)
-    out[f, 0, i, j] = occ
-    return out
+    return reproject_pixels(gb, cam_T_obj_target, camera.K, 0, 0, gb.dist.shape[0], accel=accel, camera=camera,
+                            occlusion="exact", threads=threads)["occ"]
 
 
 def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray,
@@ -72,17 +62,9 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
         z = gb.dist.astype(np.float64) * dz
         out["disparity"] = np.where(gb.hit, fB / np.where(gb.hit, z, 1.0), 0.0)[:, None]
     if "disparity_change" in want:
-        T, H, W = gb.dist.shape
-        dc = np.zeros((max(T - 1, 0), 1, H, W))
-        f, i, j = np.nonzero(gb.hit[:-1])
-        n = gb.instance_index[f, i, j]
-        p = gb.point[f, i, j].astype(np.float64)
         cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
-        z0 = reproject(p, cam_T_obj[f, n], cam.K)[0][:, 2]
-        z1 = reproject(p, cam_T_obj[f + 1, n], cam.K)[0][:, 2]
-        ok = z1 > 0
-        dc[f, 0, i, j] = np.where(ok, fB / np.where(ok, z1, 1.0) - fB / z0, 0.0)
-        out["disparity_change"] = dc
+        out["disparity_change"] = reproject_pixels(gb, cam_T_obj, cam.K, 0, 1, max(gb.dist.shape[0] - 1, 0), fB=fB,
+                                                   threads=plan.threads)["dc"]
     right_keys = {"rgb_right", "depth_right", "disparity_right", "disparity_occ", "disparity_occ_right"}
     if want & right_keys:
         world_T_cam_r = right_poses(scene.world_T_cam, B)
