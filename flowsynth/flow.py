@@ -6,13 +6,17 @@ primary cast), with target frame r (r = s + k forward, r = s - k backward, k a f
 
     X_r   = cam_T_world[r] @ world_T_obj[r, n] @ p           (float64)
     valid = hit and X_r.z > 0
-    (u', v') = project(K, X_r)                               (kornia, float64)
+    (u', v') = project(K, X_r)                     (full K, float64; kornia's dehomogenisation)
     flow  = (u' - u, v' - v)         where valid, else 0
     oof   = hit and (X_r.z <= 0 or (u', v') outside [-0.5, W - 0.5) x [-0.5, H - 0.5))
     occ   = oof or (hit and the ray from camera r towards X_r hits a surface closer than
                     (1 - VISIBILITY_REL_TOL) |X_r|)                         (occlusion="exact")
     motion = hit and |world_T_obj[s+1, n] p - world_T_obj[s, n] p| > MOTION_TOL
     scene_flow = cam_T_world[s] (world_T_obj[r, n] - world_T_obj[s, n]) p   [m], where hit, else 0
+
+flow, valid, oof and occ (and stereo's disparity change and view occlusion) come from one Warp kernel thread
+per (pair, pixel) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included: no
+per-point gather of matrices, no compaction. ``reproject`` (numpy + kornia) serves the sparse track points.
 """
 
 from __future__ import annotations
