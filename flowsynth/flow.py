@@ -14,7 +14,7 @@ primary cast), with target frame r (r = s + k forward, r = s - k backward, k a f
     motion = hit and |world_T_obj[s+1, n] p - world_T_obj[s, n] p| > MOTION_TOL
     scene_flow = cam_T_world[s] (world_T_obj[r, n] - world_T_obj[s, n]) p   [m], where hit, else 0
 
-flow, valid, oof and occ (and stereo's disparity change and view occlusion) come from one Warp kernel thread
+flow, valid, oof, occ and scene flow (and stereo's disparity change and view occlusion) come from one Warp kernel thread
 per (pair, pixel) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included: no
 per-point gather of matrices, no compaction. ``reproject`` (numpy + kornia) serves the sparse track points.
 """
@@ -63,6 +63,7 @@ def reproject(points: np.ndarray, M: np.ndarray, K: np.ndarray) -> tuple[np.ndar
 
 def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: int, P: int, *, accel=None,
                      camera=None, flow: bool = False, occlusion: str | None = None, fB: float | None = None,
+                     scene_flow_T: np.ndarray | None = None,
                      threads: int | None = None) -> dict[str, np.ndarray]:
     """Every hit pixel of G-buffer ``gb`` reprojected into a target frame, per pair: one Warp kernel thread per
     (pair, pixel) (flowsynth/kernels/reproject.py), launched in row bands (bit-identical for any ``threads``).
@@ -75,16 +76,18 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         K: (3, 3) intrinsics of the target view (skew included).
         accel, camera: the target view's ``SceneAccel`` and camera (visibility rays, occlusion="exact").
         flow: also return ``flow``; occlusion: None, "exact" or "depth" (``occ``); fB: also return the
-            disparity change ``dc`` = fB / z_target - fB / z_source.
+            disparity change ``dc`` = fB / z_target - fB / z_source; scene_flow_T: (P, N, 4, 4) float64, also
+            return ``scene_flow`` = scene_flow_T[t, n] @ p (where hit, valid or not).
     Returns:
         ``valid``, ``oof`` (P, 1, H, W) bool; ``flow`` (P, 2, H, W) float32, ``occ`` (P, 1, H, W) bool,
-        ``dc`` (P, 1, H, W) float64 when asked; 0 where not hit (flow and dc also where not valid).
+        ``dc`` (P, 1, H, W) float64, ``scene_flow`` (P, 3, H, W) float32 when asked; 0 where not hit (flow and dc also where not valid).
     """
     from flowsynth.kernels.raycast import Instances, TileLists
     from flowsynth.kernels.reproject import OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
 
     F, H, W = gb.item.shape
     want_dc = fB is not None
+    want_sf = scene_flow_T is not None
     occ_mode = {None: OCC_NONE, "exact": OCC_EXACT, "depth": OCC_DEPTH}[occlusion]
     N = gb.num_instances
     if P <= 0 or N == 0 or not gb.hit.any():
@@ -95,6 +98,8 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
             res["occ"] = np.zeros((P, 1, H, W), bool)
         if want_dc:
             res["dc"] = np.zeros((P, 1, H, W))
+        if want_sf:
+            res["scene_flow"] = np.zeros((P, 3, H, W), np.float32)
         return res
     wp = wp_runtime()
     dev = accel.device if accel is not None and not accel.empty else "cpu"
@@ -115,10 +120,14 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     occ = wp.empty(shape if occ_mode != OCC_NONE else one, wp.uint8, dev)
     fl = wp.empty((P, 2, H, W) if flow else (1, 1, 1, 1), wp.float32, dev)
     dc = wp.empty(shape if want_dc else one, wp.float64, dev)
-    launch_bands(pair_kernel(flow, occ_mode, want_dc), shape, 1,
+    sf = wp.empty((P, 3, H, W) if want_sf else (1, 1, 1, 1), wp.float32, dev)
+    sfM = wp.array(np.ascontiguousarray(scene_flow_T, np.float64) if want_sf else np.zeros((1, 1, 4, 4)),
+                   dtype=wp.mat44d, device=dev)
+    launch_bands(pair_kernel(flow, occ_mode, want_dc, want_sf), shape, 1,
                  [item, point, M, N, int(src0), int(step), wp.mat33d(*np.asarray(K, np.float64).ravel()),
-                  inst, tiles, VISIBILITY_REL_TOL, dist, dz, DEPTH_TEST_REL_TOL, float(fB or 0.0), BAND0],
-                 [valid, oof, occ, fl, dc], dev, threads)
+                  inst, tiles, VISIBILITY_REL_TOL, dist, dz, DEPTH_TEST_REL_TOL, float(fB or 0.0), sfM,
+                  BAND0],
+                 [valid, oof, occ, fl, dc, sf], dev, threads)
     res = {"valid": valid.numpy().view(bool)[:, None], "oof": oof.numpy().view(bool)[:, None]}
     if flow:
         res["flow"] = fl.numpy()
@@ -126,6 +135,8 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         res["occ"] = occ.numpy().view(bool)[:, None]
     if want_dc:
         res["dc"] = dc.numpy()[:, None]
+    if want_sf:
+        res["scene_flow"] = sf.numpy()
     return res
 
 
@@ -140,40 +151,21 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
         P = max(T - k, 0)  # pairs (t, t+k); none when the clip is not longer than the gap
         key = {kind: gap_key(f"{kind}_{name}", k) for kind in ("flow", "valid", "occ", "oof", "scene_flow")}
         src0, step = (0, k) if name == "fw" else (k, -k)
-        if key["scene_flow"] in want:
-            src = np.arange(P) + src0
-            f, i, j = np.nonzero(gb.hit[src])
-            s = src[f]
-            out[key["scene_flow"]] = torch.from_numpy(
-                _scene_flow(f, i, j, src, step, gb.instance_index[s, i, j], gb.point[s, i, j].astype(np.float64),
-                            world_T_obj, cam_T_world, (P, 3, H, W)))
-        if not want & {key["flow"], key["valid"], key["occ"], key["oof"]}:
+        if not want & set(key.values()):
             continue
+        sfT = None
+        if key["scene_flow"] in want:  # cam_T_world[s] (world_T_obj[s + step] - world_T_obj[s]) per (pair, object)
+            src = np.arange(P) + src0
+            sfT = np.matmul(cam_T_world[src][:, None], world_T_obj[src + step] - world_T_obj[src])
         res = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,
                                flow=key["flow"] in want, occlusion=plan.occlusion if key["occ"] in want else None,
-                               threads=plan.threads)
-        for kind in ("flow", "valid", "oof", "occ"):
+                               scene_flow_T=sfT, threads=plan.threads)
+        for kind in ("flow", "valid", "oof", "occ", "scene_flow"):
             if kind in res:
                 out[key[kind]] = torch.from_numpy(res[kind])
     if "motion" in want:
         out["motion"] = torch.from_numpy(_motion(gb, gb.instance_index, world_T_obj))
     return {k: v for k, v in out.items() if k in want}
-
-
-def _scene_flow(f, i, j, src, step: int, n, p, world_T_obj: np.ndarray, cam_T_world: np.ndarray,
-                shape: tuple) -> np.ndarray:
-    """(P, 3, H, W) float32: cam_T_world[s] (world_T_obj[s + step, n] - world_T_obj[s, n]) p per hit pixel of
-    pair f (source frame s = src[f]); one pair at a time, so temporaries stay at one frame's pixels."""
-    sf = np.zeros(shape, np.float32)
-    bounds = np.searchsorted(f, np.arange(shape[0] + 1))  # np.nonzero returns f sorted
-    for t in range(shape[0]):
-        a, b = bounds[t], bounds[t + 1]
-        if a == b:
-            continue
-        s = src[t]
-        M = np.matmul(cam_T_world[s], world_T_obj[s + step] - world_T_obj[s])[n[a:b]]  # (Pt, 4, 4)
-        sf[t, :, i[a:b], j[a:b]] = np.einsum("pij,pj->pi", M[:, :3, :3], p[a:b]) + M[:, :3, 3]
-    return sf
 
 
 def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int | None) -> np.ndarray:

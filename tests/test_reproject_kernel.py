@@ -136,3 +136,26 @@ def test_disparity_change_equals_numpy(setup):
     got = reproject_pixels(gb, cam_T_obj, K, 0, 1, T - 1, fB=fB, threads=1)
     np.testing.assert_allclose(got["dc"], dc, rtol=1e-12, atol=1e-9)
     assert np.abs(dc).max() > 1.0
+
+
+@pytest.mark.parametrize("step", [2, -1])
+def test_scene_flow_equals_numpy(setup, step):
+    """scene_flow = cam_T_world[s] (world_T_obj[s + step, n] - world_T_obj[s, n]) p where hit (valid or not)."""
+    scene, accel, gb, cam_T_obj = setup
+    _, cam_T_world, world_T_obj = render_mod.scene_arrays(scene)
+    src0 = max(-step, 0)
+    P = T - abs(step)
+    src = np.arange(P) + src0
+    f, i, j = np.nonzero(gb.hit[src])
+    s = src[f]
+    n = gb.instance_index[s, i, j]
+    p = gb.point[s, i, j].astype(np.float64)
+    xa = (world_T_obj[s, n, :3, :3] @ p[:, :, None])[:, :, 0] + world_T_obj[s, n, :3, 3]
+    xb = (world_T_obj[s + step, n, :3, :3] @ p[:, :, None])[:, :, 0] + world_T_obj[s + step, n, :3, 3]
+    sf = np.zeros((P, 3, H, W))
+    sf[f, :, i, j] = np.einsum("pij,pj->pi", cam_T_world[s, :3, :3], xb - xa)  # world displacement, camera s axes
+    sfT = np.matmul(cam_T_world[src][:, None], world_T_obj[src + step] - world_T_obj[src])
+    got = reproject_pixels(gb, cam_T_obj, K, src0, step, P, scene_flow_T=sfT, threads=1)
+    assert got["scene_flow"].dtype == np.float32
+    np.testing.assert_allclose(got["scene_flow"], sf, rtol=1e-6, atol=1e-6)
+    assert np.abs(sf).max() > 0.5 and (~got["valid"] & gb.hit[src][:, None]).any()

@@ -7,8 +7,8 @@ object-frame point p (float32, promoted to float64) maps to
 
     X = cam_T_obj[r, n] @ p,  valid = X.z > 0,  (u', v') = (K X)[:2] / (K X)[2]   (full K, float64)
 
-and, where requested, flow (u' - j, v' - i), occlusion (exact visibility ray, or the depth-buffer test) and
-disparity change fB / X.z - fB / (cam_T_obj[s, n] @ p).z.
+and, where requested, flow (u' - j, v' - i), occlusion (exact visibility ray, or the depth-buffer test),
+disparity change fB / X.z - fB / (cam_T_obj[s, n] @ p).z and scene flow sfM[t, n] @ p.
 """
 
 from __future__ import annotations
@@ -55,15 +55,16 @@ def blocked_from_camera(inst: Instances, tiles: TileLists, g: wp.int32, lst: wp.
 _PAIR: dict = {}
 
 
-def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool):
+def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False):
     """The pair kernel, specialised so unrequested outputs are compiled out.
 
     Launch dims (P, rows, W) from row ``band0`` (``flowsynth.parallel``). Every pixel of every output is
     written: ``valid`` (uint8, 1 = hit and X.z > 0), ``oof`` (uint8, hit and not inside [-0.5, W - 0.5) x
     [-0.5, H - 0.5)), and when requested ``flow`` (P, 2, H, W) float32, ``occ`` (uint8, oof or blocked),
-    ``dc`` float64 disparity change; all 0 where not hit (flow and dc also where not valid).
+    ``dc`` float64 disparity change, ``sf`` (P, 3, H, W) float32 scene flow ``sfM[t, n] @ p`` (where hit,
+    valid or not); all 0 where not hit (flow and dc also where not valid).
     """
-    key = (bool(want_flow), int(occ_mode), bool(want_dc))
+    key = (bool(want_flow), int(occ_mode), bool(want_dc), bool(want_sf))
     if key in _PAIR:
         return _PAIR[key]
 
@@ -83,6 +84,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool):
         dz: wp.array2d[wp.float64],
         depth_tol: wp.float64,
         fB: wp.float64,
+        sfM: wp.array2d[wp.mat44d],
         band0: wp.int32,
         # outputs
         valid: wp.array3d[wp.uint8],
@@ -90,6 +92,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool):
         occ: wp.array3d[wp.uint8],
         flow: wp.array4d[wp.float32],
         dc: wp.array3d[wp.float64],
+        sf: wp.array4d[wp.float32],
     ):
         t, i, j = wp.tid()
         i += band0
@@ -105,11 +108,20 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool):
                 flow[t, 1, i, j] = 0.0
             if wp.static(want_dc):
                 dc[t, i, j] = wp.float64(0.0)
+            if wp.static(want_sf):
+                sf[t, 0, i, j] = 0.0
+                sf[t, 1, i, j] = 0.0
+                sf[t, 2, i, j] = 0.0
             return
         n = it % n_inst
         r = s + step
         q = point[s, i, j]
         p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
+        if wp.static(want_sf):
+            S = sfM[t, n]
+            sf[t, 0, i, j] = wp.float32(S[0, 0] * p[0] + S[0, 1] * p[1] + S[0, 2] * p[2] + S[0, 3])
+            sf[t, 1, i, j] = wp.float32(S[1, 0] * p[0] + S[1, 1] * p[1] + S[1, 2] * p[2] + S[1, 3])
+            sf[t, 2, i, j] = wp.float32(S[2, 0] * p[0] + S[2, 1] * p[1] + S[2, 2] * p[2] + S[2, 3])
         M = cam_T_obj[r, n]
         x = M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3]
         y = M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3]
