@@ -1,0 +1,108 @@
+"""Per-sample cost of two git revisions side by side: did a change make samples slower?
+
+    python benchmarks/versions.py --base 135a7ea [--head HEAD] [--num 8] [--rounds 3]
+
+Each revision is checked out into a temporary git worktree and imported from there (``PYTHONPATH``), in its
+own process, one thread (``torch.set_num_threads(1)``, ``threads=1`` where the revision has that setting).
+Rounds alternate base/head so that load from other processes hits both alike. Clock: process CPU time per
+sample after one warm-up sample (kernel load), and wall time.
+
+Two settings per revision:
+
+- ``fixed``: issue 13's profile settings, given explicitly so both revisions render the same kind of scene:
+  512x384, T=2, direct RGB, 20 objects, static camera; outputs rgb, depth, normals, instance, flow, valid and
+  occlusion both ways;
+- ``default``: that revision's own default config at 512x384, T=2 (what a user gets), same outputs.
+
+Writes benchmarks/results/versions.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import machine_info, print_table, write_json
+
+REPO = Path(__file__).resolve().parents[1]
+
+CHILD = r"""
+import inspect, json, sys, time
+import torch
+torch.set_num_threads(1)
+import flowsynth as fs
+n, mode = int(sys.argv[1]), sys.argv[2]
+kw = dict(width=512, height=384, num_frames=2)
+if mode == "fixed":
+    kw.update(render_mode="direct", num_objects=(20, 20), camera_motion="static")
+outs = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw"]
+extra = {"threads": 1} if "threads" in inspect.signature(fs.datasets.BouncingThings).parameters else {}
+ds = fs.datasets.BouncingThings(fs.BouncingThingsConfig(**kw), outputs=outs, seed=0, **extra)
+ds.sample(0)
+c, t = time.process_time(), time.perf_counter()
+for i in range(1, n + 1):
+    ds.sample(i)
+print(json.dumps({"file": fs.__file__, "cpu_s": (time.process_time() - c) / n, "wall_s": (time.perf_counter() - t) / n}))
+"""
+
+
+def run_child(tree: Path, n: int, mode: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    out = subprocess.run([sys.executable, "-c", CHILD, str(n), mode], cwd=tree, env=env, capture_output=True,
+                         text=True, check=True).stdout.strip().splitlines()[-1]
+    res = json.loads(out)
+    if not res["file"].startswith(str(tree)):  # the revision under test, not an installed flowsynth
+        raise RuntimeError(f"imported {res['file']}, expected a module under {tree}")
+    return res
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--base", required=True, help="git revision before the change")
+    p.add_argument("--head", default="HEAD", help="git revision after the change")
+    p.add_argument("--num", type=int, default=8, help="timed samples per run")
+    p.add_argument("--rounds", type=int, default=3)
+    args = p.parse_args()
+    revs = {name: subprocess.run(["git", "rev-parse", "--short", rev], cwd=REPO, capture_output=True, text=True,
+                                 check=True).stdout.strip() for name, rev in (("base", args.base), ("head", args.head))}
+    load0 = os.getloadavg()
+    times: dict = {(name, mode): [] for name in revs for mode in ("fixed", "default")}
+    with tempfile.TemporaryDirectory() as tmp:
+        trees = {name: Path(tmp) / name for name in revs}
+        for name, rev in revs.items():
+            subprocess.run(["git", "worktree", "add", "-q", "--detach", str(trees[name]), rev], cwd=REPO, check=True)
+        try:
+            for _ in range(args.rounds):
+                for name in revs:
+                    for mode in ("fixed", "default"):
+                        times[(name, mode)].append(run_child(trees[name], args.num, mode))
+        finally:
+            for tree in trees.values():
+                subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, check=False)
+    rows = []
+    for mode in ("fixed", "default"):
+        med = {name: statistics.median(r["cpu_s"] for r in times[(name, mode)]) for name in revs}
+        wall = {name: statistics.median(r["wall_s"] for r in times[(name, mode)]) for name in revs}
+        rows.append({"settings": mode, f"base {revs['base']} cpu s": med["base"],
+                     f"head {revs['head']} cpu s": med["head"], "head/base cpu": med["head"] / med["base"],
+                     "base samples/s (cpu)": 1 / med["base"], "head samples/s (cpu)": 1 / med["head"],
+                     "head/base wall": wall["head"] / wall["base"]})
+    load1 = os.getloadavg()
+    print(f"\nPer-sample cost, one thread, medians of {args.rounds} alternating rounds of {args.num} samples; "
+          f"load average {load0[0]:.1f} -> {load1[0]:.1f}")
+    print_table(rows, list(rows[0]))
+    write_json("versions", {"machine": machine_info(), "revisions": revs, "load_average": [load0, load1],
+                            "num": args.num, "rounds": args.rounds, "rows": rows,
+                            "runs": {f"{k[0]}/{k[1]}": v for k, v in times.items()}})
+
+
+if __name__ == "__main__":
+    main()
