@@ -154,22 +154,33 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
 
 
 @wp.func
+def any_in_list(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
+                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], items: wp.array[wp.int32],
+                a: wp.int32, b: wp.int32, d: wp.vec3, max_t: wp.float32):
+    """Any hit before ``max_t`` along the camera-centre ray ``d`` among ``items[a:b]`` (sorted nearest box
+    first, so the walk stops at the first box that starts beyond ``max_t``). Takes the Instances arrays it
+    reads, not the struct: a struct argument is copied per call."""
+    for k in range(a, b):
+        item = items[k]
+        if near[item] >= max_t:
+            break
+        te = box_entry(lowers[item], uppers[item], d)
+        if te >= 0.0 and te < max_t:
+            X = obj_T_ref[item]
+            if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(X[0, 3], X[1, 3], X[2, 3]),
+                                        wp.transform_vector(X, d), max_t):
+                return True
+    return False
+
+
+@wp.func
 def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32):
     """``trace_any`` for a ray leaving the camera centre of frame g: the frame's instances near to far,
     first blocker ends the walk (any-hit mesh queries)."""
     if inst.use_bvh != 0:
         return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, wp.vec3(0.0), d, max_t)
-    for k in range(inst.frame_start[g], inst.frame_start[g + 1]):
-        item = inst.frame_items[k]
-        if inst.near[item] >= max_t:
-            break
-        te = box_entry(inst.lowers[item], inst.uppers[item], d)
-        if te >= 0.0 and te < max_t:
-            X = inst.obj_T_ref[item]
-            if wp.mesh_query_ray_anyhit(inst.item_mesh[item], wp.vec3(X[0, 3], X[1, 3], X[2, 3]),
-                                        wp.transform_vector(X, d), max_t):
-                return True
-    return False
+    return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref, inst.frame_items,
+                       inst.frame_start[g], inst.frame_start[g + 1], d, max_t)
 
 
 @wp.func

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from flowsynth.kernels.raycast import Instances, TileLists, box_entry, trace_any
+from flowsynth.kernels.raycast import Instances, TileLists, any_in_list, trace_any
 
 __all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "blocked_from_camera", "pair_kernel"]
 
@@ -39,17 +39,8 @@ def blocked_from_camera(inst: Instances, tiles: TileLists, g: wp.int32, lst: wp.
     max_t = L * (1.0 - rel_tol)
     if inst.use_bvh != 0:
         return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, wp.vec3(0.0), d, max_t)
-    for k in range(tiles.start[lst], tiles.start[lst + 1]):
-        item = tiles.items[k]
-        if inst.near[item] >= max_t:
-            break
-        te = box_entry(inst.lowers[item], inst.uppers[item], d)
-        if te >= 0.0 and te < max_t:
-            X = inst.obj_T_ref[item]
-            if wp.mesh_query_ray_anyhit(inst.item_mesh[item], wp.vec3(X[0, 3], X[1, 3], X[2, 3]),
-                                        wp.transform_vector(X, d), max_t):
-                return True
-    return False
+    return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref, tiles.items,
+                       tiles.start[lst], tiles.start[lst + 1], d, max_t)
 
 
 _PAIR: dict = {}
