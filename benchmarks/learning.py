@@ -331,7 +331,8 @@ def main() -> None:
                      "ratio fs/chairs": res["flowsynth"]["test_epe"] / res["chairs2d"]["test_epe"]})
     print(f"\nTest EPE [px] on {n_test} homography-warped scikit-image photos ({W}x{H}) after {steps} steps of "
           f"batch {batch} from pools of {pool} pairs; net of {runs[0]['results']['flowsynth']['parameters']} "
-          f"parameters. Load: {load}")
+          f"parameters. Load at the start: {load}; at the end: "
+          f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()}")
     print_table(rows, ["seed", "zero-flow EPE", "untrained EPE", "flowsynth EPE", "chairs2d EPE", "ratio fs/chairs"])
     ratio = float(np.mean([r["ratio fs/chairs"] for r in rows]))
     verdict = "flowsynth better" if ratio < 0.98 else "baseline better" if ratio > 1.02 else "no clear difference"
