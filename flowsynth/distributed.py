@@ -1,26 +1,28 @@
 """Scale-out on Ray (the optional ``flowsynth[ray]`` extra): a Ray Data dataset of samples, and export.
 
-Both run flowsynth in a fixed pool of Ray actors (``ray.data.ActorPoolStrategy``), one CPU each. An
-actor pays the setup once in ``__init__`` (dataset, kernel compile or cache load, mesh caches) and
-renders with one thread (``flowsynth.parallel.set_worker_process``), like a DataLoader or export
-worker process: actors x threads never exceed the CPUs Ray was given.
+Both run flowsynth in a fixed pool of Ray actors, one CPU each. An actor pays the setup once in
+``__init__`` (imports, dataset, mesh caches; Warp kernels load from the node's cache, or compile, at its
+first sample) and renders with one thread (``flowsynth.parallel.set_worker_process``), like a
+DataLoader or export worker process: actors x threads never exceed the CPUs Ray was given.
 
-The pipeline starts from ``ray.data.from_items`` (the sample indices, held in the driver), not from
-``ray.data.range``: a ``range`` read task needs a CPU of its own, and on a cluster whose every CPU is
-held by an actor it never runs (measured with Ray 2.60 on ``ray.init(num_cpus=2)``: an actor pool of
-2 behind ``range(8)`` never finishes; behind ``from_items`` it returns all rows).
+``ray_dataset`` is a Ray Data pipeline (``ray.data.ActorPoolStrategy``). It starts from
+``ray.data.from_items`` (the sample indices, held in the driver), not from ``ray.data.range``: a
+``range`` read task needs a CPU of its own, and on a cluster whose every CPU is held by an actor it
+never runs (measured with Ray 2.60 on ``ray.init(num_cpus=2)``: an actor pool of 2 behind
+``range(8)`` never finishes; behind ``from_items`` it returns all rows). Its actors are Ray Data's,
+created with ``max_restarts=-1`` and ``max_task_retries=-1``
+(``ray/data/_internal/execution/operators/actor_pool_map_operator.py``), so an actor that dies is
+restarted and its batch runs again.
 
-Fault tolerance is Ray Data's: its actor-pool actors are created with ``max_restarts=-1`` and
-``max_task_retries=-1`` (``ray/data/_internal/execution/operators/actor_pool_map_operator.py``), so
-an actor that dies is restarted and its batch runs again; samples are pure functions of
-(config, seed, index), so the retry writes the same bytes.
+Export needs no dataset, only "run this job somewhere and give me its record": ``export_results``
+drives plain actors with the same restart options itself. Samples are pure functions of
+(config, seed, index), so a retry writes the same bytes.
 
 Nothing outside this module imports Ray, and this module imports it only inside its functions.
 """
 
 from __future__ import annotations
 
-import pickle
 from collections.abc import Iterator, Sequence
 
 from flowsynth.errors import ConfigError
@@ -54,12 +56,16 @@ def _cluster_cpus(ray) -> int:
     return max(int(ray.cluster_resources().get("CPU", 1)), 1)
 
 
-def _pool(ray, actors: int | None, items: int):
-    """A fixed actor pool: ``actors`` (default: every CPU of the cluster), at most one per item."""
+def _pool_size(ray, actors: int | None, items: int) -> int:
+    """Actors in a pool: ``actors`` (default: every CPU of the cluster), at most one per item."""
     if actors is not None and (isinstance(actors, bool) or not isinstance(actors, int) or actors < 1):
         raise ConfigError(f"actors must be None (one per cluster CPU) or an integer >= 1, got {actors!r}")
-    size = min(actors or _cluster_cpus(ray), items)
-    return ray.data.ActorPoolStrategy(size=size)
+    return min(actors or _cluster_cpus(ray), items)
+
+
+def _pool(ray, actors: int | None, items: int):
+    """A fixed Ray Data actor pool of :func:`_pool_size` actors."""
+    return ray.data.ActorPoolStrategy(size=_pool_size(ray, actors, items))
 
 
 class SampleRenderer:
@@ -119,35 +125,64 @@ def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] 
 
 
 class ExportWriter:
-    """Ray Data actor around the local exporter's per-sample writer: ``{"item": pickled jobs}`` ->
-    ``{"result": pickled return values}`` of ``flowsynth.export._write_one`` (the files are on disk)."""
+    """Ray actor around the local exporter's per-sample writer: runs
+    ``flowsynth.export._init_pool_worker(*initargs)`` once, then ``write(job)`` is
+    ``flowsynth.export._write_one(job)`` (the files are on disk, the record comes back)."""
 
     def __init__(self, initargs: tuple) -> None:
         from flowsynth.export import _init_pool_worker
 
         _init_pool_worker(*initargs)
 
-    def __call__(self, batch: dict) -> dict:
-        import numpy as np
-
+    def write(self, job: tuple) -> tuple:
         from flowsynth.export import _write_one
 
-        return {"result": np.array([pickle.dumps(_write_one(pickle.loads(job))) for job in batch["item"]],
-                                   dtype=object)}
+        return _write_one(job)
+
+
+_IN_FLIGHT = 2  # jobs queued per actor: the next one waits in the actor while the driver handles a result
 
 
 def export_results(jobs: list, initargs: tuple, *, actors: int | None = None, address: str | None = None) -> Iterator:
-    """Run ``flowsynth.export._write_one(job)`` for every job in a Ray actor pool; yields its return
+    """Run ``flowsynth.export._write_one(job)`` for every job in a pool of Ray actors; yields its return
     values in completion order. Each actor runs ``flowsynth.export._init_pool_worker(*initargs)`` once.
 
-    An attempt cut short by a dying actor leaves a staging folder ``.tmp-*`` that no result names; the
-    exporter removes those when the run ends.
+    Plain actors, not Ray Data (whose map operator would add a stats actor, a Ray Data import in every
+    actor and a polling executor in the driver: start-up measured in benchmarks/ray_export.py). They are
+    created with ``max_restarts=-1, max_task_retries=-1``, so an actor that dies is restarted and its
+    queued and running jobs run again on it; jobs are pure functions of (config, seed, index), so a
+    retry writes the same bytes. An attempt cut short by a dying actor leaves a staging folder
+    ``.tmp-*`` that no result names; the exporter removes those when the run ends. When the caller
+    stops early (an error, an interrupt), the actors are killed and waited for before this returns, so
+    none writes a staging folder after the exporter has cleaned up.
     """
+    from collections import deque
+
     ray = connect(address)
-    ds = ray.data.from_items([pickle.dumps(job) for job in jobs], override_num_blocks=len(jobs))
-    ds = ds.map_batches(ExportWriter, fn_constructor_args=(initargs,), batch_size=1, num_cpus=1,
-                        compute=_pool(ray, actors, len(jobs)), batch_format="numpy")
-    ds.context.enable_progress_bars = False  # the exporter's driver shows its own bar
-    for batch in ds.iter_batches(batch_size=None, batch_format="numpy", prefetch_batches=0):
-        for res in batch["result"]:
-            yield pickle.loads(res)
+    size = _pool_size(ray, actors, len(jobs))
+    writer = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=-1)(ExportWriter)
+    pool = [writer.remote(initargs) for _ in range(size)]  # every actor starts at once
+    queue = deque(jobs)
+    running: dict = {}  # ObjectRef -> the actor it runs on
+
+    def submit(actor) -> None:
+        if queue:
+            running[actor.write.remote(queue.popleft())] = actor
+
+    try:
+        for _ in range(_IN_FLIGHT):
+            for actor in pool:
+                submit(actor)
+        while running:
+            [done], _ = ray.wait(list(running), num_returns=1)
+            submit(running.pop(done))
+            try:
+                result = ray.get(done)
+            except ray.exceptions.RayTaskError as e:  # the job's own exception, as the local pool raises it
+                raise (e.cause if isinstance(e.cause, Exception) else e) from e
+            yield result
+    finally:
+        for actor in pool:
+            ray.kill(actor, no_restart=True)
+        if running:  # they fail once their actor is dead: then no attempt writes any more
+            ray.wait(list(running), num_returns=len(running), timeout=60)
