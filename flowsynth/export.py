@@ -329,6 +329,7 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
     jobs = [(i, str(root)) for i in todo]
     records: list[tuple[int, dict]] = []  # (index, stats record): summed in index order, whatever the engine
     pool = None
+    results = None
     journal = None
     try:
         if engine == "ray" and jobs:
@@ -361,6 +362,8 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
                 journal.seek(0)
                 journal.truncate()
     finally:
+        if hasattr(results, "close"):  # a Ray run stopped early: its actors stop before the staging is removed
+            results.close()
         if pool is not None:
             pool.shutdown(cancel_futures=True)
         for tmp in root.glob(".tmp-*"):  # staging of samples that never got placed

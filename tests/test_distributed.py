@@ -194,3 +194,46 @@ def test_killed_driver_resumes(cluster, tmp_path):
     assert sorted(ray_tree) == sorted(local)
     assert [k for k in local if k != "manifest.json" and ray_tree[k] != local[k]] == []
     assert json.loads(ray_tree["manifest.json"])["samples"] == json.loads(local["manifest.json"])["samples"]
+
+
+@pytest.mark.ray
+def test_ray_job_error_is_the_local_one(cluster, tmp_path):
+    """A job that fails in an actor raises what the same job raises in this process (type and errno), not
+    Ray's wrapper: the exporter turns an OSError into StorageError (exit status 3) with its errno."""
+    from flowsynth.distributed import export_results
+    from flowsynth.export import _init_worker, _write_one
+    from flowsynth.io import layouts
+
+    initargs = (CFG, OUTS.split(","), 0, "exact", layouts.get("native"))
+    job = (0, str(tmp_path / "missing"))  # the staging folder cannot be made there
+    _init_worker(*initargs)
+    with pytest.raises(OSError) as local:
+        _write_one(job)
+    with pytest.raises(OSError) as remote:
+        list(export_results([job], initargs, actors=1))
+    assert type(remote.value) is type(local.value) and remote.value.errno == local.value.errno is not None
+    assert not (tmp_path / "missing").exists()
+
+
+@pytest.mark.ray
+def test_driver_failure_stops_the_actors_before_cleaning_up(cluster, tmp_path, monkeypatch):
+    """The driver fails placing its first sample: the export raises StorageError, its actors are gone, and no
+    staging folder is left, nor written later by an actor still working on a queued sample."""
+    import flowsynth.export as ex
+
+    def full_disk(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ex, "_place", full_disk)
+    out = tmp_path / "ray"
+    from flowsynth.errors import StorageError
+
+    with pytest.raises(StorageError) as err:
+        ex.export(CFG, out, 8, seed=1, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
+    assert err.value.errno == 28
+    deadline = time.time() + 30  # killed and waited for; their processes may take a moment to exit
+    while _actor_pids("ExportWriter") and time.time() < deadline:
+        time.sleep(0.1)
+    assert _actor_pids("ExportWriter") == []
+    time.sleep(3)  # a sample of this size renders in well under a second
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".tmp-")) == []
