@@ -216,8 +216,13 @@ def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0):
     return tuple(torch.stack(x) for x in out)
 
 
-def photo_pairs(n: int, seed: int):
-    """n test pairs: crops of scikit-image photos warped by random homographies; flow of frame 0 exact."""
+def photo_pairs(n: int, seed: int, symmetric: bool = False):
+    """n test pairs: crops of scikit-image photos warped by random homographies; flow of frame 0 exact.
+
+    Default ("resampled"): frame 0 is the crop resized (INTER_AREA), frame 1 is frame 0 warped bilinearly, so
+    only frame 1 carries resampling blur, as in the chairs2d baseline's pairs. ``symmetric``: both frames are
+    sampled bilinearly from the same anti-aliased photo (Gaussian of sigma 0.5 source px per test px), frame 1
+    through the homography, so neither frame is a resampled copy of the other."""
     import cv2
     import numpy as np
     import skimage.data
@@ -237,11 +242,19 @@ def photo_pairs(n: int, seed: int):
         s = rng.uniform(0.25, 0.6) * min(im.shape[0] / H, im.shape[1] / W)  # source pixels per test pixel
         h, w = int(H * s), int(W * s)
         y0, x0 = rng.integers(0, im.shape[0] - h + 1), rng.integers(0, im.shape[1] - w + 1)
-        img1 = cv2.resize(im[y0:y0 + h, x0:x0 + w], (W, H), interpolation=cv2.INTER_AREA)
         corners = np.array([[0, 0], [W - 1, 0], [W - 1, H - 1], [0, H - 1]], np.float32)
         moved = corners + rng.normal(size=2) * 3.0 + rng.uniform(-6, 6, size=(4, 2))
         Hm = cv2.getPerspectiveTransform(corners, moved.astype(np.float32)).astype(np.float64)
-        img2 = cv2.warpPerspective(img1, Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        if symmetric:
+            sx, sy = w / W, h / H  # test pixel centre x -> source (x + 0.5) * sx - 0.5 + x0
+            A = np.array([[sx, 0, x0 + 0.5 * sx - 0.5], [0, sy, y0 + 0.5 * sy - 0.5], [0, 0, 1]])
+            src = cv2.GaussianBlur(im, (0, 0), 0.5 * max(sx, sy))
+            inv = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            img1 = cv2.warpPerspective(src, A, (W, H), flags=inv, borderMode=cv2.BORDER_REFLECT)
+            img2 = cv2.warpPerspective(src, A @ np.linalg.inv(Hm), (W, H), flags=inv, borderMode=cv2.BORDER_REFLECT)
+        else:
+            img1 = cv2.resize(im[y0:y0 + h, x0:x0 + w], (W, H), interpolation=cv2.INTER_AREA)
+            img2 = cv2.warpPerspective(img1, Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         q = pts @ Hm.T
         q = q[..., :2] / q[..., 2:]
         flow = q - pts[..., :2]
@@ -300,6 +313,8 @@ def main() -> None:
     p.add_argument("--seeds", default="0")
     p.add_argument("--workers", type=int, default=2, help="DataLoader workers generating flowsynth pairs")
     p.add_argument("--threads", type=int, default=2, help="torch threads for training")
+    p.add_argument("--test", choices=("resampled", "symmetric"), default="resampled",
+                   help="how test frame 1 is made (photo_pairs); results of 'symmetric' go to learning_symmetric.json")
     args = p.parse_args()
     import numpy as np
     import torch
@@ -317,7 +332,7 @@ def main() -> None:
         pilot = chairs2d_pairs(64, seed + 1, sources)
         motion_scale = mean_flow(fs_train) / mean_flow(pilot)  # same mean |flow| as the flowsynth pool
         chairs = chairs2d_pairs(pool, seed, sources, motion_scale)
-        test = photo_pairs(n_test, seed)
+        test = photo_pairs(n_test, seed, symmetric=args.test == "symmetric")
         zero = float((torch.linalg.vector_norm(test[2], dim=1, keepdim=True) * test[3]).sum() / test[3].sum())
         res = {name: train(data, test, steps, batch, seed) for name, data in
                (("flowsynth", fs_train), ("chairs2d", chairs))}
@@ -329,9 +344,9 @@ def main() -> None:
                      "flowsynth EPE": res["flowsynth"]["test_epe"],
                      "chairs2d EPE": res["chairs2d"]["test_epe"],
                      "ratio fs/chairs": res["flowsynth"]["test_epe"] / res["chairs2d"]["test_epe"]})
-    print(f"\nTest EPE [px] on {n_test} homography-warped scikit-image photos ({W}x{H}) after {steps} steps of "
-          f"batch {batch} from pools of {pool} pairs; net of {runs[0]['results']['flowsynth']['parameters']} "
-          f"parameters. Load at the start: {load}; at the end: "
+    print(f"\nTest EPE [px] on {n_test} homography-warped scikit-image photos ({W}x{H}, test frames {args.test}) "
+          f"after {steps} steps of batch {batch} from pools of {pool} pairs; net of "
+          f"{runs[0]['results']['flowsynth']['parameters']} parameters. Load at the start: {load}; at the end: "
           f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()}")
     print_table(rows, ["seed", "zero-flow EPE", "untrained EPE", "flowsynth EPE", "chairs2d EPE", "ratio fs/chairs"])
     ratio = float(np.mean([r["ratio fs/chairs"] for r in rows]))
@@ -341,9 +356,10 @@ def main() -> None:
     print(f"mean ratio flowsynth / chairs2d: {ratio:.3f} ({verdict})"
           + ("" if learned else "; neither net beat zero flow by 2%: this budget did not train them"))
     print("mean |flow| [px]: " + ", ".join(f"{k} {v:.2f}" for k, v in runs[0]["mean_flow_px"].items()))
-    write_json("learning", {"machine": machine_info(), "load": load, "resolution": [W, H], "steps": steps,
-                            "batch": batch, "pool": pool, "test_pairs": n_test, "photos": list(PHOTOS),
-                            "flowsynth_config": cfg.to_dict(), "runs": runs, "mean_ratio": ratio})
+    write_json("learning" if args.test == "resampled" else f"learning_{args.test}",
+               {"machine": machine_info(), "load": load, "test": args.test, "resolution": [W, H], "steps": steps,
+                "batch": batch, "pool": pool, "test_pairs": n_test, "photos": list(PHOTOS),
+                "flowsynth_config": cfg.to_dict(), "runs": runs, "mean_ratio": ratio})
 
 
 if __name__ == "__main__":
