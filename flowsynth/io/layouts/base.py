@@ -14,6 +14,7 @@ To add a layout, subclass :class:`Layout` in a new module of this package and de
 from __future__ import annotations
 
 import shutil
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
@@ -29,8 +30,8 @@ EXR_COMPRESSIONS = tuple(COMPRESSIONS)
 """Lossless OpenEXR compressions an export may use for its float32 files (bit-exact round trip)."""
 
 
-class Layout:
-    """Base class of export layouts. Subclasses set the class attributes and override the methods.
+class Layout(ABC):
+    """Base class of export layouts. Subclasses set the class attributes and implement ``write`` and ``read``.
 
     Args:
         exr_compression: compression of the EXR files the layout writes, one of
@@ -88,6 +89,7 @@ class Layout:
             raise ConfigError(f"layout {self.name} numbers pairs with {self.pair_digits} digits; --num {num} with "
                               f"num_frames {cfg.num_frames} makes {pairs} pairs; lower --num or --num-frames")
 
+    @abstractmethod
     def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
         """Write sample ``index`` under the staging ``folder`` (empty; laid out like the export root).
 
@@ -100,15 +102,14 @@ class Layout:
             relative path -> the output it stores (``"rgb"``, ``"flow_fw"``, ...; ``"meta"`` for
             metadata), for every file written; ``--dry-run`` sums sizes by that output.
         """
-        raise NotImplementedError
 
+    @abstractmethod
     def read(self, root: Path, files: Sequence[str]) -> dict[str, torch.Tensor]:
         """Read one sample back from its files (relative paths under ``root``, as in the manifest).
 
         Returns:
             a sample dict with the stream's keys, shapes and dtypes, for the outputs the layout stores.
         """
-        raise NotImplementedError
 
     def finish(self, root: Path, num: int, cfg) -> list[str]:
         """Write index files that cover the whole export (after the last sample); returns their paths."""
