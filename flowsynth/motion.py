@@ -59,6 +59,11 @@ DENSITY = 1000.0
 """Density of every object [kg/m^3]; mass and inertia come from the collider's convex hull."""
 EPS_SPEED = 1e-6
 """Speeds below this [m/s] or [rad/s] have no usable direction (float32 state)."""
+_FREE_JOINTS = False
+"""Give every body a free joint (Newton's ``add_body``) instead of none (``add_link``). A free joint constrains
+nothing, but XPBD still runs a joint pass per iteration for it (a zero correction plus a pose renormalisation:
+trajectories differ by float32 round-off, tests/test_motion.py) and costs a third of a 2-frame clip's physics
+(model build, capture; benchmarks/throughput.py). True only in tests comparing the two."""
 
 
 @dataclass(frozen=True)
@@ -173,7 +178,8 @@ def choose_substeps(cfg: BouncingThingsConfig, sizes: Sequence[float]) -> int:
     The fastest relative approach of two surface points is 2 max_speed + max_angular_speed * max_size
     (each object translates at <= max_speed and a point at distance <= size/2 from the origin rotates
     at <= angular_speed * size / 2); walls approach at half that. Result clamped to
-    [MIN_SUBSTEPS, MAX_SUBSTEPS] and rounded up to an even number (substeps run in captured pairs).
+    [MIN_SUBSTEPS, MAX_SUBSTEPS] and rounded up to an even number (kept from when substeps ran in captured
+    pairs, so the counts did not change).
     """
     if len(sizes) == 0:
         return MIN_SUBSTEPS
@@ -192,7 +198,7 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
         return simulate_static(initial, num_frames)
     sizes = [a.size for a in assets]
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
-    n_sub += n_sub % 2  # substeps run in captured pairs (two state buffers, swapped every substep)
+    n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
     sim = _NewtonScene(cfg, assets, initial, n_sub)
     poses = np.empty((num_frames, N, 4, 4))
     vel = np.empty((num_frames, N, 3))
@@ -255,9 +261,9 @@ class _NewtonScene:
             hull = asset.collider.hull
             mass = DENSITY * float(hull.volume)
             inertia = DENSITY * np.asarray(hull.moment_inertia_frame(np.eye(4)), dtype=np.float64)
-            body = b.add_body(xform=wp.transform(wp.vec3(*initial.position[i]), wp.quat(*quats[i])),
-                              com=wp.vec3(0.0, 0.0, 0.0), mass=mass, inertia=wp.mat33(*inertia.ravel()),
-                              lock_inertia=True, label=f"object_{i}")
+            body = (b.add_body if _FREE_JOINTS else b.add_link)(
+                xform=wp.transform(wp.vec3(*initial.position[i]), wp.quat(*quats[i])), com=wp.vec3(0.0, 0.0, 0.0),
+                mass=mass, inertia=wp.mat33(*inertia.ravel()), lock_inertia=True, label=f"object_{i}")
             _add_collider(b, body, asset, shape_cfg)
         self.model = b.finalize(device="cpu")
         self.state0, self.state1 = self.model.state(), self.model.state()
@@ -277,29 +283,31 @@ class _NewtonScene:
         self.graph = None
 
     def advance_frame(self) -> None:
-        """Advance one frame. Two substeps are captured once into a Warp CPU graph and replayed
-        substeps / 2 times: replay skips Python launch overhead (~40 launches per substep; benchmarks/physics_graph.py
-        measures plain against replayed stepping)."""
+        """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
+        times: replay skips Python launch overhead (~30 launches per substep; benchmarks/physics_graph.py
+        measures plain against replayed stepping), and capturing one substep instead of two halves the
+        capture, which is most of the Newton cost of a 2-frame clip (benchmarks/throughput.py)."""
         import warp as wp
 
         if self.graph is None:
             with wp.ScopedCapture(device="cpu") as capture:
                 self._substep()
-                self._substep()
             self.graph = capture.graph
-        for _ in range(self.substeps // 2):
+        for _ in range(self.substeps):
             wp.capture_launch(self.graph)
 
     def _substep(self) -> None:
+        """collide and step state0 -> state1, then clamp the speeds of state1 into state0 (one launch that
+        also copies the poses back, so every substep starts from state0 and one substep can be captured)."""
         import warp as wp
 
         self.pipeline.collide(self.state0, self.contacts)
         self.solver.step(self.state0, self.state1, self.control, self.contacts, self.dt)
-        self.state0, self.state1 = self.state1, self.state0
         cfg = self.cfg
         wp.launch(_clamp_kernel(), dim=self.model.body_count, device="cpu",
-                  inputs=[cfg.min_speed, cfg.max_speed, cfg.angular_speed[0], cfg.angular_speed[1]],
-                  outputs=[self.state0.body_qd, self.last_dir, self.last_axis])
+                  inputs=[cfg.min_speed, cfg.max_speed, cfg.angular_speed[0], cfg.angular_speed[1],
+                          self.state1.body_q, self.state1.body_qd],
+                  outputs=[self.state0.body_q, self.state0.body_qd, self.last_dir, self.last_axis])
 
     def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = self.state0.body_q.numpy().astype(np.float64)  # (N, 7): px py pz qx qy qz qw
@@ -310,7 +318,8 @@ class _NewtonScene:
 
 @functools.cache
 def _clamp_kernel():
-    """Warp kernel that clamps each body's linear and angular speed into a band, keeping directions.
+    """Warp kernel that copies each body's pose and clamps its linear and angular speed into a band,
+    keeping directions (from the solver's output state into its input state).
 
     Built on first use so that importing this module never imports Warp.
     """
@@ -336,15 +345,19 @@ def _clamp_kernel():
         v_hi: float,
         w_lo: float,
         w_hi: float,
+        body_q_in: wp.array(dtype=wp.transform),
+        body_qd_in: wp.array(dtype=wp.spatial_vector),
         # outputs
+        body_q: wp.array(dtype=wp.transform),
         body_qd: wp.array(dtype=wp.spatial_vector),
         last_dir: wp.array(dtype=wp.vec3),
         last_axis: wp.array(dtype=wp.vec3),
     ):
         i = wp.tid()
-        qd = body_qd[i]
+        qd = body_qd_in[i]
         v, dv = clamp_norm(wp.spatial_top(qd), last_dir[i], v_lo, v_hi)
         w, dw = clamp_norm(wp.spatial_bottom(qd), last_axis[i], w_lo, w_hi)
+        body_q[i] = body_q_in[i]
         body_qd[i] = wp.spatial_vector(v, w)
         last_dir[i] = dv
         last_axis[i] = dw

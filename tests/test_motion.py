@@ -125,6 +125,23 @@ def test_first_frame_is_the_initial_state(runs):
     np.testing.assert_allclose(traj.poses[0, :, :3, :3], layout.initial.rotation, atol=1e-6)
 
 
+@pytest.mark.parametrize("name, cfg, index", [("slow", SLOW, 1), ("fast", FAST, 0), ("falling", FALLING, 1)])
+def test_bodies_without_joints_move_as_with_free_joints(monkeypatch, name, cfg, index):
+    """The bodies have no joint (faster); Newton's free joint constrains nothing, so four colliding frames
+    with one per body (``add_body``, the reference) agree to float32 round-off (measured <= 6e-6)."""
+    from flowsynth import motion
+
+    cfg = replace(cfg, num_frames=4)
+    layout = sample_layout(cfg, 0, index)
+    got = simulate(cfg, layout.assets, layout.initial)
+    monkeypatch.setattr(motion, "_FREE_JOINTS", True)
+    ref = simulate(cfg, layout.assets, layout.initial)
+    assert not np.array_equal(got.poses[1:], got.poses[:-1])  # they move
+    np.testing.assert_allclose(got.poses, ref.poses, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(got.velocity, ref.velocity, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(got.angular_velocity, ref.angular_velocity, rtol=0, atol=1e-4)
+
+
 def test_substep_rule():
     sizes = [0.3, 0.6]
     slow = choose_substeps(BouncingThingsConfig(min_speed=0.1, max_speed=0.2, angular_speed=(0, 0.1)), sizes)
