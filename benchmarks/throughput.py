@@ -1,8 +1,14 @@
 """Streaming throughput: samples/s per output set and worker count, what each plan skip saves, memory.
 
     python benchmarks/throughput.py [--quick]
+    python benchmarks/throughput.py --ratio [--samples 12]
 
 Writes benchmarks/results/throughput.json. Times are wall-clock on this machine (see "machine").
+
+``--ratio`` runs only issue 13's "skipping pays" check (goal: depth-only >= 4x faster than the full stream at
+256x192, T=2): depth-only and full samples of the same indices, alternated in one process after a warm-up
+(caches of a long stream filled), timed by process CPU time (and wall), default threads; writes
+benchmarks/results/throughput_ratio.json.
 """
 
 from __future__ import annotations
@@ -82,6 +88,41 @@ def skip_savings(cfg, n: int) -> list[dict]:
     return rows
 
 
+def depth_vs_full(n: int, warm: int = 30) -> dict:
+    """Process CPU and wall seconds per sample of the depth-only and the full stream at 256x192, T=2, the same
+    indices alternated, after ``warm`` depth-only samples of other indices (asset BVHs, hulls and Newton's
+    per-hull data cached, as in a long stream) and one sample of each stream (kernel load)."""
+    import os
+
+    import flowsynth as fs
+    from flowsynth.plan import CORE_OUTPUTS
+
+    streams = {
+        "depth": fs.datasets.BouncingThings(fs.BouncingThingsConfig(width=256, height=192, num_frames=2),
+                                            outputs=["depth"], seed=0, start=4000),
+        "everything+direct rgb": fs.datasets.BouncingThings(
+            fs.BouncingThingsConfig(width=256, height=192, num_frames=2, render_mode="direct"),
+            outputs=list(CORE_OUTPUTS), seed=0, start=4000),
+    }
+    load0 = os.getloadavg()[0]
+    for i in range(warm):
+        streams["depth"].sample(5000 + i)
+    for ds in streams.values():
+        ds.sample(0)
+    cpu = dict.fromkeys(streams, 0.0)
+    wall = dict.fromkeys(streams, 0.0)
+    for i in range(1, n + 1):
+        for name, ds in (streams.items() if i % 2 else reversed(streams.items())):
+            c, t = time.process_time(), time.perf_counter()
+            ds.sample(i)
+            cpu[name] += time.process_time() - c
+            wall[name] += time.perf_counter() - t
+    rows = [{"outputs": k, "cpu s/sample": cpu[k] / n, "wall s/sample": wall[k] / n} for k in streams]
+    return {"rows": rows, "full/depth cpu": cpu["everything+direct rgb"] / cpu["depth"],
+            "full/depth wall": wall["everything+direct rgb"] / wall["depth"], "samples": n, "warm": warm,
+            "load_average": [load0, os.getloadavg()[0]]}
+
+
 def memory_curve(cfg, n: int) -> list[dict]:
     import flowsynth as fs
 
@@ -99,7 +140,16 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--samples", type=int, default=None, help="samples per measurement (default 24 quick, 64 full)")
+    p.add_argument("--ratio", action="store_true", help="only depth-only vs full at 256x192 (process CPU time)")
     args = p.parse_args()
+    if args.ratio:
+        r = depth_vs_full(args.samples or 12)
+        print(f"\nDepth-only vs full stream, 256x192, T=2, {r['samples']} samples each alternated, after "
+              f"{r['warm']} warm-up samples; load average {r['load_average'][0]:.2f} -> {r['load_average'][1]:.2f}")
+        print_table(r["rows"], ["outputs", "cpu s/sample", "wall s/sample"])
+        print(f"full/depth: {r['full/depth cpu']:.3g} (process CPU), {r['full/depth wall']:.3g} (wall)")
+        write_json("throughput_ratio", {"machine": machine_info(), **r})
+        return
     import flowsynth as fs
     from flowsynth.plan import CORE_OUTPUTS
 

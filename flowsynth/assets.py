@@ -28,7 +28,7 @@ import trimesh
 from scipy.spatial import HalfspaceIntersection
 
 from flowsynth.errors import AssetError
-from flowsynth.scene import clean_mesh
+from flowsynth.scene import clean_mesh, library_mesh
 
 __all__ = [
     "BUILTIN_ASSETS",
@@ -170,7 +170,8 @@ def get_asset(name: str, size: float) -> Asset:
     if not (isinstance(size, (int, float)) and math.isfinite(size) and size > 0):
         raise AssetError(f"asset size must be a positive finite number of metres, got {size!r}")
     unit = unit_mesh(name)
-    mesh = trimesh.Trimesh(vertices=unit.vertices * size, faces=unit.faces, process=False, validate=False)
+    mesh = library_mesh(trimesh.Trimesh(vertices=unit.vertices * size, faces=unit.faces, process=False, validate=False),
+                        name=f"asset {name}")
     uh = unit_hull(name)
     hull = trimesh.Trimesh(vertices=uh.vertices * size, faces=uh.faces, process=False, validate=False)
     kind, params = _PRIMITIVE_PARAMS.get(name, ("convex", ()))
@@ -225,7 +226,8 @@ def room_walls(lo: tuple[float, float, float], hi: tuple[float, float, float]) -
         inward = 1.0 if side == 0 else -1.0
         if normal[axis] * inward < 0:
             faces = faces[:, ::-1]
-        walls.append(trimesh.Trimesh(vertices=corners, faces=faces, process=False, validate=False))
+        walls.append(library_mesh(trimesh.Trimesh(vertices=corners, faces=faces, process=False, validate=False),
+                                  name=ROOM_WALLS[len(walls)]))
     return tuple(walls)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import warnings
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -53,6 +54,20 @@ class SceneObject:
     material: dict = field(default_factory=dict)
     background: bool = False
     source: dict | None = None
+
+
+# Cleaned copies of the meshes flowsynth.assets makes once per process and never modifies (get_asset, room_walls),
+# keyed by identity: each is cleaned once and its copy shared by every scene, instead of cleaned per scene (which,
+# with the content hash every new mesh object then costs the ray caster, was ~5 ms of a 256x192 sample:
+# benchmarks/throughput.py). A user's mesh, even one equal to a library mesh, is never looked up here.
+_LIBRARY_MESHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def library_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
+    """Mark ``mesh``, made by flowsynth.assets and never modified afterwards, as shared: ``Scene.add_object``
+    then uses one cleaned copy of it in every scene. Returns ``mesh``."""
+    _LIBRARY_MESHES[mesh] = clean_mesh(mesh, name=name)
+    return mesh
 
 
 def clean_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
@@ -140,7 +155,9 @@ class Scene:
         poses = np.tile(np.eye(4), (self.num_frames, 1, 1)) if poses is None else self._poses(poses, "poses")
         key = id(mesh)
         if key not in self._assets:
-            cleaned = clean_mesh(mesh, name=f"mesh of object {len(self.objects) + 1}")
+            cleaned = _LIBRARY_MESHES.get(mesh) if isinstance(mesh, trimesh.Trimesh) else None
+            if cleaned is None:
+                cleaned = clean_mesh(mesh, name=f"mesh of object {len(self.objects) + 1}")
             self._assets[key] = (len(self._assets) + 1, cleaned)
             self._asset_refs.append(mesh)
         asset, cleaned = self._assets[key]

@@ -122,3 +122,25 @@ def test_room_walls_tile_the_box_and_face_inward():
     np.testing.assert_allclose(floor.vertices[:, 2], 0.0)
     np.testing.assert_allclose(floor.face_normals, [[0, 0, 1]] * 2, atol=1e-12)
     assert walls is room_walls(lo, hi)
+
+
+def test_library_meshes_are_cleaned_once_and_shared():
+    """Scenes share one cleaned copy of a library mesh (equal to cleaning it afresh); a user's mesh with the
+    same content is cleaned on its own, so editing it never touches the library's copy."""
+    from flowsynth.camera import Camera
+    from flowsynth.scene import Scene, clean_mesh
+
+    mesh = get_asset("rock", 0.5).mesh
+    wall = room_walls((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0))[0]
+    scenes = [Scene(Camera.from_fov(8, 6, 60.0), 1) for _ in range(2)]
+    for s in scenes:
+        s.add_object(mesh)
+        s.add_object(wall, background=True)
+    assert scenes[0].objects[0].mesh is scenes[1].objects[0].mesh
+    assert scenes[0].objects[1].mesh is scenes[1].objects[1].mesh
+    fresh = clean_mesh(mesh)
+    np.testing.assert_array_equal(scenes[0].objects[0].mesh.vertices, fresh.vertices)
+    np.testing.assert_array_equal(scenes[0].objects[0].mesh.faces, fresh.faces)
+    user = trimesh.Trimesh(np.array(mesh.vertices), np.array(mesh.faces), process=False)
+    scenes[0].add_object(user)
+    assert scenes[0].objects[2].mesh is not scenes[0].objects[0].mesh
