@@ -62,8 +62,9 @@ EPS_SPEED = 1e-6
 _FREE_JOINTS = False
 """Give every body a free joint (Newton's ``add_body``) instead of none (``add_link``). A free joint constrains
 nothing, but XPBD still runs a joint pass per iteration for it (a zero correction plus a pose renormalisation:
-trajectories differ by float32 round-off, tests/test_motion.py) and costs a third of a 2-frame clip's physics
-(model build, capture; benchmarks/throughput.py). True only in tests comparing the two."""
+trajectories differ by float32 round-off, tests/test_motion.py), and joints slow the model build and every
+substep (with the one-substep capture: Newton 0.099 -> 0.059 s per 2-frame 256x192 sample,
+benchmarks/results/SUMMARY.md, throughput). True only in tests comparing the two."""
 
 
 @dataclass(frozen=True)
@@ -285,8 +286,8 @@ class _NewtonScene:
     def advance_frame(self) -> None:
         """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
         times: replay skips Python launch overhead (~30 launches per substep; benchmarks/physics_graph.py
-        measures plain against replayed stepping), and capturing one substep instead of two halves the
-        capture, which is most of the Newton cost of a 2-frame clip (benchmarks/throughput.py)."""
+        measures plain against replayed stepping); one substep instead of two halves the capture, a fixed
+        cost per scene (~0.02 s, a third of a 2-frame clip's physics; benchmarks/results/SUMMARY.md, throughput)."""
         import warp as wp
 
         if self.graph is None:

@@ -58,8 +58,8 @@ class SceneObject:
 
 # Cleaned copies of the meshes flowsynth.assets makes once per process and never modifies (get_asset, room_walls),
 # keyed by identity: each is cleaned once and its copy shared by every scene, instead of cleaned per scene (which,
-# with the content hash every new mesh object then costs the ray caster, was ~5 ms of a 256x192 sample:
-# benchmarks/throughput.py). A user's mesh, even one equal to a library mesh, is never looked up here.
+# with the content hash every new mesh object then costs the ray caster, was ~6 ms of a 256x192 sample:
+# benchmarks/results/SUMMARY.md, throughput). A user's mesh, even one equal to a library mesh, is never looked up.
 _LIBRARY_MESHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
