@@ -1,6 +1,6 @@
 """Newton stepping on one CPU core: plain Python launches against the replayed Warp CPU graph.
 
-``flowsynth.motion._NewtonScene.advance_frame`` captures two substeps once per scene into a Warp CPU
+``flowsynth.motion._NewtonScene.advance_frame`` captures one substep once per scene into a Warp CPU
 graph and replays it; this script steps the same scene both ways (``_substep`` called ``substeps`` times
 per frame against ``advance_frame``), from the same initial state, and reports per frame and per substep
 [ms] (medians over frames, the first frame excluded: it compiles or captures) and the largest difference
