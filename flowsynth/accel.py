@@ -28,6 +28,9 @@ __all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh", "pinhol
 
 # Maximum number of asset BVHs kept per process (least recently used are dropped).
 MESH_CACHE_SIZE = 512
+# A mesh is "flat" when it lies between two parallel planes (one of its face planes) closer than this
+# fraction of its extent: visibility rays then test that slab (exact) before its box and mesh (room walls).
+FLAT_REL = 1e-2
 # Instance boxes are inflated by this fraction of their size (plus the same fraction of their distance
 # to the camera) so float32 rounding of the ray never culls a true hit.
 BOX_PAD_REL = 1e-4
@@ -126,6 +129,7 @@ class SceneAccel:
         self.item_mesh = wp.array(np.tile(ids, F), dtype=wp.uint64, device=device)
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
+        self._meshes, self._cam_T_obj, self._cull = meshes, cam_T_obj, None
 
     def instances(self):
         """The kernels' ``Instances`` struct (flowsynth.kernels.raycast) over this accel's arrays (no copy):
@@ -140,18 +144,64 @@ class SceneAccel:
                                                                        self.ref_T_obj, self.N)
         return inst
 
-    def tile_lists(self, camera):
+    def culling(self):
+        """The visibility rays' exact culling data: a ``Culling`` struct (flowsynth.kernels.raycast).
+
+        Per face of every asset, its plane (unit normal n, e = max over the asset's vertices of n . v): the
+        whole mesh lies in n . x <= e. The flat instances (``FLAT_REL``: room walls), and per (frame, item)
+        of a flat instance the slab lo <= n . x <= hi holding it, in the frame's camera frame. All float64,
+        from the float32 vertices the mesh queries use. Visibility rays test the flat instances of their
+        frame first, then walk ``tile_lists(camera, flat=False)``.
+        """
+        if self._cull is None:
+            from flowsynth.kernels.raycast import Culling
+
+            wp = wp_runtime()
+            planes, slabs, off, offsets = [], [], 0, []
+            for m in self._meshes:
+                pl, slab = _face_planes(m)
+                planes.append(pl)
+                slabs.append(slab)
+                offsets.append(off)
+                off += len(pl)
+            flat = np.array([s is not None for s in slabs])
+            n_obj = np.array([s[:3] if s is not None else np.zeros(3) for s in slabs])  # (N, 3)
+            lh = np.array([s[3:] if s is not None else (1.0, 0.0) for s in slabs])  # (N, 2); lo > hi: not flat
+            R, t = self._cam_T_obj[..., :3, :3], self._cam_T_obj[..., :3, 3]  # (F, N, 3, 3), (F, N, 3)
+            n_cam = np.einsum("fnij,nj->fni", R, n_obj)
+            shift = np.einsum("fni,fni->fn", n_cam, t)
+            lh_cam = np.where(flat[None, :, None], lh[None] + shift[..., None], lh[None])
+            c = Culling()
+            c.face_plane = wp.array(np.concatenate(planes), dtype=wp.vec4d, device=self.device)
+            c.face_off = wp.array(np.asarray(offsets, np.int32), dtype=wp.int32, device=self.device)
+            c.slab_n = wp.array(n_cam.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+            c.slab_lh = wp.array(lh_cam.reshape(-1, 2), dtype=wp.vec2d, device=self.device)
+            flat_inst = np.flatnonzero(flat).astype(np.int32)
+            c.flat_inst = wp.array(flat_inst if len(flat_inst) else np.zeros(1, np.int32), dtype=wp.int32,
+                                   device=self.device)
+            c.n_flat = len(flat_inst)
+            self._cull, self._flat = c, flat
+        return self._cull
+
+    def tile_lists(self, camera, flat: bool = True):
         """The primary cast's per-(frame, screen tile) candidate lists: a ``TileLists`` struct
-        (flowsynth.kernels.raycast) holding the instances whose box projects onto each tile, near to far."""
+        (flowsynth.kernels.raycast) holding the instances whose box projects onto each tile, near to far;
+        ``flat=False``: without the flat instances of ``culling()`` (visibility rays test those apart)."""
         from flowsynth.kernels.raycast import TileLists
 
         wp = wp_runtime()
-        key = (camera.width, camera.height, camera.K.tobytes())
+        key = (camera.width, camera.height, camera.K.tobytes(), flat)
         if key not in self._tiles:
             if self.use_bvh:
                 start, items, tx, ty = np.zeros(2, np.int32), np.zeros(1, np.int32), 1, 1
             else:
-                start, items, tx, ty = _tile_lists(self._lo, self._hi, self._order_np, camera.K, camera.width,
+                order = self._order_np
+                if not flat:
+                    self.culling()
+                    local = order - (np.arange(self.F) * self.N)[:, None]
+                    keep = ~self._flat[local]  # (F, N): the same instances are flat in every frame
+                    order = order[keep].reshape(self.F, -1)
+                start, items, tx, ty = _tile_lists(self._lo, self._hi, order, camera.K, camera.width,
                                                    camera.height, TILE)
             t = TileLists()
             t.start = wp.array(start, dtype=wp.int32, device=self.device)
@@ -178,6 +228,48 @@ def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
         while len(_HULLS) > MESH_CACHE_SIZE:
             _HULLS.popitem(last=False)
     return pts
+
+
+_PLANES: OrderedDict = OrderedDict()
+
+
+def _face_planes(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per face (unit normal n, e) with every vertex v of the mesh in n . v <= e (``face_planes_kernel``, on
+    the CPU), and the mesh's slab (n, lo, hi) when it is flat (``FLAT_REL``), else None; float64 from the
+    float32 vertices the mesh queries use; cached per process like the asset BVHs.
+
+    A degenerate face gets n = 0, e = 1e30 (its half-space is everything: it never culls).
+    """
+    key = _mesh_key(mesh)
+    hit = _PLANES.get(key)
+    if hit is not None:
+        _PLANES.move_to_end(key)
+        return hit
+    from flowsynth.kernels.raycast import face_planes_kernel
+
+    wp = wp_runtime()
+    V = np.asarray(mesh.vertices, np.float32)
+    fc = np.asarray(mesh.faces, np.int32)
+    out = wp.empty(len(fc), dtype=wp.vec4d, device="cpu")
+    if len(fc):
+        wp.launch(face_planes_kernel, dim=len(fc), inputs=[wp.array(V, dtype=wp.vec3, device="cpu"),
+                  wp.array(fc.reshape(-1), dtype=wp.int32, device="cpu")], outputs=[out], device="cpu")
+    planes = out.numpy()
+    slab = None
+    if len(fc):  # flat: within the slab of its largest face's plane (the float64 extent of n . v)
+        V64 = V.astype(np.float64)
+        nrm = np.cross(V64[fc[:, 1]] - V64[fc[:, 0]], V64[fc[:, 2]] - V64[fc[:, 0]])
+        area = np.linalg.norm(nrm, axis=1)
+        f = int(np.argmax(area))
+        if area[f] > 0:
+            n = nrm[f] / area[f]
+            h = V64 @ n
+            if h.max() - h.min() <= FLAT_REL * float(np.ptp(V64, axis=0).max()):
+                slab = np.array([*n, h.min(), h.max()])
+    _PLANES[key] = (planes, slab)
+    while len(_PLANES) > MESH_CACHE_SIZE:
+        _PLANES.popitem(last=False)
+    return planes, slab
 
 
 def _tile_lists(lo: np.ndarray, hi: np.ndarray, order: np.ndarray, K: np.ndarray, W: int, H: int,

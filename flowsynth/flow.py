@@ -82,7 +82,7 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         ``valid``, ``oof`` (P, 1, H, W) bool; ``flow`` (P, 2, H, W) float32, ``occ`` (P, 1, H, W) bool,
         ``dc`` (P, 1, H, W) float64, ``scene_flow`` (P, 3, H, W) float32 when asked; 0 where not hit (flow and dc also where not valid).
     """
-    from flowsynth.kernels.raycast import Instances, TileLists
+    from flowsynth.kernels.raycast import Culling, Instances, TileLists
     from flowsynth.kernels.reproject import OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
 
     F, H, W = gb.item.shape
@@ -106,10 +106,11 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     cpu = dev == "cpu"
     item = wp.array(np.ascontiguousarray(gb.item, np.int32), dtype=wp.int32, device=dev, copy=not cpu)
     point = wp.array(np.ascontiguousarray(gb.point, np.float32), dtype=wp.vec3, device=dev, copy=not cpu)
+    face = wp.array(np.ascontiguousarray(gb.face, np.int32), dtype=wp.int32, device=dev, copy=not cpu)
     M = wp.array(np.ascontiguousarray(cam_T_obj, np.float64), dtype=wp.mat44d, device=dev)
-    inst, tiles = Instances(), TileLists()
+    inst, tiles, cull = Instances(), TileLists(), Culling()
     if occ_mode == OCC_EXACT:
-        inst, tiles = accel.instances(), accel.tile_lists(camera)
+        inst, tiles, cull = accel.instances(), accel.tile_lists(camera, flat=False), accel.culling()
     one = (1, 1, 1)
     dist = wp.array(gb.dist, dtype=wp.float32, device=dev) if occ_mode == OCC_DEPTH else wp.empty(one, wp.float32, dev)
     dz = wp.array(np.ascontiguousarray(camera.pixel_rays_numpy()[..., 2]) if occ_mode == OCC_DEPTH
@@ -124,10 +125,10 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     sfM = wp.array(np.ascontiguousarray(scene_flow_T, np.float64) if want_sf else np.zeros((1, 1, 4, 4)),
                    dtype=wp.mat44d, device=dev)
     launch_bands(pair_kernel(flow, occ_mode, want_dc, want_sf), shape, 1,
-                 [item, point, M, N, int(src0), int(step), wp.mat33d(*np.asarray(K, np.float64).ravel()),
-                  inst, tiles, VISIBILITY_REL_TOL, dist, dz, DEPTH_TEST_REL_TOL, float(fB or 0.0), sfM,
+                 [item, point, face, M, N, int(src0), int(step), wp.mat33d(*np.asarray(K, np.float64).ravel()),
+                  inst, tiles, cull, VISIBILITY_REL_TOL, dist, dz, DEPTH_TEST_REL_TOL, float(fB or 0.0), sfM,
                   BAND0],
-                 [valid, oof, occ, fl, dc, sf], dev, threads)
+                 [valid, oof, occ, fl, dc, sf], dev, threads, row_loop=True)
     res = {"valid": valid.numpy().view(bool)[:, None], "oof": oof.numpy().view(bool)[:, None]}
     if flow:
         res["flow"] = fl.numpy()

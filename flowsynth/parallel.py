@@ -99,7 +99,7 @@ if hasattr(os, "register_at_fork"):
 
 
 def launch_bands(kernel, dim: tuple[int, ...], axis: int, inputs: list, outputs: list, device: str,
-                 threads: int | None) -> None:
+                 threads: int | None, row_loop: bool = False) -> None:
     """``wp.launch(kernel, dim, inputs, outputs, device)`` cut along ``axis`` into bands run in parallel.
 
     Args:
@@ -110,6 +110,8 @@ def launch_bands(kernel, dim: tuple[int, ...], axis: int, inputs: list, outputs:
         outputs: kernel outputs (whole arrays: each band writes its own rows).
         device: Warp device; a CUDA launch is never cut.
         threads: threads to use (None: ``default_threads()``).
+        row_loop: the kernel loops over the last axis of ``dim`` itself: it is launched without it (``dim``
+            still counts the work items, and ``axis`` must be another axis).
     """
     import warp as wp
 
@@ -121,6 +123,8 @@ def launch_bands(kernel, dim: tuple[int, ...], axis: int, inputs: list, outputs:
     for x in dim:
         items *= int(x)
     bands = min(threads * BANDS_PER_THREAD, n, max(items // MIN_BAND_ITEMS, 1)) if threads > 1 else 1
+    if row_loop:
+        dim = tuple(dim)[:-1]
     if bands <= 1 or wp.get_device(device).is_cuda:
         wp.launch(kernel, dim=tuple(dim), inputs=[0 if a is BAND0 else a for a in inputs], outputs=outputs,
                   device=device)

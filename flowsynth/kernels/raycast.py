@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import warp as wp
 
-__all__ = ["Instances", "Pinhole", "TileLists", "primary_kernel", "trace_any", "trace_closest",
+__all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "trace_any", "trace_closest",
            "visibility_kernel"]
 
 
@@ -49,6 +49,22 @@ class TileLists:
     tiles_x: wp.int32
     tiles_y: wp.int32
     tile: wp.int32  # tile size [px]
+
+
+@wp.struct
+class Culling:
+    """Exact culling data of visibility rays (flowsynth.accel.SceneAccel.culling), float64.
+
+    A mesh lying in a half-space (or slab) that the segment from the camera to the target point does not
+    enter cannot block it: no mesh query is needed.
+    """
+
+    face_plane: wp.array[wp.vec4d]  # (faces of all assets,) (n, e): the asset's mesh lies in n . x <= e (object frame)
+    face_off: wp.array[wp.int32]  # (N,) first face_plane row of instance n's asset
+    slab_n: wp.array[wp.vec3d]  # (F * N,) flat items: slab normal, camera frame of the item's frame
+    slab_lh: wp.array[wp.vec2d]  # (F * N,) slab (lo, hi) of n . x; lo > hi: not flat (no slab test)
+    flat_inst: wp.array[wp.int32]  # (n_flat,) the flat instances (the same in every frame)
+    n_flat: wp.int32
 
 
 @wp.struct
@@ -284,3 +300,24 @@ def group_roots_kernel(bvh: wp.uint64, roots: wp.array[wp.int32]):
     """roots[f] = root node of group f (frame f) of a grouped BVH."""
     f = wp.tid()
     roots[f] = wp.bvh_get_group_root(bvh, f)
+
+
+@wp.kernel(enable_backward=False)
+def face_planes_kernel(points: wp.array[wp.vec3], indices: wp.array[wp.int32], planes: wp.array[wp.vec4d]):
+    """planes[f] = (n, e) for face f of a mesh: n its unit normal (float64 from the float32 vertices),
+    e = max over every vertex v of n . v (float64), so the whole mesh lies in n . x <= e; a degenerate face
+    gets n = 0, e = 1e30."""
+    f = wp.tid()
+    a = wp.vec3d(points[indices[3 * f + 0]])
+    b = wp.vec3d(points[indices[3 * f + 1]])
+    c = wp.vec3d(points[indices[3 * f + 2]])
+    nrm = wp.cross(b - a, c - a)
+    length = wp.length(nrm)
+    if length <= wp.float64(0.0):
+        planes[f] = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(1.0e30))
+        return
+    n = nrm / length
+    e = wp.dot(n, a)
+    for k in range(points.shape[0]):
+        e = wp.max(e, wp.dot(n, wp.vec3d(points[k])))
+    planes[f] = wp.vec4d(n[0], n[1], n[2], e)

@@ -1,5 +1,7 @@
 """Per-pixel reprojection of the primary cast's hit points into another frame or view (float64), with the
-validity, out-of-frame and occlusion tests fused in: one thread per (pair, pixel), no gather.
+validity, out-of-frame and occlusion tests fused in: one thread per (pair, row) looping over the row's
+pixels (a Warp CPU thread per pixel spends more on unravelling its 3-D index than on the reprojection), no
+gather.
 
 Definitions are those of flowsynth/flow.py's module docstring. For pair t the source frame is
 s = src0 + t and the target frame r = s + step; the pixel (i, j) of frame s holding instance n at
@@ -9,51 +11,90 @@ object-frame point p (float32, promoted to float64) maps to
 
 and, where requested, flow (u' - j, v' - i), occlusion (exact visibility ray, or the depth-buffer test),
 disparity change fB / X.z - fB / (cam_T_obj[s, n] @ p).z and scene flow sfM[t, n] @ p.
+
+The exact visibility ray (occlusion="exact") is the segment from the camera centre of frame r to
+(1 - tol) X; it is blocked when any mesh meets it (first blocker ends the test). Exact culls spare the
+mesh queries that cannot hit (``Culling``, flowsynth.accel.SceneAccel.culling), all proved on float64
+planes with a margin of 1e-6 |X| + 1e-9 m (float32 rounding of the ray the mesh queries trace is ~1e-7 |X|):
+- own item: its mesh lies in the half-space n . x <= e of the hit face's plane (e: max of n . v over the
+  asset's vertices); when the camera and the segment's end are both beyond it, no point of the segment
+  is (n . x is linear along the segment);
+- flat items (room walls), tested one by one: the segment stays on one side of the item's slab;
+- the other items: those of the screen tile of (u', v') in the primary cast's lists without the flat
+  items (every instance whose box projects within a pixel of that tile: boxes elsewhere cannot meet the
+  ray), near to far, down to the first whose box starts beyond the segment, box entry tested.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from flowsynth.kernels.raycast import Instances, TileLists, any_in_list, trace_any
+from flowsynth.kernels.raycast import Culling, Instances, TileLists, box_entry, trace_any
 
-__all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "blocked_from_camera", "pair_kernel"]
+__all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "pair_kernel"]
 
 OCC_NONE, OCC_EXACT, OCC_DEPTH = 0, 1, 2
-
-
-@wp.func
-def blocked_from_camera(inst: Instances, tiles: TileLists, g: wp.int32, lst: wp.int32, p: wp.vec3,
-                        rel_tol: wp.float32):
-    """Is the segment from frame g's camera centre to camera-frame point p blocked (visibility_kernel's test)?
-
-    Same answer as ``any_from_camera`` over the whole frame: the candidates are those of screen tile
-    ``lst`` of the primary cast (the tile of the pixel nearest to p's projection), which holds every
-    instance whose box projects within a pixel of that tile (flowsynth.accel._tile_lists); boxes elsewhere
-    cannot meet the ray. Near to far, first blocker ends the walk.
-    """
-    L = wp.length(p)
-    if L <= 0.0:
-        return True
-    d = p / L
-    max_t = L * (1.0 - rel_tol)
-    if inst.use_bvh != 0:
-        return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, wp.vec3(0.0), d, max_t)
-    return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref, tiles.items,
-                       tiles.start[lst], tiles.start[lst + 1], d, max_t)
 
 
 _PAIR: dict = {}
 
 
+@wp.func
+def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
+                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], slab_n: wp.array[wp.vec3d],
+                slab_lh: wp.array[wp.vec2d], flat_inst: wp.array[wp.int32], n_flat: wp.int32, base: wp.int32,
+                d: wp.vec3, max_t: wp.float32, X: wp.vec3d, keep: wp.float64, margin: wp.float64, skip: wp.int32):
+    """Does a flat item (items base + flat_inst[q]) other than ``skip`` block the segment from the camera
+    centre to keep X (float32 ray ``d``, ``max_t``)? The slab lo <= n . x <= hi of each: n . x is 0 at the
+    camera and keep n . X at the end, linear between, so a segment beyond the slab at both ends (by
+    ``margin``) cannot meet it; the others are box- and mesh-tested as in ``any_in_list``."""
+    for q in range(n_flat):
+        item = base + flat_inst[q]
+        if item == skip:
+            continue
+        lh = slab_lh[item]
+        he = keep * wp.dot(slab_n[item], X)
+        if wp.min(he, wp.float64(0.0)) > lh[1] + margin or wp.max(he, wp.float64(0.0)) < lh[0] - margin:
+            continue
+        if near[item] < max_t:
+            te = box_entry(lowers[item], uppers[item], d)
+            if te >= 0.0 and te < max_t:
+                M = obj_T_ref[item]
+                if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
+                                            wp.transform_vector(M, d), max_t):
+                    return True
+    return False
+
+
+@wp.func
+def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
+                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], items: wp.array[wp.int32],
+                a: wp.int32, b: wp.int32, d: wp.vec3, max_t: wp.float32, skip: wp.int32):
+    """``any_in_list`` over ``items[a:b]`` (nearest box first) leaving out item ``skip``."""
+    for k in range(a, b):
+        item = items[k]
+        if near[item] >= max_t:
+            break
+        if item != skip:
+            te = box_entry(lowers[item], uppers[item], d)
+            if te >= 0.0 and te < max_t:
+                M = obj_T_ref[item]
+                if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
+                                            wp.transform_vector(M, d), max_t):
+                    return True
+    return False
+
+
 def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False):
     """The pair kernel, specialised so unrequested outputs are compiled out.
 
-    Launch dims (P, rows, W) from row ``band0`` (``flowsynth.parallel``). Every pixel of every output is
-    written: ``valid`` (uint8, 1 = hit and X.z > 0), ``oof`` (uint8, hit and not inside [-0.5, W - 0.5) x
-    [-0.5, H - 0.5)), and when requested ``flow`` (P, 2, H, W) float32, ``occ`` (uint8, oof or blocked),
-    ``dc`` float64 disparity change, ``sf`` (P, 3, H, W) float32 scene flow ``sfM[t, n] @ p`` (where hit,
-    valid or not); all 0 where not hit (flow and dc also where not valid).
+    Launch dims (P, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread does
+    the W pixels of its row. Every pixel of every output is written: ``valid`` (uint8, 1 = hit and
+    X.z > 0), ``oof`` (uint8, hit and not inside [-0.5, W - 0.5) x [-0.5, H - 0.5)), and when requested
+    ``flow`` (P, 2, H, W) float32, ``occ`` (uint8, oof or blocked), ``dc`` float64 disparity change, ``sf``
+    (P, 3, H, W) float32 scene flow ``sfM[t, n] @ p`` (where hit, valid or not); all 0 where not hit (flow
+    and dc also where not valid). For occlusion="exact", ``tiles`` are the lists without flat items
+    (``SceneAccel.tile_lists(camera, flat=False)``).
     """
     key = (bool(want_flow), int(occ_mode), bool(want_dc), bool(want_sf))
     if key in _PAIR:
@@ -63,6 +104,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
     def pairs(
         item: wp.array3d[wp.int32],
         point: wp.array3d[wp.vec3],
+        face: wp.array3d[wp.int32],
         cam_T_obj: wp.array2d[wp.mat44d],
         n_inst: wp.int32,
         src0: wp.int32,
@@ -70,6 +112,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
         K: wp.mat33d,
         inst: Instances,
         tiles: TileLists,
+        cull: Culling,
         rel_tol: wp.float32,
         dist: wp.array3d[wp.float32],
         dz: wp.array2d[wp.float64],
@@ -85,88 +128,116 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
         dc: wp.array3d[wp.float64],
         sf: wp.array4d[wp.float32],
     ):
-        t, i, j = wp.tid()
+        t, i = wp.tid()
         i += band0
         s = src0 + t
-        it = item[s, i, j]
-        if it < 0:
-            valid[t, i, j] = wp.uint8(0)
-            oof[t, i, j] = wp.uint8(0)
-            if wp.static(occ_mode != 0):
-                occ[t, i, j] = wp.uint8(0)
-            if wp.static(want_flow):
-                flow[t, 0, i, j] = 0.0
-                flow[t, 1, i, j] = 0.0
-            if wp.static(want_dc):
-                dc[t, i, j] = wp.float64(0.0)
-            if wp.static(want_sf):
-                sf[t, 0, i, j] = 0.0
-                sf[t, 1, i, j] = 0.0
-                sf[t, 2, i, j] = 0.0
-            return
-        n = it % n_inst
         r = s + step
-        q = point[s, i, j]
-        p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
-        if wp.static(want_sf):
-            S = sfM[t, n]
-            sf[t, 0, i, j] = wp.float32(S[0, 0] * p[0] + S[0, 1] * p[1] + S[0, 2] * p[2] + S[0, 3])
-            sf[t, 1, i, j] = wp.float32(S[1, 0] * p[0] + S[1, 1] * p[1] + S[1, 2] * p[2] + S[1, 3])
-            sf[t, 2, i, j] = wp.float32(S[2, 0] * p[0] + S[2, 1] * p[1] + S[2, 2] * p[2] + S[2, 3])
-        M = cam_T_obj[r, n]
-        x = M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3]
-        y = M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3]
-        z = M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3]
         H = item.shape[1]
         W = item.shape[2]
-        if z <= wp.float64(0.0):
-            valid[t, i, j] = wp.uint8(0)
-            oof[t, i, j] = wp.uint8(1)
-            if wp.static(occ_mode != 0):
-                occ[t, i, j] = wp.uint8(1)
+        for j in range(W):
+            it = item[s, i, j]
+            if it < 0:
+                valid[t, i, j] = wp.uint8(0)
+                oof[t, i, j] = wp.uint8(0)
+                if wp.static(occ_mode != 0):
+                    occ[t, i, j] = wp.uint8(0)
+                if wp.static(want_flow):
+                    flow[t, 0, i, j] = 0.0
+                    flow[t, 1, i, j] = 0.0
+                if wp.static(want_dc):
+                    dc[t, i, j] = wp.float64(0.0)
+                if wp.static(want_sf):
+                    sf[t, 0, i, j] = 0.0
+                    sf[t, 1, i, j] = 0.0
+                    sf[t, 2, i, j] = 0.0
+                continue
+            n = it % n_inst
+            q = point[s, i, j]
+            p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
+            if wp.static(want_sf):
+                S = sfM[t, n]
+                sf[t, 0, i, j] = wp.float32(S[0, 0] * p[0] + S[0, 1] * p[1] + S[0, 2] * p[2] + S[0, 3])
+                sf[t, 1, i, j] = wp.float32(S[1, 0] * p[0] + S[1, 1] * p[1] + S[1, 2] * p[2] + S[1, 3])
+                sf[t, 2, i, j] = wp.float32(S[2, 0] * p[0] + S[2, 1] * p[1] + S[2, 2] * p[2] + S[2, 3])
+            M = cam_T_obj[r, n]
+            x = M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3]
+            y = M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3]
+            z = M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3]
+            if z <= wp.float64(0.0):
+                valid[t, i, j] = wp.uint8(0)
+                oof[t, i, j] = wp.uint8(1)
+                if wp.static(occ_mode != 0):
+                    occ[t, i, j] = wp.uint8(1)
+                if wp.static(want_flow):
+                    flow[t, 0, i, j] = 0.0
+                    flow[t, 1, i, j] = 0.0
+                if wp.static(want_dc):
+                    dc[t, i, j] = wp.float64(0.0)
+                continue
+            # full K (skew included), dehomogenised as kornia's convert_points_from_homogeneous does
+            h0 = K[0, 0] * x + K[0, 1] * y + K[0, 2] * z
+            h1 = K[1, 0] * x + K[1, 1] * y + K[1, 2] * z
+            h2 = K[2, 0] * x + K[2, 1] * y + K[2, 2] * z
+            sc = wp.float64(1.0)
+            if wp.abs(h2) > wp.float64(1.0e-8):
+                sc = wp.float64(1.0) / h2
+            u = sc * h0
+            v = sc * h1
+            inside = (u >= wp.float64(-0.5) and u < wp.float64(W) - wp.float64(0.5) and v >= wp.float64(-0.5)
+                      and v < wp.float64(H) - wp.float64(0.5))
+            valid[t, i, j] = wp.uint8(1)
+            oof[t, i, j] = wp.uint8(0) if inside else wp.uint8(1)
             if wp.static(want_flow):
-                flow[t, 0, i, j] = 0.0
-                flow[t, 1, i, j] = 0.0
+                flow[t, 0, i, j] = wp.float32(u - wp.float64(j))
+                flow[t, 1, i, j] = wp.float32(v - wp.float64(i))
             if wp.static(want_dc):
-                dc[t, i, j] = wp.float64(0.0)
-            return
-        # full K (skew included), dehomogenised as kornia's convert_points_from_homogeneous does
-        h0 = K[0, 0] * x + K[0, 1] * y + K[0, 2] * z
-        h1 = K[1, 0] * x + K[1, 1] * y + K[1, 2] * z
-        h2 = K[2, 0] * x + K[2, 1] * y + K[2, 2] * z
-        sc = wp.float64(1.0)
-        if wp.abs(h2) > wp.float64(1.0e-8):
-            sc = wp.float64(1.0) / h2
-        u = sc * h0
-        v = sc * h1
-        inside = (u >= wp.float64(-0.5) and u < wp.float64(W) - wp.float64(0.5) and v >= wp.float64(-0.5)
-                  and v < wp.float64(H) - wp.float64(0.5))
-        valid[t, i, j] = wp.uint8(1)
-        oof[t, i, j] = wp.uint8(0) if inside else wp.uint8(1)
-        if wp.static(want_flow):
-            flow[t, 0, i, j] = wp.float32(u - wp.float64(j))
-            flow[t, 1, i, j] = wp.float32(v - wp.float64(i))
-        if wp.static(want_dc):
-            M0 = cam_T_obj[s, n]
-            z0 = M0[2, 0] * p[0] + M0[2, 1] * p[1] + M0[2, 2] * p[2] + M0[2, 3]
-            dc[t, i, j] = fB / z - fB / z0
-        if wp.static(occ_mode == 1):
-            blocked = True
-            if inside:
-                jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
-                ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
-                lst = (r * tiles.tiles_y + ii // tiles.tile) * tiles.tiles_x + jj // tiles.tile
-                blocked = blocked_from_camera(inst, tiles, r, lst, wp.vec3(wp.float32(x), wp.float32(y),
-                                                                          wp.float32(z)), rel_tol)
-            occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
-        if wp.static(occ_mode == 2):
-            blocked = True
-            if inside:
-                jj = wp.clamp(wp.int32(wp.rint(u)), 0, W - 1)
-                ii = wp.clamp(wp.int32(wp.rint(v)), 0, H - 1)
-                target_depth = wp.float64(dist[r, ii, jj]) * dz[ii, jj]
-                blocked = item[r, ii, jj] < 0 or z > target_depth * (wp.float64(1.0) + depth_tol)
-            occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
+                M0 = cam_T_obj[s, n]
+                z0 = M0[2, 0] * p[0] + M0[2, 1] * p[1] + M0[2, 2] * p[2] + M0[2, 3]
+                dc[t, i, j] = fB / z - fB / z0
+            if wp.static(occ_mode == 1):
+                blocked = True
+                if inside:
+                    pf = wp.vec3(wp.float32(x), wp.float32(y), wp.float32(z))
+                    L = wp.length(pf)
+                    if L > 0.0:
+                        d = pf / L
+                        max_t = L * (1.0 - rel_tol)
+                        if inst.use_bvh != 0:
+                            blocked = trace_any(inst.bvh, inst.roots[r], inst.item_mesh, inst.obj_T_ref,
+                                                wp.vec3(0.0), d, max_t)
+                        else:
+                            X = wp.vec3d(x, y, z)
+                            keep = wp.float64(1.0) - wp.float64(rel_tol)
+                            margin = wp.float64(1.0e-6) * wp.length(X) + wp.float64(1.0e-9)
+                            # own item: the hit face's plane (n, e), object frame; camera r there at -R^T t
+                            pl = cull.face_plane[cull.face_off[n] + face[s, i, j]]
+                            cx = -(M[0, 0] * M[0, 3] + M[1, 0] * M[1, 3] + M[2, 0] * M[2, 3])
+                            cy = -(M[0, 1] * M[0, 3] + M[1, 1] * M[1, 3] + M[2, 1] * M[2, 3])
+                            cz = -(M[0, 2] * M[0, 3] + M[1, 2] * M[1, 3] + M[2, 2] * M[2, 3])
+                            hc = pl[0] * cx + pl[1] * cy + pl[2] * cz - pl[3]
+                            hp = pl[0] * p[0] + pl[1] * p[1] + pl[2] * p[2] - pl[3]
+                            skip = wp.int32(-1)
+                            if hc > margin and keep * hp + (wp.float64(1.0) - keep) * hc > margin:
+                                skip = r * n_inst + n
+                            blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref,
+                                                  cull.slab_n, cull.slab_lh, cull.flat_inst, cull.n_flat,
+                                                  r * n_inst, d, max_t, X, keep, margin, skip)
+                            if not blocked:
+                                jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
+                                ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
+                                lst = (r * tiles.tiles_y + ii // tiles.tile) * tiles.tiles_x + jj // tiles.tile
+                                blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
+                                                      inst.obj_T_ref, tiles.items, tiles.start[lst],
+                                                      tiles.start[lst + 1], d, max_t, skip)
+                occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
+            if wp.static(occ_mode == 2):
+                blocked = True
+                if inside:
+                    jj = wp.clamp(wp.int32(wp.rint(u)), 0, W - 1)
+                    ii = wp.clamp(wp.int32(wp.rint(v)), 0, H - 1)
+                    target_depth = wp.float64(dist[r, ii, jj]) * dz[ii, jj]
+                    blocked = item[r, ii, jj] < 0 or z > target_depth * (wp.float64(1.0) + depth_tol)
+                occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
 
     _PAIR[key] = pairs
     return pairs
