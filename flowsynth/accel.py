@@ -157,16 +157,13 @@ class SceneAccel:
             from flowsynth.kernels.raycast import Culling
 
             wp = wp_runtime()
-            planes, slabs, off, offsets = [], [], 0, []
-            for m in self._meshes:
-                pl, slab = _face_planes(m)
-                planes.append(pl)
-                slabs.append(slab)
-                offsets.append(off)
-                off += len(pl)
+            bounds = [_face_planes(m) for m in self._meshes]
+            planes, slabs = [b["planes"] for b in bounds], [b["slab"] for b in bounds]
+            offsets = np.cumsum([0] + [len(p) for p in planes])[:-1]
             flat = np.array([s is not None for s in slabs])
             n_obj = np.array([s[:3] if s is not None else np.zeros(3) for s in slabs])  # (N, 3)
             lh = np.array([s[3:] if s is not None else (1.0, 0.0) for s in slabs])  # (N, 2); lo > hi: not flat
+            F, N = self.F, self.N
             R, t = self._cam_T_obj[..., :3, :3], self._cam_T_obj[..., :3, 3]  # (F, N, 3, 3), (F, N, 3)
             n_cam = np.einsum("fnij,nj->fni", R, n_obj)
             shift = np.einsum("fni,fni->fn", n_cam, t)
@@ -176,10 +173,17 @@ class SceneAccel:
             c.face_off = wp.array(np.asarray(offsets, np.int32), dtype=wp.int32, device=self.device)
             c.slab_n = wp.array(n_cam.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
             c.slab_lh = wp.array(lh_cam.reshape(-1, 2), dtype=wp.vec2d, device=self.device)
-            flat_inst = np.flatnonzero(flat).astype(np.int32)
-            c.flat_inst = wp.array(flat_inst if len(flat_inst) else np.zeros(1, np.int32), dtype=wp.int32,
-                                   device=self.device)
-            c.n_flat = len(flat_inst)
+            sph = np.array([b["sphere"] for b in bounds])  # (N, 4)
+            centre = np.einsum("fnij,nj->fni", R, sph[:, :3]) + t
+            c.sphere = wp.array(np.concatenate([centre, np.broadcast_to(sph[:, 3], (F, N))[..., None]], -1)
+                                .reshape(-1, 4), dtype=wp.vec4d, device=self.device)
+            c.inner = wp.array(np.tile([b["inner"] for b in bounds], F), dtype=wp.float64, device=self.device)
+            g_off, g_n, g_ab, m_start, m_items = _flat_groups(n_cam, lh_cam, np.flatnonzero(flat))
+            c.grp_off = wp.array(g_off, dtype=wp.int32, device=self.device)
+            c.grp_n = wp.array(g_n, dtype=wp.vec3d, device=self.device)
+            c.grp_ab = wp.array(g_ab, dtype=wp.vec2d, device=self.device)
+            c.mem_start = wp.array(m_start, dtype=wp.int32, device=self.device)
+            c.mem_items = wp.array(m_items, dtype=wp.int32, device=self.device)
             self._cull, self._flat = c, flat
         return self._cull
 
@@ -233,12 +237,18 @@ def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
 _PLANES: OrderedDict = OrderedDict()
 
 
-def _face_planes(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray | None]:
-    """Per face (unit normal n, e) with every vertex v of the mesh in n . v <= e (``face_planes_kernel``, on
-    the CPU), and the mesh's slab (n, lo, hi) when it is flat (``FLAT_REL``), else None; float64 from the
-    float32 vertices the mesh queries use; cached per process like the asset BVHs.
+def _face_planes(mesh: trimesh.Trimesh) -> dict:
+    """Exact bounds of a mesh for culling visibility rays, float64 from the float32 vertices the mesh
+    queries use; cached per process like the asset BVHs. Keys:
 
-    A degenerate face gets n = 0, e = 1e30 (its half-space is everything: it never culls).
+    - ``planes`` (faces, 4): per face (unit normal n, e) with every vertex v in n . v <= e
+      (``face_planes_kernel``, on the CPU); a degenerate face gets n = 0, e = 1e30 (never culls);
+    - ``slab``: (n, lo, hi) with every vertex in lo <= n . v <= hi when the mesh is flat (``FLAT_REL``), else None;
+    - ``sphere``: (centre, radius) holding every vertex;
+    - ``inner``: radius of a ball about the same centre inside the solid, or 0: only for a closed,
+      consistently outward-wound mesh whose every face plane has every vertex behind it (convex; the
+      solid is then the intersection of the face half-spaces, and the ball the largest one in it, less
+      the vertices' worst excess over their face planes).
     """
     key = _mesh_key(mesh)
     hit = _PLANES.get(key)
@@ -255,21 +265,67 @@ def _face_planes(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray | None]:
         wp.launch(face_planes_kernel, dim=len(fc), inputs=[wp.array(V, dtype=wp.vec3, device="cpu"),
                   wp.array(fc.reshape(-1), dtype=wp.int32, device="cpu")], outputs=[out], device="cpu")
     planes = out.numpy()
-    slab = None
-    if len(fc):  # flat: within the slab of its largest face's plane (the float64 extent of n . v)
-        V64 = V.astype(np.float64)
+    V64 = V.astype(np.float64)
+    centre = (V64.min(0) + V64.max(0)) / 2 if len(V64) else np.zeros(3)
+    radius = float(np.linalg.norm(V64 - centre, axis=1).max()) if len(V64) else 0.0
+    res = {"planes": planes, "slab": None, "sphere": np.array([*centre, radius]), "inner": 0.0}
+    if len(fc):
         nrm = np.cross(V64[fc[:, 1]] - V64[fc[:, 0]], V64[fc[:, 2]] - V64[fc[:, 0]])
         area = np.linalg.norm(nrm, axis=1)
         f = int(np.argmax(area))
-        if area[f] > 0:
+        if area[f] > 0:  # flat: within the slab of its largest face's plane (the float64 extent of n . v)
             n = nrm[f] / area[f]
             h = V64 @ n
             if h.max() - h.min() <= FLAT_REL * float(np.ptp(V64, axis=0).max()):
-                slab = np.array([*n, h.min(), h.max()])
-    _PLANES[key] = (planes, slab)
+                res["slab"] = np.array([*n, h.min(), h.max()])
+        ok = planes[:, 3] < 1e29
+        own = np.einsum("fi,fi->f", planes[ok, :3], V64[fc[ok, 0]])  # each face's own offset n . a
+        excess = float((planes[ok, 3] - own).max()) if ok.any() else np.inf
+        if (res["slab"] is None and excess <= 1e-6 * radius and mesh.is_watertight and mesh.is_winding_consistent
+                and mesh.volume > 0):
+            res["inner"] = max(0.0, float((own - planes[ok, :3] @ centre).min()) - excess)
+    _PLANES[key] = res
     while len(_PLANES) > MESH_CACHE_SIZE:
         _PLANES.popitem(last=False)
-    return planes, slab
+    return res
+
+
+def _flat_groups(n_cam: np.ndarray, lh_cam: np.ndarray, flat_inst: np.ndarray):
+    """The flat items of each frame grouped by slab normal (bitwise equal up to sign, camera frame): room
+    walls make three groups of two. Per group g (normal n, sign chosen so its first non-zero component is
+    positive) the interval (A, B) of n . x beyond every member's slab on the camera's side: A = max hi of
+    the members the camera is above, B = min lo of those it is below (A = 1e300 when the camera is inside
+    a member's slab: no shortcut). A segment from the camera (n . x = 0) to keep X with A + m < n . x < B - m
+    at both ends misses every member. Returns (grp_off (F + 1,), grp_n, grp_ab, mem_start, mem_items)
+    (CSR over groups, then over their members' global item indices)."""
+    F, N = n_cam.shape[:2]
+    g_off, g_n, g_ab, m_start, m_items = [0], [], [], [0], []
+    for f in range(F):
+        groups: dict[bytes, list] = {}
+        for k in flat_inst:
+            n, (lo, hi) = n_cam[f, k], lh_cam[f, k]
+            nz = n[np.flatnonzero(n)]
+            if len(nz) and nz[0] < 0:  # exact: negation commutes with rounding
+                n, lo, hi = -n, -hi, -lo
+            groups.setdefault(n.tobytes(), [n, -1e300, 1e300, []])
+            g = groups[n.tobytes()]
+            if hi < 0:
+                g[1] = max(g[1], hi)
+            elif lo > 0:
+                g[2] = min(g[2], lo)
+            else:
+                g[1] = 1e300
+            g[3].append(f * N + int(k))
+        for n, a, b, members in groups.values():
+            g_n.append(n)
+            g_ab.append((a, b))
+            m_items.extend(members)
+            m_start.append(len(m_items))
+        g_off.append(len(g_n))
+    g_n = np.array(g_n) if g_n else np.zeros((1, 3))
+    g_ab = np.array(g_ab) if g_ab else np.zeros((1, 2))
+    m_items = np.array(m_items, np.int32) if m_items else np.zeros(1, np.int32)
+    return (np.array(g_off, np.int32), g_n, g_ab, np.array(m_start, np.int32), m_items)
 
 
 def _tile_lists(lo: np.ndarray, hi: np.ndarray, order: np.ndarray, K: np.ndarray, W: int, H: int,

@@ -159,3 +159,81 @@ def test_scene_flow_equals_numpy(setup, step):
     assert got["scene_flow"].dtype == np.float32
     np.testing.assert_allclose(got["scene_flow"], sf, rtol=1e-6, atol=1e-6)
     assert np.abs(sf).max() > 0.5 and (~got["valid"] & gb.hit[src][:, None]).any()
+
+
+def test_culling_bounds_hold_against_brute_force():
+    """The culling data of ``SceneAccel.culling`` (flowsynth.accel._face_planes) against float64 brute force:
+    every vertex behind every face plane, inside the bounding sphere, and the inner ball free of surface
+    (rays from its centre, Moller-Trumbore over every triangle, first hit no nearer than the radius; every
+    ray hits: the centre is enclosed). Flat meshes (room walls) get a zero-width slab, non-convex ones no ball."""
+    from oracle import ray_cast
+
+    from flowsynth.accel import _face_planes
+    from flowsynth.assets import get_asset, room_walls
+
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(400, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    meshes = {"box": trimesh.creation.box((0.6, 0.3, 0.2)), "icosphere": trimesh.creation.icosphere(2, radius=0.6),
+              "rock": get_asset("rock", 0.7).mesh, "torus": get_asset("torus", 0.5).mesh,
+              "wall": room_walls((-3.0, -2.0, 0.0), (3.0, 2.0, 2.5))[2]}
+    for name, mesh in meshes.items():
+        b = _face_planes(mesh)
+        V = np.asarray(mesh.vertices, np.float32).astype(np.float64)
+        heights = V @ b["planes"][:, :3].T - b["planes"][:, 3]  # (vertices, faces)
+        assert heights.max() <= 1e-12, name
+        centre, radius = b["sphere"][:3], b["sphere"][3]
+        assert np.linalg.norm(V - centre, axis=1).max() <= radius * (1 + 1e-12), name
+        if name == "wall":
+            assert b["slab"] is not None and b["slab"][3] == b["slab"][4] and b["inner"] == 0.0
+            continue
+        assert b["slab"] is None, name
+        if name == "torus":
+            assert b["inner"] == 0.0, "a non-convex mesh gets no inner ball"
+            continue
+        assert b["inner"] > 0.2 * radius, name
+        hits = ray_cast(centre, dirs, [mesh], np.eye(4)[None])
+        assert np.isfinite(hits["t"]).all(), name
+        assert hits["t"].min() >= b["inner"], (name, hits["t"].min(), b["inner"])
+
+
+@pytest.mark.parametrize("gap", [1, 2])
+def test_culled_visibility_equals_the_full_walk_in_a_room(gap):
+    """In a BouncingThings room (six flat walls, convex and non-convex objects), the pair kernel's culled
+    visibility (own face plane, wall slabs, bounding and inner balls, tile lists without walls) gives
+    exactly the visibility kernel's answer over every instance of the frame, in both directions."""
+    from flowsynth.sampling import sample_scene
+
+    cfg = fs.BouncingThingsConfig(width=80, height=60, num_frames=5, render_mode="flat")
+    scene = sample_scene(cfg, 0, 3)
+    meshes, cam_T_world, world_T_obj = render_mod.scene_arrays(scene)
+    accel = SceneAccel(meshes, cam_T_world, world_T_obj)
+    gb = render_mod.cast_gbuffer(accel, scene.camera, want_normals=False, want_points=True)
+    cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
+    cull = accel.culling()
+    assert (np.diff(cull.grp_off.numpy()) == 3).all(), "the room's walls: three groups per frame"
+    assert (cull.inner.numpy() > 0).any() and (cull.inner.numpy() == 0).any()
+    Kc = scene.camera.K
+    P = scene.num_frames - gap
+    for src0, step in ((0, gap), (gap, -gap)):
+        _, _, (f, i, j, r, X, uv, inside) = numpy_pairs_k(gb, cam_T_obj, Kc, src0, step, P)
+        got = reproject_pixels(gb, cam_T_obj, Kc, src0, step, P, accel=accel, camera=scene.camera,
+                               occlusion="exact", threads=2)
+        blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
+        assert blocked.sum() > 20 and (~blocked).sum() > 1000
+        occ = np.zeros((P, 1, scene.camera.height, scene.camera.width), bool)
+        hidden = ~inside
+        hidden[inside] = blocked
+        occ[f, 0, i, j] = hidden
+        np.testing.assert_array_equal(got["occ"], occ)
+
+
+def numpy_pairs_k(gb, cam_T_obj, Kc, src0, step, P):
+    """``numpy_pairs`` for any intrinsics and image size."""
+    global K, W, H
+    saved = K, W, H
+    K, (W, H) = Kc, gb.item.shape[:0:-1]
+    try:
+        return numpy_pairs(gb, cam_T_obj, src0, step, P)
+    finally:
+        K, W, H = saved

@@ -63,8 +63,13 @@ class Culling:
     face_off: wp.array[wp.int32]  # (N,) first face_plane row of instance n's asset
     slab_n: wp.array[wp.vec3d]  # (F * N,) flat items: slab normal, camera frame of the item's frame
     slab_lh: wp.array[wp.vec2d]  # (F * N,) slab (lo, hi) of n . x; lo > hi: not flat (no slab test)
-    flat_inst: wp.array[wp.int32]  # (n_flat,) the flat instances (the same in every frame)
-    n_flat: wp.int32
+    sphere: wp.array[wp.vec4d]  # (F * N,) (centre in the frame's camera frame, radius): holds the item's mesh
+    inner: wp.array[wp.float64]  # (F * N,) radius of a ball about the same centre inside the closed mesh, or 0
+    grp_off: wp.array[wp.int32]  # (F + 1,) frame f's flat-item groups are grp_off[f] .. grp_off[f + 1] - 1
+    grp_n: wp.array[wp.vec3d]  # per group: the members' slab normal (one sign)
+    grp_ab: wp.array[wp.vec2d]  # per group: (A, B), n . x in (A, B) is beyond every member's slab
+    mem_start: wp.array[wp.int32]  # (groups + 1,) CSR of the groups' members
+    mem_items: wp.array[wp.int32]  # members' global item indices
 
 
 @wp.struct

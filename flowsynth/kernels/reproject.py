@@ -42,35 +42,48 @@ _PAIR: dict = {}
 @wp.func
 def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
                 item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], slab_n: wp.array[wp.vec3d],
-                slab_lh: wp.array[wp.vec2d], flat_inst: wp.array[wp.int32], n_flat: wp.int32, base: wp.int32,
+                slab_lh: wp.array[wp.vec2d], grp_n: wp.array[wp.vec3d], grp_ab: wp.array[wp.vec2d],
+                mem_start: wp.array[wp.int32], mem_items: wp.array[wp.int32], g0: wp.int32, g1: wp.int32,
                 d: wp.vec3, max_t: wp.float32, X: wp.vec3d, keep: wp.float64, margin: wp.float64, skip: wp.int32):
-    """Does a flat item (items base + flat_inst[q]) other than ``skip`` block the segment from the camera
-    centre to keep X (float32 ray ``d``, ``max_t``)? The slab lo <= n . x <= hi of each: n . x is 0 at the
-    camera and keep n . X at the end, linear between, so a segment beyond the slab at both ends (by
-    ``margin``) cannot meet it; the others are box- and mesh-tested as in ``any_in_list``."""
-    for q in range(n_flat):
-        item = base + flat_inst[q]
-        if item == skip:
+    """Does a flat item of groups g0 .. g1 - 1 (``Culling``) other than ``skip`` block the segment from the
+    camera centre to keep X (float32 ray ``d``, ``max_t``)? Along a slab normal n, n . x is 0 at the camera
+    and keep n . X at the end, linear between: a segment beyond a slab at both ends (by ``margin``) cannot
+    meet it. A group whose interval (A, B) holds both ends misses all its members (room walls: three tests);
+    otherwise each member's own slab is tested, then its box and mesh as in ``any_in_list``."""
+    for g in range(g0, g1):
+        ab = grp_ab[g]
+        hg = keep * wp.dot(grp_n[g], X)
+        if wp.min(hg, wp.float64(0.0)) > ab[0] + margin and wp.max(hg, wp.float64(0.0)) < ab[1] - margin:
             continue
-        lh = slab_lh[item]
-        he = keep * wp.dot(slab_n[item], X)
-        if wp.min(he, wp.float64(0.0)) > lh[1] + margin or wp.max(he, wp.float64(0.0)) < lh[0] - margin:
-            continue
-        if near[item] < max_t:
-            te = box_entry(lowers[item], uppers[item], d)
-            if te >= 0.0 and te < max_t:
-                M = obj_T_ref[item]
-                if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
-                                            wp.transform_vector(M, d), max_t):
-                    return True
+        for k in range(mem_start[g], mem_start[g + 1]):
+            item = mem_items[k]
+            if item == skip:
+                continue
+            lh = slab_lh[item]
+            he = keep * wp.dot(slab_n[item], X)
+            if wp.min(he, wp.float64(0.0)) > lh[1] + margin or wp.max(he, wp.float64(0.0)) < lh[0] - margin:
+                continue
+            if near[item] < max_t:
+                te = box_entry(lowers[item], uppers[item], d)
+                if te >= 0.0 and te < max_t:
+                    M = obj_T_ref[item]
+                    if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
+                                                wp.transform_vector(M, d), max_t):
+                        return True
     return False
 
 
 @wp.func
 def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
-                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], items: wp.array[wp.int32],
-                a: wp.int32, b: wp.int32, d: wp.vec3, max_t: wp.float32, skip: wp.int32):
-    """``any_in_list`` over ``items[a:b]`` (nearest box first) leaving out item ``skip``."""
+                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], sphere: wp.array[wp.vec4d],
+                inner: wp.array[wp.float64], items: wp.array[wp.int32], a: wp.int32, b: wp.int32, d: wp.vec3,
+                max_t: wp.float32, X: wp.vec3d, keep: wp.float64, margin: wp.float64, skip: wp.int32):
+    """``any_in_list`` over ``items[a:b]`` (nearest box first) leaving out item ``skip``, for the segment
+    from the camera centre to keep X, with two exact shortcuts before each mesh query: the segment misses
+    the item's bounding sphere (no hit), or its point nearest the sphere's centre lies inside the item's
+    inner ball while the camera is outside the sphere (the segment enters the closed mesh before keep X:
+    blocked)."""
+    xx = wp.dot(X, X)
     for k in range(a, b):
         item = items[k]
         if near[item] >= max_t:
@@ -78,6 +91,18 @@ def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
         if item != skip:
             te = box_entry(lowers[item], uppers[item], d)
             if te >= 0.0 and te < max_t:
+                S = sphere[item]
+                c = wp.vec3d(S[0], S[1], S[2])
+                s = wp.dot(c, X) / xx  # parameter of the point of the line 0 + s X nearest the centre
+                e = c - wp.clamp(s, wp.float64(0.0), keep) * X
+                dd = wp.dot(e, e)
+                out = S[3] + margin
+                if dd > out * out:
+                    continue
+                rho = inner[item] - margin
+                if rho > wp.float64(0.0) and s > wp.float64(0.0) and s < keep and dd < rho * rho:
+                    if wp.dot(c, c) > out * out:
+                        return True
                 M = obj_T_ref[item]
                 if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
                                             wp.transform_vector(M, d), max_t):
@@ -220,15 +245,17 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                             if hc > margin and keep * hp + (wp.float64(1.0) - keep) * hc > margin:
                                 skip = r * n_inst + n
                             blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref,
-                                                  cull.slab_n, cull.slab_lh, cull.flat_inst, cull.n_flat,
-                                                  r * n_inst, d, max_t, X, keep, margin, skip)
+                                                  cull.slab_n, cull.slab_lh, cull.grp_n, cull.grp_ab, cull.mem_start,
+                                                  cull.mem_items, cull.grp_off[r], cull.grp_off[r + 1], d, max_t, X,
+                                                  keep, margin, skip)
                             if not blocked:
                                 jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
                                 ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
                                 lst = (r * tiles.tiles_y + ii // tiles.tile) * tiles.tiles_x + jj // tiles.tile
                                 blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
-                                                      inst.obj_T_ref, tiles.items, tiles.start[lst],
-                                                      tiles.start[lst + 1], d, max_t, skip)
+                                                      inst.obj_T_ref, cull.sphere, cull.inner, tiles.items,
+                                                      tiles.start[lst], tiles.start[lst + 1], d, max_t, X, keep,
+                                                      margin, skip)
                 occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
             if wp.static(occ_mode == 2):
                 blocked = True
