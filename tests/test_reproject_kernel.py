@@ -44,9 +44,10 @@ def scene_arrays():
     return scene
 
 
-def numpy_pairs(gb, cam_T_obj, src0, step, P):
+def numpy_pairs(gb, cam_T_obj, src0, step, P, K=K):
     """float64 numpy: per hit pixel of frames src0 .. src0 + P - 1, X in the target frame, (u', v') by the full
     K, flow, valid, inside; plus the pixel coordinates (f, i, j) and target frames r."""
+    H, W = gb.item.shape[1:]
     src = np.arange(P) + src0
     f, i, j = np.nonzero(gb.hit[src])
     s = src[f]
@@ -216,7 +217,7 @@ def test_culled_visibility_equals_the_full_walk_in_a_room(gap):
     Kc = scene.camera.K
     P = scene.num_frames - gap
     for src0, step in ((0, gap), (gap, -gap)):
-        _, _, (f, i, j, r, X, uv, inside) = numpy_pairs_k(gb, cam_T_obj, Kc, src0, step, P)
+        _, _, (f, i, j, r, X, uv, inside) = numpy_pairs(gb, cam_T_obj, src0, step, P, Kc)
         got = reproject_pixels(gb, cam_T_obj, Kc, src0, step, P, accel=accel, camera=scene.camera,
                                occlusion="exact", threads=2)
         blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
@@ -226,14 +227,3 @@ def test_culled_visibility_equals_the_full_walk_in_a_room(gap):
         hidden[inside] = blocked
         occ[f, 0, i, j] = hidden
         np.testing.assert_array_equal(got["occ"], occ)
-
-
-def numpy_pairs_k(gb, cam_T_obj, Kc, src0, step, P):
-    """``numpy_pairs`` for any intrinsics and image size."""
-    global K, W, H
-    saved = K, W, H
-    K, (W, H) = Kc, gb.item.shape[:0:-1]
-    try:
-        return numpy_pairs(gb, cam_T_obj, src0, step, P)
-    finally:
-        K, W, H = saved
