@@ -15,7 +15,8 @@ disparity change fB / X.z - fB / (cam_T_obj[s, n] @ p).z and scene flow sfM[t, n
 The exact visibility ray (occlusion="exact") is the segment from the camera centre of frame r to
 (1 - tol) X; it is blocked when any mesh meets it (first blocker ends the test). Exact culls spare the
 mesh queries that cannot hit (``Culling``, flowsynth.accel.SceneAccel.culling), all proved on float64
-planes with a margin of 1e-6 |X| + 1e-9 m (float32 rounding of the ray the mesh queries trace is ~1e-7 |X|):
+planes with a margin of 1e-6 |X| + 1e-9 m (float32 rounding of the ray the mesh queries trace is ~1e-7 |X|;
+|X| is taken as its float32 length L):
 - own item: its mesh lies in the half-space n . x <= e of the hit face's plane (e: max of n . v over the
   asset's vertices); when the camera and the segment's end are both beyond it, no point of the segment
   is (n . x is linear along the segment);
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from flowsynth.kernels.raycast import Culling, Instances, TileLists, box_entry, trace_any
+from flowsynth.kernels.raycast import Culling, Instances, TileLists, box_entry_inv, inverse_dir, trace_any
 
 __all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "pair_kernel"]
 
@@ -44,7 +45,8 @@ def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
                 item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], slab_n: wp.array[wp.vec3d],
                 slab_lh: wp.array[wp.vec2d], grp_n: wp.array[wp.vec3d], grp_ab: wp.array[wp.vec2d],
                 mem_start: wp.array[wp.int32], mem_items: wp.array[wp.int32], g0: wp.int32, g1: wp.int32,
-                d: wp.vec3, max_t: wp.float32, X: wp.vec3d, keep: wp.float64, margin: wp.float64, skip: wp.int32):
+                d: wp.vec3, inv: wp.vec3, max_t: wp.float32, X: wp.vec3d, keep: wp.float64, margin: wp.float64,
+                skip: wp.int32):
     """Does a flat item of groups g0 .. g1 - 1 (``Culling``) other than ``skip`` block the segment from the
     camera centre to keep X (float32 ray ``d``, ``max_t``)? Along a slab normal n, n . x is 0 at the camera
     and keep n . X at the end, linear between: a segment beyond a slab at both ends (by ``margin``) cannot
@@ -64,7 +66,7 @@ def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
             if wp.min(he, wp.float64(0.0)) > lh[1] + margin or wp.max(he, wp.float64(0.0)) < lh[0] - margin:
                 continue
             if near[item] < max_t:
-                te = box_entry(lowers[item], uppers[item], d)
+                te = box_entry_inv(lowers[item], uppers[item], d, inv)
                 if te >= 0.0 and te < max_t:
                     M = obj_T_ref[item]
                     if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
@@ -77,23 +79,23 @@ def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
 def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
                 item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], sphere: wp.array[wp.vec4d],
                 inner: wp.array[wp.float64], items: wp.array[wp.int32], a: wp.int32, b: wp.int32, d: wp.vec3,
-                max_t: wp.float32, X: wp.vec3d, keep: wp.float64, margin: wp.float64, skip: wp.int32):
+                inv: wp.vec3, max_t: wp.float32, X: wp.vec3d, inv_xx: wp.float64, keep: wp.float64,
+                margin: wp.float64, skip: wp.int32):
     """``any_in_list`` over ``items[a:b]`` (nearest box first) leaving out item ``skip``, for the segment
     from the camera centre to keep X, with two exact shortcuts before each mesh query: the segment misses
     the item's bounding sphere (no hit), or its point nearest the sphere's centre lies inside the item's
     inner ball while the camera is outside the sphere (the segment enters the closed mesh before keep X:
     blocked)."""
-    xx = wp.dot(X, X)
     for k in range(a, b):
         item = items[k]
         if near[item] >= max_t:
             break
         if item != skip:
-            te = box_entry(lowers[item], uppers[item], d)
+            te = box_entry_inv(lowers[item], uppers[item], d, inv)
             if te >= 0.0 and te < max_t:
                 S = sphere[item]
                 c = wp.vec3d(S[0], S[1], S[2])
-                s = wp.dot(c, X) / xx  # parameter of the point of the line 0 + s X nearest the centre
+                s = wp.dot(c, X) * inv_xx  # parameter of the point of the line 0 + s X nearest the centre
                 e = c - wp.clamp(s, wp.float64(0.0), keep) * X
                 dd = wp.dot(e, e)
                 out = S[3] + margin
@@ -233,7 +235,8 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                         else:
                             X = wp.vec3d(x, y, z)
                             keep = wp.float64(1.0) - wp.float64(rel_tol)
-                            margin = wp.float64(1.0e-6) * wp.length(X) + wp.float64(1.0e-9)
+                            margin = wp.float64(1.0e-6) * wp.float64(L) + wp.float64(1.0e-9)
+                            inv = inverse_dir(d)
                             # own item: the hit face's plane (n, e), object frame; camera r there at -R^T t
                             pl = cull.face_plane[cull.face_off[n] + face[s, i, j]]
                             cx = -(M[0, 0] * M[0, 3] + M[1, 0] * M[1, 3] + M[2, 0] * M[2, 3])
@@ -246,16 +249,16 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                                 skip = r * n_inst + n
                             blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref,
                                                   cull.slab_n, cull.slab_lh, cull.grp_n, cull.grp_ab, cull.mem_start,
-                                                  cull.mem_items, cull.grp_off[r], cull.grp_off[r + 1], d, max_t, X,
-                                                  keep, margin, skip)
+                                                  cull.mem_items, cull.grp_off[r], cull.grp_off[r + 1], d, inv, max_t,
+                                                  X, keep, margin, skip)
                             if not blocked:
                                 jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
                                 ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
                                 lst = (r * tiles.tiles_y + ii // tiles.tile) * tiles.tiles_x + jj // tiles.tile
                                 blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
                                                       inst.obj_T_ref, cull.sphere, cull.inner, tiles.items,
-                                                      tiles.start[lst], tiles.start[lst + 1], d, max_t, X, keep,
-                                                      margin, skip)
+                                                      tiles.start[lst], tiles.start[lst + 1], d, inv, max_t, X,
+                                                      wp.float64(1.0) / wp.dot(X, X), keep, margin, skip)
                 occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
             if wp.static(occ_mode == 2):
                 blocked = True
