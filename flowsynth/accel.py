@@ -178,7 +178,8 @@ class SceneAccel:
             c.sphere = wp.array(np.concatenate([centre, np.broadcast_to(sph[:, 3], (F, N))[..., None]], -1)
                                 .reshape(-1, 4), dtype=wp.vec4d, device=self.device)
             c.inner = wp.array(np.tile([b["inner"] for b in bounds], F), dtype=wp.float64, device=self.device)
-            g_off, g_n, g_ab, m_start, m_items = _flat_groups(n_cam, lh_cam, np.flatnonzero(flat))
+            g_off, g_n, g_ab, g_item, m_start, m_items = _flat_groups(n_cam, lh_cam, np.flatnonzero(flat))
+            c.grp_item = wp.array(g_item, dtype=wp.vec2i, device=self.device)
             c.grp_off = wp.array(g_off, dtype=wp.int32, device=self.device)
             c.grp_n = wp.array(g_n, dtype=wp.vec3d, device=self.device)
             c.grp_ab = wp.array(g_ab, dtype=wp.vec2d, device=self.device)
@@ -296,10 +297,11 @@ def _flat_groups(n_cam: np.ndarray, lh_cam: np.ndarray, flat_inst: np.ndarray):
     positive) the interval (A, B) of n . x beyond every member's slab on the camera's side: A = max hi of
     the members the camera is above, B = min lo of those it is below (A = 1e300 when the camera is inside
     a member's slab: no shortcut). A segment from the camera (n . x = 0) to keep X with A + m < n . x < B - m
-    at both ends misses every member. Returns (grp_off (F + 1,), grp_n, grp_ab, mem_start, mem_items)
-    (CSR over groups, then over their members' global item indices)."""
+    at both ends misses every member. ``grp_item``: the one member above (below) the camera, else -2; a ray
+    that leaves that member out (its own item) drops the bound A (B). Returns (grp_off (F + 1,), grp_n,
+    grp_ab, grp_item, mem_start, mem_items) (CSR over groups, then over their members' global item indices)."""
     F, N = n_cam.shape[:2]
-    g_off, g_n, g_ab, m_start, m_items = [0], [], [], [0], []
+    g_off, g_n, g_ab, g_item, m_start, m_items = [0], [], [], [], [0], []
     for f in range(F):
         groups: dict[bytes, list] = {}
         for k in flat_inst:
@@ -307,25 +309,30 @@ def _flat_groups(n_cam: np.ndarray, lh_cam: np.ndarray, flat_inst: np.ndarray):
             nz = n[np.flatnonzero(n)]
             if len(nz) and nz[0] < 0:  # exact: negation commutes with rounding
                 n, lo, hi = -n, -hi, -lo
-            groups.setdefault(n.tobytes(), [n, -1e300, 1e300, []])
-            g = groups[n.tobytes()]
+            g = groups.setdefault(n.tobytes(), [n, -1e300, 1e300, [], [], []])
+            item = f * N + int(k)
             if hi < 0:
                 g[1] = max(g[1], hi)
+                g[3].append(item)
             elif lo > 0:
                 g[2] = min(g[2], lo)
+                g[4].append(item)
             else:
                 g[1] = 1e300
-            g[3].append(f * N + int(k))
-        for n, a, b, members in groups.values():
+                g[3].extend((-2, -2))  # never a single member: no bound is dropped
+            g[5].append(item)
+        for n, a, b, above, below, members in groups.values():
             g_n.append(n)
             g_ab.append((a, b))
+            g_item.append((above[0] if len(above) == 1 else -2, below[0] if len(below) == 1 else -2))
             m_items.extend(members)
             m_start.append(len(m_items))
         g_off.append(len(g_n))
     g_n = np.array(g_n) if g_n else np.zeros((1, 3))
     g_ab = np.array(g_ab) if g_ab else np.zeros((1, 2))
+    g_item = np.array(g_item, np.int32) if g_item else np.zeros((1, 2), np.int32)
     m_items = np.array(m_items, np.int32) if m_items else np.zeros(1, np.int32)
-    return (np.array(g_off, np.int32), g_n, g_ab, np.array(m_start, np.int32), m_items)
+    return np.array(g_off, np.int32), g_n, g_ab, g_item, np.array(m_start, np.int32), m_items
 
 
 def _tile_lists(lo: np.ndarray, hi: np.ndarray, order: np.ndarray, K: np.ndarray, W: int, H: int,

@@ -68,6 +68,7 @@ class Culling:
     grp_off: wp.array[wp.int32]  # (F + 1,) frame f's flat-item groups are grp_off[f] .. grp_off[f + 1] - 1
     grp_n: wp.array[wp.vec3d]  # per group: the members' slab normal (one sign)
     grp_ab: wp.array[wp.vec2d]  # per group: (A, B), n . x in (A, B) is beyond every member's slab
+    grp_item: wp.array[wp.vec2i]  # per group: the single member bounding A (B), else -2
     mem_start: wp.array[wp.int32]  # (groups + 1,) CSR of the groups' members
     mem_items: wp.array[wp.int32]  # members' global item indices
 

@@ -44,18 +44,26 @@ _PAIR: dict = {}
 def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
                 item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], slab_n: wp.array[wp.vec3d],
                 slab_lh: wp.array[wp.vec2d], grp_n: wp.array[wp.vec3d], grp_ab: wp.array[wp.vec2d],
-                mem_start: wp.array[wp.int32], mem_items: wp.array[wp.int32], g0: wp.int32, g1: wp.int32,
-                d: wp.vec3, inv: wp.vec3, max_t: wp.float32, X: wp.vec3d, keep: wp.float64, margin: wp.float64,
-                skip: wp.int32):
+                grp_item: wp.array[wp.vec2i], mem_start: wp.array[wp.int32], mem_items: wp.array[wp.int32],
+                g0: wp.int32, g1: wp.int32, d: wp.vec3, inv: wp.vec3, max_t: wp.float32, X: wp.vec3d,
+                keep: wp.float64, margin: wp.float64, skip: wp.int32):
     """Does a flat item of groups g0 .. g1 - 1 (``Culling``) other than ``skip`` block the segment from the
     camera centre to keep X (float32 ray ``d``, ``max_t``)? Along a slab normal n, n . x is 0 at the camera
     and keep n . X at the end, linear between: a segment beyond a slab at both ends (by ``margin``) cannot
-    meet it. A group whose interval (A, B) holds both ends misses all its members (room walls: three tests);
-    otherwise each member's own slab is tested, then its box and mesh as in ``any_in_list``."""
+    meet it. A group whose interval (A, B) holds both ends misses all its members (room walls: three tests;
+    a bound set by ``skip`` alone is dropped); otherwise each member's own slab is tested, then its box and
+    mesh as in ``any_in_list``."""
     for g in range(g0, g1):
         ab = grp_ab[g]
+        gi = grp_item[g]
+        lo = ab[0] + margin
+        hi = ab[1] - margin
+        if gi[0] == skip:
+            lo = wp.float64(-1.0e300)
+        if gi[1] == skip:
+            hi = wp.float64(1.0e300)
         hg = keep * wp.dot(grp_n[g], X)
-        if wp.min(hg, wp.float64(0.0)) > ab[0] + margin and wp.max(hg, wp.float64(0.0)) < ab[1] - margin:
+        if wp.min(hg, wp.float64(0.0)) > lo and wp.max(hg, wp.float64(0.0)) < hi:
             continue
         for k in range(mem_start[g], mem_start[g + 1]):
             item = mem_items[k]
@@ -248,9 +256,9 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                             if hc > margin and keep * hp + (wp.float64(1.0) - keep) * hc > margin:
                                 skip = r * n_inst + n
                             blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref,
-                                                  cull.slab_n, cull.slab_lh, cull.grp_n, cull.grp_ab, cull.mem_start,
-                                                  cull.mem_items, cull.grp_off[r], cull.grp_off[r + 1], d, inv, max_t,
-                                                  X, keep, margin, skip)
+                                                  cull.slab_n, cull.slab_lh, cull.grp_n, cull.grp_ab, cull.grp_item,
+                                                  cull.mem_start, cull.mem_items, cull.grp_off[r], cull.grp_off[r + 1],
+                                                  d, inv, max_t, X, keep, margin, skip)
                             if not blocked:
                                 jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
                                 ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
