@@ -15,8 +15,8 @@ primary cast), with target frame r (r = s + k forward, r = s - k backward, k a f
     scene_flow = cam_T_world[s] (world_T_obj[r, n] - world_T_obj[s, n]) p   [m], where hit, else 0
 
 flow, valid, oof, occ and scene flow (and stereo's disparity change and view occlusion) come from one Warp kernel thread
-per (pair, pixel) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included: no
-per-point gather of matrices, no compaction. ``reproject`` (numpy + kornia) serves the sparse track points.
+per (pair, image row) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included (with exact
+culls, ``SceneAccel.culling``): no per-point gather of matrices, no compaction. ``reproject`` (numpy + kornia) serves the sparse track points.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
                      scene_flow_T: np.ndarray | None = None,
                      threads: int | None = None) -> dict[str, np.ndarray]:
     """Every hit pixel of G-buffer ``gb`` reprojected into a target frame, per pair: one Warp kernel thread per
-    (pair, pixel) (flowsynth/kernels/reproject.py), launched in row bands (bit-identical for any ``threads``).
+    (pair, row) (flowsynth/kernels/reproject.py), launched in row bands (bit-identical for any ``threads``).
 
     Pair t maps frame s = src0 + t into frame s + step of the target view, whose (T, N, 4, 4) float64
     ``cam_T_obj`` is given (the same view for flow, the other view for stereo). Definitions: module docstring.
