@@ -47,8 +47,11 @@ def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch
         device: Warp device.
     """
     radiance = render_radiance(scene, accel, gb, plan, device=device)
-    rgb = tonemap_srgb(radiance, plan.tonemap, plan.exposure)
-    return torch.from_numpy(np.ascontiguousarray(rgb.transpose(0, 3, 1, 2)))
+    T, H, W, _ = radiance.shape
+    rgb = np.empty((T, 3, H, W), np.float32)
+    for t in range(T):  # frame by frame: the float64 temporaries stay in cache (same values, ~2x faster)
+        rgb[t] = tonemap_srgb(radiance[t], plan.tonemap, plan.exposure).transpose(2, 0, 1)
+    return torch.from_numpy(rgb)
 
 
 def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> np.ndarray:
