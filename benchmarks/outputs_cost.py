@@ -64,7 +64,7 @@ def main() -> None:
 
     W, H = (256, 192) if args.quick else (512, 384)
     rows = []
-    for T, repeat, warmup in ((2, 5 if args.quick else 7, 1), (24, 2, 0)):  # T=2's warm-up loads the kernels
+    for T, repeat, warmup in ((2, 5 if args.quick else 7, 1), (24, 3, 0)):  # T=2's warm-up loads the kernels
         cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=T, render_mode="flat")
         counter = {"i": 0}
 

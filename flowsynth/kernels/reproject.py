@@ -1,7 +1,7 @@
 """Per-pixel reprojection of the primary cast's hit points into another frame or view (float64), with the
 validity, out-of-frame and occlusion tests fused in: one thread per (pair, row) looping over the row's
-pixels (a Warp CPU thread per pixel spends more on unravelling its 3-D index than on the reprojection), no
-gather.
+pixels (a Warp CPU thread per pixel spends more on unravelling its 3-D index than on the reprojection:
+benchmarks/results/SUMMARY.md, outputs_cost), no gather.
 
 Definitions are those of flowsynth/flow.py's module docstring. For pair t the source frame is
 s = src0 + t and the target frame r = s + step; the pixel (i, j) of frame s holding instance n at
