@@ -121,26 +121,6 @@ def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], ob
 
 
 @wp.func
-def box_entry(lo: wp.vec3, hi: wp.vec3, d: wp.vec3):
-    """Entry distance of the ray 0 + t d (t >= 0) into box [lo, hi]; -1 when it misses."""
-    t0 = wp.float32(0.0)
-    t1 = wp.float32(1.0e30)
-    for a in range(3):
-        if d[a] == 0.0:
-            if lo[a] > 0.0 or hi[a] < 0.0:
-                return wp.float32(-1.0)
-        else:
-            inv = 1.0 / d[a]
-            ta = lo[a] * inv
-            tb = hi[a] * inv
-            t0 = wp.max(t0, wp.min(ta, tb))
-            t1 = wp.min(t1, wp.max(ta, tb))
-    if t0 > t1:
-        return wp.float32(-1.0)
-    return t0
-
-
-@wp.func
 def inverse_dir(d: wp.vec3):
     """(1 / d[a]) per axis, 0 where d[a] == 0 (``box_entry_inv`` tests those axes apart)."""
     inv = wp.vec3(0.0)
@@ -152,7 +132,8 @@ def inverse_dir(d: wp.vec3):
 
 @wp.func
 def box_entry_inv(lo: wp.vec3, hi: wp.vec3, d: wp.vec3, inv: wp.vec3):
-    """``box_entry`` with the per-ray reciprocals ``inv = inverse_dir(d)`` (same result, no division per box)."""
+    """Entry distance of the ray 0 + t d (t >= 0) into box [lo, hi]; -1 when it misses. ``inv`` = inverse_dir(d),
+    computed once per ray (no division per box)."""
     t0 = wp.float32(0.0)
     t1 = wp.float32(1.0e30)
     for a in range(3):
@@ -167,6 +148,12 @@ def box_entry_inv(lo: wp.vec3, hi: wp.vec3, d: wp.vec3, inv: wp.vec3):
     if t0 > t1:
         return wp.float32(-1.0)
     return t0
+
+
+@wp.func
+def box_entry(lo: wp.vec3, hi: wp.vec3, d: wp.vec3):
+    """Entry distance of the ray 0 + t d (t >= 0) into box [lo, hi]; -1 when it misses."""
+    return box_entry_inv(lo, hi, d, inverse_dir(d))
 
 
 @wp.func
