@@ -227,3 +227,39 @@ def test_culled_visibility_equals_the_full_walk_in_a_room(gap):
         hidden[inside] = blocked
         occ[f, 0, i, j] = hidden
         np.testing.assert_array_equal(got["occ"], occ)
+
+
+def test_sphere_bounded_face_planes_keep_visibility_exact(monkeypatch):
+    """Above ``FACE_PLANES_BUDGET`` (faces x vertices) a face plane's offset is the bounding sphere's
+    n . c + r instead of the max over the vertices: it must still hold every vertex (float64 brute force),
+    give no inner ball, and leave the culled visibility equal to the visibility kernel's full walk."""
+    from collections import OrderedDict
+
+    import flowsynth.accel as accel_mod
+    from flowsynth.sampling import sample_scene
+
+    monkeypatch.setattr(accel_mod, "FACE_PLANES_BUDGET", 0)
+    monkeypatch.setattr(accel_mod, "_PLANES", OrderedDict())
+    for mesh in (trimesh.creation.icosphere(2, radius=0.6), trimesh.creation.torus(0.5, 0.15)):
+        b = accel_mod._face_planes(mesh)
+        V = np.asarray(mesh.vertices, np.float32).astype(np.float64)
+        assert (V @ b["planes"][:, :3].T - b["planes"][:, 3]).max() <= 0.0
+        assert b["inner"] == 0.0
+    cfg = fs.BouncingThingsConfig(width=80, height=60, num_frames=4, render_mode="flat")
+    scene = sample_scene(cfg, 0, 3)
+    meshes, cam_T_world, world_T_obj = render_mod.scene_arrays(scene)
+    accel = SceneAccel(meshes, cam_T_world, world_T_obj)
+    gb = render_mod.cast_gbuffer(accel, scene.camera, want_normals=False, want_points=True)
+    cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
+    assert (accel.culling().inner.numpy() == 0).all()
+    P = scene.num_frames - 1
+    _, _, (f, i, j, r, X, uv, inside) = numpy_pairs(gb, cam_T_obj, 0, 1, P, scene.camera.K)
+    got = reproject_pixels(gb, cam_T_obj, scene.camera.K, 0, 1, P, accel=accel, camera=scene.camera,
+                           occlusion="exact", threads=2)
+    blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
+    assert blocked.sum() > 20 and (~blocked).sum() > 1000
+    occ = np.zeros((P, 1, scene.camera.height, scene.camera.width), bool)
+    hidden = ~inside
+    hidden[inside] = blocked
+    occ[f, 0, i, j] = hidden
+    np.testing.assert_array_equal(got["occ"], occ)
