@@ -143,7 +143,8 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
 
 def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
     """Every flow-family key the plan asks for: per (direction, gap k) of ``plan.pair_jobs``, tensors of shape
-    (max(T-k, 0), C, H, W) whose index t is the pair (t, t+k); ``motion`` (T-1, 1, H, W)."""
+    (max(T-k, 0), C, H, W) whose index t is the pair (t, t+k); ``motion`` (T-1, 1, H, W); and stereo's
+    ``disparity_change`` when asked for beside a key of the fw gap-1 pass (same pairs, same kernel launch)."""
     T, H, W = gb.dist.shape
     want = set(plan.outputs)
     out: dict[str, torch.Tensor] = {}
@@ -158,12 +159,18 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
         if key["scene_flow"] in want:  # cam_T_world[s] (world_T_obj[s + step] - world_T_obj[s]) per (pair, object)
             src = np.arange(P) + src0
             sfT = np.matmul(cam_T_world[src][:, None], world_T_obj[src + step] - world_T_obj[src])
+        # stereo's disparity change maps the pairs (t, t + 1) of the left view too: it rides on the fw gap-1
+        # pass when that pass runs anyway (flowsynth/stereo.py computes it otherwise)
+        fB = (scene.camera.fx * plan.stereo_baseline
+              if (name, k) == ("fw", 1) and "disparity_change" in want else None)
         res = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,
                                flow=key["flow"] in want, occlusion=plan.occlusion if key["occ"] in want else None,
-                               scene_flow_T=sfT, threads=plan.threads)
+                               fB=fB, scene_flow_T=sfT, threads=plan.threads)
         for kind in ("flow", "valid", "oof", "occ", "scene_flow"):
             if kind in res:
                 out[key[kind]] = torch.from_numpy(res[kind])
+        if "dc" in res:
+            out["disparity_change"] = torch.from_numpy(res["dc"].astype(np.float32))
     if "motion" in want:
         out["motion"] = torch.from_numpy(_motion(gb, gb.instance_index, world_T_obj))
     return {k: v for k, v in out.items() if k in want}

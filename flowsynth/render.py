@@ -117,7 +117,7 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
     if plan.stereo:
         from flowsynth.stereo import stereo_outputs
 
-        out.update(stereo_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world, device=device))
+        out.update(stereo_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world, device=device, done=out))
     if plan.tracks:
         from flowsynth.tracks import track_outputs
 

@@ -47,11 +47,12 @@ def _occlusion(camera, accel, gb, cam_T_obj_target: np.ndarray, threads) -> np.n
 
 
 def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray,
-                   device: str = "cpu") -> dict[str, torch.Tensor]:
-    """Every stereo key the plan asks for; ``accel``/``gb`` are the left view's (the clip's camera)."""
+                   device: str = "cpu", done=()) -> dict[str, torch.Tensor]:
+    """Every stereo key the plan asks for except those in ``done`` (``disparity_change`` rides on the flow
+    stage's fw gap-1 pass when that runs: flowsynth/flow.py); ``accel``/``gb`` are the left view's."""
     from flowsynth.render import cast_gbuffer
 
-    want = set(plan.outputs)
+    want = set(plan.outputs) - set(done)
     B = plan.stereo_baseline
     cam = scene.camera
     fB = cam.fx * B
@@ -59,8 +60,7 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
     out: dict[str, np.ndarray | torch.Tensor] = {}
     meshes = [o.mesh for o in scene.objects]
     if "disparity" in want:
-        z = gb.dist.astype(np.float64) * dz
-        out["disparity"] = np.where(gb.hit, fB / np.where(gb.hit, z, 1.0), 0.0)[:, None]
+        out["disparity"] = _disparity(gb, dz, fB)
     if "disparity_change" in want:
         cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
         out["disparity_change"] = reproject_pixels(gb, cam_T_obj, cam.K, 0, 1, max(gb.dist.shape[0] - 1, 0), fB=fB,
@@ -73,11 +73,10 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
         need_points = bool(want & {"rgb_right", "disparity_occ_right"})
         gb_r = cast_gbuffer(accel_r, cam, want_normals="rgb_right" in want, want_points=need_points,
                             threads=plan.threads)
-        z_r = gb_r.dist.astype(np.float64) * dz
         if "depth_right" in want:
-            out["depth_right"] = z_r[:, None]
+            out["depth_right"] = (gb_r.dist * dz).astype(np.float32)[:, None]  # dist is 0 where no hit
         if "disparity_right" in want:
-            out["disparity_right"] = np.where(gb_r.hit, fB / np.where(gb_r.hit, z_r, 1.0), 0.0)[:, None]
+            out["disparity_right"] = _disparity(gb_r, dz, fB)
         if "disparity_occ" in want:
             out["disparity_occ"] = _occlusion(cam, accel_r, gb, np.matmul(cam_T_world_r[:, None], world_T_obj),
                                               plan.threads)
@@ -88,6 +87,14 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
             out["rgb_right"] = _rgb_right(scene, accel_r, gb, gb_r, plan, world_T_cam_r, device)
     return {k: v if isinstance(v, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(v)).to(
         torch.bool if v.dtype == bool else torch.float32) for k, v in out.items()}
+
+
+def _disparity(gb, dz: np.ndarray, fB: float) -> np.ndarray:
+    """(T, 1, H, W) float32 fB / z of a view, z = dist * dz its planar depth in float64 (rounded once); 0 where
+    no hit."""
+    d = np.zeros(gb.dist.shape, np.float32)
+    np.divide(fB, gb.dist * dz, out=d, where=gb.hit)
+    return d[:, None]
 
 
 def _rgb_right(scene, accel_r, gb, gb_r, plan, world_T_cam_r: np.ndarray, device: str) -> torch.Tensor:

@@ -106,11 +106,16 @@ def test_disparity_equals_brute_force_stereo(skew):
     assert totals["occ"] > 50 and totals["occ_right"] > 50, "the slab must hide wall points from the other view"
 
 
-def test_disparity_change_is_flyingthings_definition():
+@pytest.mark.parametrize("with_flow", [True, False], ids=["fw-pass", "own-pass"])
+def test_disparity_change_is_flyingthings_definition(with_flow):
     """disparity_change[t] = fx B / z_{t+1} - fx B / z_t of the point seen at the left pixel of frame t,
-    z_{t+1} its depth in frame t+1 by brute-force reprojection; 0 where not valid_fw."""
+    z_{t+1} its depth in frame t+1 by brute-force reprojection; 0 where not valid_fw. Asked for beside
+    valid_fw it comes from the flow stage's fw pass, alone from stereo's own pass: both must hold."""
     scene, cams, world_T_obj = stereo_clip()
-    out = fs.render(scene, KEYS, stereo_baseline=B)
+    keys = KEYS if with_flow else [k for k in KEYS if k != "valid_fw"]
+    out = fs.render(scene, keys, stereo_baseline=B)
+    if not with_flow:
+        out["valid_fw"] = fs.render(scene, ["valid_fw"])["valid_fw"]
     K, meshes, casts = scene.camera.K, [o.mesh for o in scene.objects], {}
     moving = 0
     for t in range(scene.num_frames - 1):
