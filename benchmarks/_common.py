@@ -93,22 +93,28 @@ def time_calls(fn: Callable[[], object], repeat: int = 5, warmup: int = 1) -> di
     return time_round_robin({"fn": fn}, repeat, warmup)["fn"]
 
 
-def time_round_robin(fns: dict[str, Callable[[], object]], repeat: int = 5, warmup: int = 1) -> dict[str, dict]:
+def time_round_robin(fns: dict[str, Callable[[], object]], repeat: int = 5, warmup: int = 1,
+                     rotate: bool = False) -> dict[str, dict]:
     """``time_calls`` for several functions, called in turn each round, so load changes on a shared
-    machine hit all of them alike and their ratios stay meaningful. Returns {name: time_calls dict}."""
+    machine hit all of them alike and their ratios stay meaningful. ``rotate``: round r starts with function
+    r mod n (so none is always the first call of a round). Returns {name: time_calls dict}, plus every round's
+    times (``cpu_all_s``, ``wall_all_s``, in round order)."""
     for _ in range(warmup):
         for fn in fns.values():
             fn()
     wall: dict[str, list[float]] = {k: [] for k in fns}
     cpu: dict[str, list[float]] = {k: [] for k in fns}
-    for _ in range(max(repeat, 1)):
-        for name, fn in fns.items():
+    names = list(fns)
+    for r in range(max(repeat, 1)):
+        for name in names[r % len(names):] + names[:r % len(names)] if rotate else names:
+            fn = fns[name]
             w0, c0 = time.perf_counter(), time.process_time()
             fn()
             cpu[name].append(time.process_time() - c0)
             wall[name].append(time.perf_counter() - w0)
     return {k: {"wall_s": statistics.median(wall[k]), "cpu_s": statistics.median(cpu[k]), "wall_min_s": min(wall[k]),
-                "cpu_min_s": min(cpu[k]), "repeat": len(wall[k])} for k in fns}
+                "cpu_min_s": min(cpu[k]), "repeat": len(wall[k]), "wall_all_s": wall[k], "cpu_all_s": cpu[k]}
+            for k in fns}
 
 
 def timeit(fn: Callable[[], object], repeat: int = 5, warmup: int = 1, clock: str = "wall") -> float:
