@@ -198,35 +198,44 @@ def test_culling_bounds_hold_against_brute_force():
         assert hits["t"].min() >= b["inner"], (name, hits["t"].min(), b["inner"])
 
 
+def _room(num_frames: int):
+    """BouncingThings room scene 3 at 80x60 (flat): scene, its SceneAccel, G-buffer with points, cam_T_obj."""
+    from flowsynth.sampling import sample_scene
+
+    cfg = fs.BouncingThingsConfig(width=80, height=60, num_frames=num_frames, render_mode="flat")
+    scene = sample_scene(cfg, 0, 3)
+    meshes, cam_T_world, world_T_obj = render_mod.scene_arrays(scene)
+    accel = SceneAccel(meshes, cam_T_world, world_T_obj)
+    gb = render_mod.cast_gbuffer(accel, scene.camera, want_normals=False, want_points=True)
+    return scene, accel, gb, np.matmul(cam_T_world[:, None], world_T_obj)
+
+
+def _assert_culled_occ_is_the_full_walk(scene, accel, gb, cam_T_obj, src0: int, step: int, P: int) -> None:
+    """The pair kernel's culled occlusion equals out-of-frame or the visibility kernel's full walk."""
+    _, _, (f, i, j, r, X, uv, inside) = numpy_pairs(gb, cam_T_obj, src0, step, P, scene.camera.K)
+    got = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,
+                           occlusion="exact", threads=2)
+    blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
+    assert blocked.sum() > 20 and (~blocked).sum() > 1000
+    occ = np.zeros((P, 1, scene.camera.height, scene.camera.width), bool)
+    hidden = ~inside
+    hidden[inside] = blocked
+    occ[f, 0, i, j] = hidden
+    np.testing.assert_array_equal(got["occ"], occ)
+
+
 @pytest.mark.parametrize("gap", [1, 2])
 def test_culled_visibility_equals_the_full_walk_in_a_room(gap):
     """In a BouncingThings room (six flat walls, convex and non-convex objects), the pair kernel's culled
     visibility (own face plane, wall slabs, bounding and inner balls, tile lists without walls) gives
     exactly the visibility kernel's answer over every instance of the frame, in both directions."""
-    from flowsynth.sampling import sample_scene
-
-    cfg = fs.BouncingThingsConfig(width=80, height=60, num_frames=5, render_mode="flat")
-    scene = sample_scene(cfg, 0, 3)
-    meshes, cam_T_world, world_T_obj = render_mod.scene_arrays(scene)
-    accel = SceneAccel(meshes, cam_T_world, world_T_obj)
-    gb = render_mod.cast_gbuffer(accel, scene.camera, want_normals=False, want_points=True)
-    cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
+    scene, accel, gb, cam_T_obj = _room(5)
     cull = accel.culling()
     assert (np.diff(cull.grp_off.numpy()) == 3).all(), "the room's walls: three groups per frame"
     assert (cull.inner.numpy() > 0).any() and (cull.inner.numpy() == 0).any()
-    Kc = scene.camera.K
     P = scene.num_frames - gap
     for src0, step in ((0, gap), (gap, -gap)):
-        _, _, (f, i, j, r, X, uv, inside) = numpy_pairs(gb, cam_T_obj, src0, step, P, Kc)
-        got = reproject_pixels(gb, cam_T_obj, Kc, src0, step, P, accel=accel, camera=scene.camera,
-                               occlusion="exact", threads=2)
-        blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
-        assert blocked.sum() > 20 and (~blocked).sum() > 1000
-        occ = np.zeros((P, 1, scene.camera.height, scene.camera.width), bool)
-        hidden = ~inside
-        hidden[inside] = blocked
-        occ[f, 0, i, j] = hidden
-        np.testing.assert_array_equal(got["occ"], occ)
+        _assert_culled_occ_is_the_full_walk(scene, accel, gb, cam_T_obj, src0, step, P)
 
 
 def test_sphere_bounded_face_planes_keep_visibility_exact(monkeypatch):
@@ -236,7 +245,6 @@ def test_sphere_bounded_face_planes_keep_visibility_exact(monkeypatch):
     from collections import OrderedDict
 
     import flowsynth.accel as accel_mod
-    from flowsynth.sampling import sample_scene
 
     monkeypatch.setattr(accel_mod, "FACE_PLANES_BUDGET", 0)
     monkeypatch.setattr(accel_mod, "_PLANES", OrderedDict())
@@ -245,21 +253,6 @@ def test_sphere_bounded_face_planes_keep_visibility_exact(monkeypatch):
         V = np.asarray(mesh.vertices, np.float32).astype(np.float64)
         assert (V @ b["planes"][:, :3].T - b["planes"][:, 3]).max() <= 0.0
         assert b["inner"] == 0.0
-    cfg = fs.BouncingThingsConfig(width=80, height=60, num_frames=4, render_mode="flat")
-    scene = sample_scene(cfg, 0, 3)
-    meshes, cam_T_world, world_T_obj = render_mod.scene_arrays(scene)
-    accel = SceneAccel(meshes, cam_T_world, world_T_obj)
-    gb = render_mod.cast_gbuffer(accel, scene.camera, want_normals=False, want_points=True)
-    cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
+    scene, accel, gb, cam_T_obj = _room(4)
     assert (accel.culling().inner.numpy() == 0).all()
-    P = scene.num_frames - 1
-    _, _, (f, i, j, r, X, uv, inside) = numpy_pairs(gb, cam_T_obj, 0, 1, P, scene.camera.K)
-    got = reproject_pixels(gb, cam_T_obj, scene.camera.K, 0, 1, P, accel=accel, camera=scene.camera,
-                           occlusion="exact", threads=2)
-    blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
-    assert blocked.sum() > 20 and (~blocked).sum() > 1000
-    occ = np.zeros((P, 1, scene.camera.height, scene.camera.width), bool)
-    hidden = ~inside
-    hidden[inside] = blocked
-    occ[f, 0, i, j] = hidden
-    np.testing.assert_array_equal(got["occ"], occ)
+    _assert_culled_occ_is_the_full_walk(scene, accel, gb, cam_T_obj, 0, 1, scene.num_frames - 1)
