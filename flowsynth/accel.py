@@ -160,7 +160,8 @@ class SceneAccel:
 
         Per face of every asset, its plane (unit normal n, e = max over the asset's vertices of n . v): the
         whole mesh lies in n . x <= e. The flat instances (``FLAT_REL``: room walls), and per (frame, item)
-        of a flat instance the slab lo <= n . x <= hi holding it, in the frame's camera frame. All float64,
+        of a flat instance the slab lo <= n . x <= hi holding it, in the frame's camera frame; per (frame, item)
+        the ``SIL_K`` planes through the camera centre that bound its convex hull (``_silhouette_planes``). All float64,
         from the float32 vertices the mesh queries use. Visibility rays test the flat instances of their
         frame first, then walk ``tile_lists(camera, flat=False)``.
         """
@@ -196,6 +197,9 @@ class SceneAccel:
             c.grp_ab = wp.array(g_ab, dtype=wp.vec2d, device=self.device)
             c.mem_start = wp.array(m_start, dtype=wp.int32, device=self.device)
             c.mem_items = wp.array(m_items, dtype=wp.int32, device=self.device)
+            sil, sil_z = _silhouette_planes(self._meshes, self._cam_T_obj)
+            c.sil = wp.array(sil.reshape(-1, 4), dtype=wp.vec4d, device=self.device)
+            c.sil_z = wp.array(sil_z.reshape(-1), dtype=wp.float64, device=self.device)
             self._cull, self._flat = c, flat
         return self._cull
 
@@ -240,6 +244,42 @@ def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
             return V
 
     return _cached(_HULLS, _mesh_key(mesh), hull)
+
+
+def _silhouette_planes(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per (frame, instance) of ``cam_T_obj`` (F, N, 4, 4): ``SIL_K`` planes through the camera centre, (unit n,
+    h) with every point of the instance's convex hull in n . x <= h, and the hull's least depth z0.
+
+    The planes' image lines take ``SIL_K`` directions a_k around the circle in normalised image coordinates
+    (x / z, y / z), each touching the projected hull: n ~ (a_k, -c_k) with c_k the hull's largest a_k . (x /
+    z, y / z); h is then recomputed as the largest n . x over the hull in float64 (~0). The hull is that of
+    the float32 vertices the mesh queries use, posed in float64. An instance not wholly in front of the
+    camera (z0 <= 0) gets z0 = -1 and planes that bound nothing (h = 1e300): no test (``beyond_silhouette``).
+    Returns (F, N, SIL_K, 4) and (F, N) float64.
+    """
+    from flowsynth.kernels.raycast import SIL_K
+
+    F, N = cam_T_obj.shape[:2]
+    ang = 2.0 * np.pi * np.arange(SIL_K) / SIL_K
+    A = np.stack([np.cos(ang), np.sin(ang)], 1)  # (K, 2)
+    sil = np.zeros((F, N, SIL_K, 4))
+    sil[..., 3] = 1e300
+    z0 = np.full((F, N), -1.0)
+    for n, m in enumerate(meshes):
+        hull = _hull_points(m).astype(np.float32).astype(np.float64)
+        P = np.matmul(hull, np.swapaxes(cam_T_obj[:, n, :3, :3], 1, 2)) + cam_T_obj[:, n, None, :3, 3]  # (F, V, 3)
+        zmin = P[..., 2].min(1)
+        ok = zmin > 0
+        if not ok.any():
+            continue
+        P = P[ok]
+        c = (P[..., :2] / P[..., 2:3] @ A.T).max(1)  # (f, K)
+        nv = np.concatenate([np.broadcast_to(A, c.shape + (2,)), -c[..., None]], -1)
+        nv /= np.linalg.norm(nv, axis=-1, keepdims=True)
+        h = np.einsum("fvi,fki->fkv", P, nv).max(-1)
+        sil[ok, n] = np.concatenate([nv, h[..., None]], -1)
+        z0[ok, n] = zmin[ok]
+    return sil, z0
 
 
 _PLANES: OrderedDict = OrderedDict()

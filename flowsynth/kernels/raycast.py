@@ -71,6 +71,31 @@ class Culling:
     grp_item: wp.array[wp.vec2i]  # per group: the single member bounding A (B), else -2
     mem_start: wp.array[wp.int32]  # (groups + 1,) CSR of the groups' members
     mem_items: wp.array[wp.int32]  # members' global item indices
+    sil: wp.array[wp.vec4d]  # (F * N * SIL_K,) (n, h): planes through the camera centre, unit n, hull in n . x <= h
+    sil_z: wp.array[wp.float64]  # (F * N,) least depth z of the item's hull; <= 0: not wholly in front, no planes
+
+
+# Planes per (frame, item) bounding the item's projected convex hull (SceneAccel.culling): their 16 directions
+# in the image cut a 16-gon at most 1 / cos(pi / 16) - 1 = 2 % wider than the hull.
+SIL_K = 16
+
+
+@wp.func
+def beyond_silhouette(sil: wp.array[wp.vec4d], sil_z: wp.array[wp.float64], item: wp.int32, X: wp.vec3d,
+                      margin: wp.float64):
+    """Does the segment from the camera centre to X (X.z > 0; any part of it up to X) stay farther than
+    ``margin`` from item ``item``'s convex hull? Its points nearer than the hull's least depth z0 are (z < z0 -
+    margin); beyond, along a plane (n, h) of ``Culling.sil``, n . (s X) is least at s0 = (z0 - margin) / X.z
+    when n . X > 0, so s0 n . X > h + margin clears the rest."""
+    z0 = sil_z[item] - margin
+    if z0 <= wp.float64(0.0):
+        return False
+    for k in range(SIL_K):
+        P = sil[item * SIL_K + k]
+        nx = P[0] * X[0] + P[1] * X[1] + P[2] * X[2]
+        if nx > wp.float64(0.0) and z0 * nx > (P[3] + margin) * X[2]:
+            return True
+    return False
 
 
 @wp.struct

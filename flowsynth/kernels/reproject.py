@@ -23,14 +23,19 @@ planes with a margin of 1e-6 |X| + 1e-9 m (float32 rounding of the ray the mesh 
 - flat items (room walls), tested one by one: the segment stays on one side of the item's slab;
 - the other items: those of the screen tile of (u', v') in the primary cast's lists without the flat
   items (every instance whose box projects within a pixel of that tile: boxes elsewhere cannot meet the
-  ray), near to far, down to the first whose box starts beyond the segment, box entry tested.
+  ray), near to far, down to the first whose box starts beyond the segment, box entry tested, then the
+  bounding sphere, then the planes through the camera centre that bound the item's projected convex hull
+  (``beyond_silhouette``: near misses of convex items need no mesh query).
+The cheapest tests run first: the flat groups without the own item, and only when a test needs them the
+own face plane and the ray's inverse direction (benchmarks/outputs_cost.py).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from flowsynth.kernels.raycast import Culling, Instances, TileLists, box_entry_inv, inverse_dir, trace_any
+from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_silhouette, box_entry_inv, inverse_dir,
+                                       trace_any)
 
 __all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "pair_kernel"]
 
@@ -38,6 +43,52 @@ OCC_NONE, OCC_EXACT, OCC_DEPTH = 0, 1, 2
 
 
 _PAIR: dict = {}
+
+
+@wp.func
+def group_holds(grp_n: wp.array[wp.vec3d], grp_ab: wp.array[wp.vec2d], grp_item: wp.array[wp.vec2i], g: wp.int32,
+                X: wp.vec3d, keep: wp.float64, margin: wp.float64, skip: wp.int32):
+    """Do both ends of the segment from the camera centre to keep X lie strictly inside flat group ``g``'s
+    interval (A, B) along its normal (by ``margin``)? Then the segment meets none of its members. A bound set
+    by item ``skip`` alone is dropped (``skip`` = -1: none)."""
+    ab = grp_ab[g]
+    gi = grp_item[g]
+    lo = ab[0] + margin
+    hi = ab[1] - margin
+    if gi[0] == skip:
+        lo = wp.float64(-1.0e300)
+    if gi[1] == skip:
+        hi = wp.float64(1.0e300)
+    hg = keep * wp.dot(grp_n[g], X)
+    return wp.min(hg, wp.float64(0.0)) > lo and wp.max(hg, wp.float64(0.0)) < hi
+
+
+@wp.func
+def groups_hold(grp_n: wp.array[wp.vec3d], grp_ab: wp.array[wp.vec2d], g0: wp.int32, g1: wp.int32, X: wp.vec3d,
+                keep: wp.float64, margin: wp.float64):
+    """``group_holds`` for every group g0 .. g1 - 1 with no item left out: no flat item can block the segment
+    (room walls seen from inside: three tests, no per-item data)."""
+    for g in range(g0, g1):
+        ab = grp_ab[g]
+        hg = keep * wp.dot(grp_n[g], X)
+        if wp.min(hg, wp.float64(0.0)) <= ab[0] + margin or wp.max(hg, wp.float64(0.0)) >= ab[1] - margin:
+            return False
+    return True
+
+
+@wp.func
+def own_skip(face_plane: wp.vec4d, M: wp.mat44d, p: wp.vec3d, keep: wp.float64, margin: wp.float64, me: wp.int32):
+    """``me`` when the own item provably cannot block the segment, else -1: its mesh lies in n . x <= e
+    (``face_plane`` (n, e) of the hit face, object frame) and the camera centre (at -R^T t there, M = cam_T_obj)
+    and the segment's end keep p + (1 - keep) camera are both beyond that plane by ``margin``."""
+    cx = -(M[0, 0] * M[0, 3] + M[1, 0] * M[1, 3] + M[2, 0] * M[2, 3])
+    cy = -(M[0, 1] * M[0, 3] + M[1, 1] * M[1, 3] + M[2, 1] * M[2, 3])
+    cz = -(M[0, 2] * M[0, 3] + M[1, 2] * M[1, 3] + M[2, 2] * M[2, 3])
+    hc = face_plane[0] * cx + face_plane[1] * cy + face_plane[2] * cz - face_plane[3]
+    hp = face_plane[0] * p[0] + face_plane[1] * p[1] + face_plane[2] * p[2] - face_plane[3]
+    if hc > margin and keep * hp + (wp.float64(1.0) - keep) * hc > margin:
+        return me
+    return wp.int32(-1)
 
 
 @wp.func
@@ -54,16 +105,7 @@ def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
     a bound set by ``skip`` alone is dropped); otherwise each member's own slab is tested, then its box and
     mesh as in ``any_in_list``."""
     for g in range(g0, g1):
-        ab = grp_ab[g]
-        gi = grp_item[g]
-        lo = ab[0] + margin
-        hi = ab[1] - margin
-        if gi[0] == skip:
-            lo = wp.float64(-1.0e300)
-        if gi[1] == skip:
-            hi = wp.float64(1.0e300)
-        hg = keep * wp.dot(grp_n[g], X)
-        if wp.min(hg, wp.float64(0.0)) > lo and wp.max(hg, wp.float64(0.0)) < hi:
+        if group_holds(grp_n, grp_ab, grp_item, g, X, keep, margin, skip):
             continue
         for k in range(mem_start[g], mem_start[g + 1]):
             item = mem_items[k]
@@ -86,14 +128,15 @@ def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
 @wp.func
 def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
                 item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], sphere: wp.array[wp.vec4d],
-                inner: wp.array[wp.float64], items: wp.array[wp.int32], a: wp.int32, b: wp.int32, d: wp.vec3,
+                inner: wp.array[wp.float64], sil: wp.array[wp.vec4d], sil_z: wp.array[wp.float64],
+                items: wp.array[wp.int32], a: wp.int32, b: wp.int32, d: wp.vec3,
                 inv: wp.vec3, max_t: wp.float32, X: wp.vec3d, inv_xx: wp.float64, keep: wp.float64,
                 margin: wp.float64, skip: wp.int32):
     """``any_in_list`` over ``items[a:b]`` (nearest box first) leaving out item ``skip``, for the segment
-    from the camera centre to keep X, with two exact shortcuts before each mesh query: the segment misses
+    from the camera centre to keep X, with three exact shortcuts before each mesh query: the segment misses
     the item's bounding sphere (no hit), or its point nearest the sphere's centre lies inside the item's
     inner ball while the camera is outside the sphere (the segment enters the closed mesh before keep X:
-    blocked)."""
+    blocked), or it stays beyond one of the item's silhouette planes (no hit)."""
     for k in range(a, b):
         item = items[k]
         if near[item] >= max_t:
@@ -113,6 +156,8 @@ def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
                 if rho > wp.float64(0.0) and s > wp.float64(0.0) and s < keep and dd < rho * rho:
                     if wp.dot(c, c) > out * out:
                         return True
+                if beyond_silhouette(sil, sil_z, item, X, margin):
+                    continue
                 M = obj_T_ref[item]
                 if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
                                             wp.transform_vector(M, d), max_t):
@@ -241,32 +286,40 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                             blocked = trace_any(inst.bvh, inst.roots[r], inst.item_mesh, inst.obj_T_ref,
                                                 wp.vec3(0.0), d, max_t)
                         else:
+                            # cheapest first: the flat groups without the own item (room walls: three dot
+                            # products), then the own item's plane and the ray's inverse only when a test needs them
                             X = wp.vec3d(x, y, z)
                             keep = wp.float64(1.0) - wp.float64(rel_tol)
                             margin = wp.float64(1.0e-6) * wp.float64(L) + wp.float64(1.0e-9)
-                            inv = inverse_dir(d)
-                            # own item: the hit face's plane (n, e), object frame; camera r there at -R^T t
-                            pl = cull.face_plane[cull.face_off[n] + face[s, i, j]]
-                            cx = -(M[0, 0] * M[0, 3] + M[1, 0] * M[1, 3] + M[2, 0] * M[2, 3])
-                            cy = -(M[0, 1] * M[0, 3] + M[1, 1] * M[1, 3] + M[2, 1] * M[2, 3])
-                            cz = -(M[0, 2] * M[0, 3] + M[1, 2] * M[1, 3] + M[2, 2] * M[2, 3])
-                            hc = pl[0] * cx + pl[1] * cy + pl[2] * cz - pl[3]
-                            hp = pl[0] * p[0] + pl[1] * p[1] + pl[2] * p[2] - pl[3]
+                            g0 = cull.grp_off[r]
+                            g1 = cull.grp_off[r + 1]
                             skip = wp.int32(-1)
-                            if hc > margin and keep * hp + (wp.float64(1.0) - keep) * hc > margin:
-                                skip = r * n_inst + n
-                            blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref,
-                                                  cull.slab_n, cull.slab_lh, cull.grp_n, cull.grp_ab, cull.grp_item,
-                                                  cull.mem_start, cull.mem_items, cull.grp_off[r], cull.grp_off[r + 1],
-                                                  d, inv, max_t, X, keep, margin, skip)
+                            have_skip = False
+                            blocked = False
+                            if not groups_hold(cull.grp_n, cull.grp_ab, g0, g1, X, keep, margin):
+                                skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep, margin,
+                                                r * n_inst + n)
+                                have_skip = True
+                                blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref,
+                                                      cull.slab_n, cull.slab_lh, cull.grp_n, cull.grp_ab, cull.grp_item,
+                                                      cull.mem_start, cull.mem_items, g0, g1, d, inverse_dir(d), max_t,
+                                                      X, keep, margin, skip)
                             if not blocked:
                                 jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
                                 ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
                                 lst = (r * tiles.tiles_y + ii // tiles.tile) * tiles.tiles_x + jj // tiles.tile
-                                blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
-                                                      inst.obj_T_ref, cull.sphere, cull.inner, tiles.items,
-                                                      tiles.start[lst], tiles.start[lst + 1], d, inv, max_t, X,
-                                                      wp.float64(1.0) / wp.dot(X, X), keep, margin, skip)
+                                a = tiles.start[lst]
+                                b = tiles.start[lst + 1]
+                                # the lists run near to far: nothing to test when the first box starts beyond the end
+                                if a < b and inst.near[tiles.items[a]] < max_t:
+                                    if not have_skip:
+                                        skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep,
+                                                        margin, r * n_inst + n)
+                                    blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
+                                                          inst.obj_T_ref, cull.sphere, cull.inner, cull.sil,
+                                                          cull.sil_z, tiles.items, a, b, d,
+                                                          inverse_dir(d), max_t, X, wp.float64(1.0) / wp.dot(X, X), keep,
+                                                          margin, skip)
                 occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
             if wp.static(occ_mode == 2):
                 blocked = True
