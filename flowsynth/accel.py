@@ -22,7 +22,7 @@ from flowsynth.kernels import wp_runtime
 ORDERED_MAX = 64
 # Primary rays take their candidate list from their TILE x TILE pixel screen tile (benchmarks/tiles.py:
 # 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits).
-TILE = 16
+TILE = 16  # a power of two: the kernels find a pixel's tile by a shift
 
 __all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh", "pinhole"]
 
@@ -212,6 +212,8 @@ class SceneAccel:
         wp = wp_runtime()
         key = (camera.width, camera.height, camera.K.tobytes(), flat)
         if key not in self._tiles:
+            if TILE <= 0 or TILE & (TILE - 1):
+                raise ValueError(f"flowsynth.accel.TILE must be a power of two, got {TILE}")
             if self.use_bvh:
                 start, items, tx, ty = np.zeros(2, np.int32), np.zeros(1, np.int32), 1, 1
             else:
@@ -226,7 +228,7 @@ class SceneAccel:
             t = TileLists()
             t.start = wp.array(start, dtype=wp.int32, device=self.device)
             t.items = wp.array(items if len(items) else np.zeros(1, np.int32), dtype=wp.int32, device=self.device)
-            t.tiles_x, t.tiles_y, t.tile = tx, ty, TILE
+            t.tiles_x, t.tiles_y, t.tile_shift = tx, ty, TILE.bit_length() - 1
             self._tiles[key] = t
         return self._tiles[key]
 

@@ -292,7 +292,8 @@ def test_silhouette_planes_hold_every_vertex_and_clear_only_missing_segments():
         for n, m in enumerate(meshes):
             if (f, n) == (2, 4):
                 continue
-            V = np.asarray(m.vertices, np.float32).astype(np.float64) @ cam_T_obj[f, n, :3, :3].T + cam_T_obj[f, n, :3, 3]
+            V = np.asarray(m.vertices, np.float32).astype(np.float64) @ cam_T_obj[f, n, :3, :3].T
+            V += cam_T_obj[f, n, :3, 3]
             assert V[:, 2].min() >= z0[f, n] > 0
             heights = V @ sil[f, n, :, :3].T - sil[f, n, :, 3]
             assert heights.max() <= 1e-12, (f, n)

@@ -48,7 +48,7 @@ class TileLists:
     items: wp.array[wp.int32]
     tiles_x: wp.int32
     tiles_y: wp.int32
-    tile: wp.int32  # tile size [px]
+    tile_shift: wp.int32  # log2 of the tile size [px] (a power of two: a shift, not an integer division)
 
 
 @wp.struct
@@ -286,7 +286,7 @@ def primary_kernel(want_normals: bool, want_points: bool):
         f, i, j = wp.tid()
         i += band0
         d = pixel_ray(i, j, cam)
-        lst = (f * tiles.tiles_y + i // tiles.tile) * tiles.tiles_x + j // tiles.tile
+        lst = (f * tiles.tiles_y + (i >> tiles.tile_shift)) * tiles.tiles_x + (j >> tiles.tile_shift)
         item, t, face, u, v = closest_from_camera(inst, f, tiles.start, tiles.items, lst, d, max_t)
         if item < 0:
             item_out[f, i, j] = -1
