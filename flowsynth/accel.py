@@ -275,10 +275,10 @@ def _silhouette_planes(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray) -> 
         if not ok.any():
             continue
         P = P[ok]
-        c = (P[..., :2] / P[..., 2:3] @ A.T).max(1)  # (f, K)
+        c = np.matmul(P[..., :2] / P[..., 2:3], A.T).max(1)  # (f, K)
         nv = np.concatenate([np.broadcast_to(A, c.shape + (2,)), -c[..., None]], -1)
         nv /= np.linalg.norm(nv, axis=-1, keepdims=True)
-        h = np.einsum("fvi,fki->fkv", P, nv).max(-1)
+        h = np.matmul(P, np.swapaxes(nv, 1, 2)).max(1)  # (f, K)
         sil[ok, n] = np.concatenate([nv, h[..., None]], -1)
         z0[ok, n] = zmin[ok]
     return sil, z0

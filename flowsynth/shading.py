@@ -25,7 +25,7 @@ from flowsynth.materials import mip_pyramid, resolve_lights, resolve_material, s
 from flowsynth.plan import TONEMAPS
 
 __all__ = ["MAX_TIME_SLICES", "pack_materials", "poses_at", "render_radiance", "render_rgb", "shutter_times",
-           "tonemap_srgb"]
+           "tonemap_frames", "tonemap_srgb"]
 
 # White point of the extended Reinhard operator: linear radiance that maps to 1.
 REINHARD_WHITE = 4.0
@@ -46,12 +46,26 @@ def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch
             ``tonemap``, ``exposure``.
         device: Warp device.
     """
+    _check_tonemap(plan.tonemap, plan.exposure)
     radiance = render_radiance(scene, accel, gb, plan, device=device)
+    return torch.from_numpy(tonemap_frames(radiance, plan.tonemap, plan.exposure, plan.threads))
+
+
+def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float = 1.0,
+                   threads: int | None = None) -> np.ndarray:
+    """``tonemap_srgb`` of (T, H, W, 3) float32 radiance into (T, 3, H, W) float32, the same float64 steps in one
+    Warp kernel pass over rows (``flowsynth.kernels.shade.tonemap_kernel``); the numpy form took 0.81 s of CPU
+    per T=24 view at 512x384 (benchmarks/results/SUMMARY.md, outputs_cost)."""
+    from flowsynth.kernels.shade import tonemap_kernel
+
+    _check_tonemap(method, exposure)
+    wp = wp_runtime()
     T, H, W, _ = radiance.shape
-    rgb = np.empty((T, 3, H, W), np.float32)
-    for t in range(T):  # frame by frame, same values: the float64 temporaries stay in cache (SUMMARY.md, outputs_cost)
-        rgb[t] = tonemap_srgb(radiance[t], plan.tonemap, plan.exposure).transpose(2, 0, 1)
-    return torch.from_numpy(rgb)
+    rgb = wp.empty((T, 3, H, W), dtype=wp.float32, device="cpu")
+    src = wp.array(np.ascontiguousarray(radiance, np.float32), dtype=wp.vec3, device="cpu", copy=False)
+    launch_bands(tonemap_kernel, (T, H, W), 1, [src, float(exposure), int(method == "reinhard"), REINHARD_WHITE**2,
+                                                BAND0], [rgb], "cpu", threads, row_loop=True)
+    return rgb.numpy()
 
 
 def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> np.ndarray:
@@ -154,16 +168,20 @@ def poses_at(poses: np.ndarray, times: np.ndarray) -> np.ndarray:
     return out
 
 
+def _check_tonemap(method: str, exposure: float) -> None:
+    if method not in TONEMAPS:
+        raise ConfigError(f"tonemap must be one of {TONEMAPS}, got {method!r}")
+    if not (np.isfinite(exposure) and exposure >= 0):
+        raise ConfigError(f"exposure must be finite and >= 0, got {exposure!r}")
+
+
 def tonemap_srgb(radiance: np.ndarray, method: str = "clamp", exposure: float = 1.0) -> np.ndarray:
     """Linear radiance (..., 3) -> sRGB-encoded float32 in [0, 1].
 
     "clamp": c = min(exposure * L, 1). "reinhard" (extended, per channel): c = x (1 + x / w^2) / (1 + x),
     x = exposure * L, w = REINHARD_WHITE, then clamped. Then the sRGB transfer function (IEC 61966-2-1).
     """
-    if method not in TONEMAPS:
-        raise ConfigError(f"tonemap must be one of {TONEMAPS}, got {method!r}")
-    if not (np.isfinite(exposure) and exposure >= 0):
-        raise ConfigError(f"exposure must be finite and >= 0, got {exposure!r}")
+    _check_tonemap(method, exposure)
     x = np.nan_to_num(np.asarray(radiance, np.float64) * exposure, nan=0.0, posinf=1e30, neginf=0.0)
     x = np.maximum(x, 0.0)
     if method == "reinhard":

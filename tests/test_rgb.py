@@ -14,7 +14,7 @@ from PIL import Image
 
 import flowsynth as fs
 from flowsynth.materials import Light, list_textures, resolve_material, sample_lights, sample_material, srgb_to_linear
-from flowsynth.shading import poses_at, tonemap_srgb
+from flowsynth.shading import poses_at, tonemap_frames, tonemap_srgb
 
 LIGHT_DIR = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])  # travel direction, world frame
 LIGHTS = [Light("directional", (1.0, 0.95, 0.9), 0.7, direction=tuple(LIGHT_DIR)),
@@ -388,5 +388,21 @@ def test_material_shorthand_and_tone_maps():
         assert c.dtype == np.float32 and np.isfinite(c).all() and c.min() >= 0 and c.max() <= 1
         assert (np.diff(c[:7, 0]) >= 0).all() and c[6, 0] == 1.0
     assert np.abs(to_linear(tonemap_srgb(L[:5], "clamp")) - L[:5]).max() < 1e-6
+
+
+@pytest.mark.parametrize("method", ["clamp", "reinhard"])
+@pytest.mark.parametrize("exposure", [1.0, 0.37, 0.0])
+def test_tonemap_kernel_equals_numpy_tonemap(method, exposure):
+    """The renderer's one-pass tone-mapping kernel (``tonemap_frames``) gives numpy's ``tonemap_srgb`` bit for
+    bit, frame by frame, channels first: radiance across the sRGB knee, past white, NaN, +-inf, negative."""
+    rng = np.random.default_rng(3)
+    L = rng.uniform(0.0, 1.5, size=(3, 7, 11, 3)).astype(np.float32) ** 3
+    L[0, 0, :6, 0] = [0.0, 0.0031308, 0.0031309, np.nan, np.inf, -np.inf]
+    L[1, 2, :3, 1] = [-0.5, 4.0, 1e30]
+    got = tonemap_frames(L, method, exposure, threads=2)
+    with np.errstate(invalid="ignore"):  # inf * 0 exposure: NaN, mapped to 0 by both
+        want = np.stack([tonemap_srgb(L[t], method, exposure).transpose(2, 0, 1) for t in range(len(L))])
+    assert got.dtype == np.float32 and got.shape == (3, 3, 7, 11)
+    np.testing.assert_array_equal(got, want)
     c = np.linspace(0.0, 1.0, 1001)
     assert np.abs(srgb_to_linear(c) - to_linear(c)).max() < 1e-6

@@ -27,7 +27,7 @@ from flowsynth.kernels import RENDER_MODES
 from flowsynth.kernels.raycast import Instances, Pinhole, trace_any, trace_closest
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
-__all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel"]
+__all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel", "tonemap_kernel"]
 
 LIGHT_DIRECTIONAL = 0
 LIGHT_POINT = 1
@@ -337,3 +337,34 @@ def shade_kernel(mode: str):
 
     _SHADE[mode] = shade
     return shade
+
+
+@wp.func
+def srgb_encode(c: wp.float32, exposure: wp.float64, reinhard: wp.int32, white2: wp.float64) -> wp.float32:
+    """flowsynth.shading.tonemap_srgb of one linear value, in the same float64 steps: x = exposure c (NaN -> 0,
+    +inf -> 1e30, < 0 -> 0), extended Reinhard x (1 + x / white^2) / (1 + x) when asked, min(x, 1), then the
+    sRGB transfer function, clipped to [0, 1] and rounded to float32."""
+    x = wp.float64(c) * exposure
+    if wp.isnan(x):
+        x = wp.float64(0.0)
+    x = wp.max(wp.min(x, wp.float64(1.0e30)), wp.float64(0.0))
+    if reinhard != 0:
+        x = x * (wp.float64(1.0) + x / white2) / (wp.float64(1.0) + x)
+    x = wp.min(x, wp.float64(1.0))
+    e = wp.float64(12.92) * x
+    if x > wp.float64(0.0031308):
+        e = wp.float64(1.055) * wp.pow(x, wp.float64(1.0) / wp.float64(2.4)) - wp.float64(0.055)
+    return wp.float32(wp.clamp(e, wp.float64(0.0), wp.float64(1.0)))
+
+
+@wp.kernel(enable_backward=False)
+def tonemap_kernel(radiance: wp.array3d[wp.vec3], exposure: wp.float64, reinhard: wp.int32, white2: wp.float64,
+                   band0: wp.int32, rgb: wp.array4d[wp.float32]):
+    """(T, H, W) vec3 linear radiance -> (T, 3, H, W) float32 sRGB (``srgb_encode``). Launch dims (T, rows)
+    from row ``band0``, each thread one row (``flowsynth.parallel``, ``row_loop=True``)."""
+    t, i = wp.tid()
+    i += band0
+    for j in range(radiance.shape[2]):
+        c = radiance[t, i, j]
+        for k in range(3):
+            rgb[t, k, i, j] = srgb_encode(c[k], exposure, reinhard, white2)
