@@ -119,7 +119,7 @@ def measure(wp, scene_name: str, faces: int, poses, variants, camera: Camera, re
         build_s[key] = build_times(make, build_repeat) if build_repeat else None
         accel.item_mesh = wp.array(np.full(accel.F * N, built[key].id, np.uint64), dtype=wp.uint64)
         inputs = [accel.instances(), accel.tile_lists(camera), pinhole(camera), 1e9, 0]
-        fns[key] = lambda inputs=inputs: wp.launch(kernel, dim=shape, inputs=inputs,
+        fns[key] = lambda inputs=inputs: wp.launch(kernel, dim=shape[:2], inputs=inputs,
                                                    outputs=[dist, item, face, point, normal])
         fns[key]()
         results[key] = (item.numpy().copy(), dist.numpy().copy())

@@ -147,8 +147,8 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
     fns = {
         "render": lambda: fs.render(scene, OUTPUTS),
         "cast": lambda: cast_gbuffer(accel, cam, want_normals=True, want_points=False),
-        "kernel": lambda: wp.launch(kernel, dim=shape, inputs=inputs, outputs=outs),
-        "raw": lambda: wp.launch(raw_kernel, dim=shape, inputs=inputs, outputs=raw_outs),
+        "kernel": lambda: wp.launch(kernel, dim=shape[:2], inputs=inputs, outputs=outs),
+        "raw": lambda: wp.launch(raw_kernel, dim=shape[:2], inputs=inputs, outputs=raw_outs),
         "scene_accel": lambda: SceneAccel(meshes, cam_T_world, world_T_obj),
         "gbuffer_outputs": lambda: gbuffer_outputs(scene, gb, plan, world_T_obj),
         "asset_bvh_build": lambda: wp.Mesh(points=pts, indices=idx),

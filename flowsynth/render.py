@@ -67,7 +67,7 @@ def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: 
     launch_bands(
         primary_kernel(want_normals, want_points), (F, H, W), 1,
         [accel.instances(), accel.tile_lists(camera), pinhole(camera), float(max_dist), BAND0],
-        [dist, item, face, point, normal], dev, threads,
+        [dist, item, face, point, normal], dev, threads, row_loop=True,
     )
     return GBuffer(dist.numpy(), item.numpy(), face.numpy(), point.numpy() if want_points else None,
                    normal.numpy() if want_normals else None, accel.N)

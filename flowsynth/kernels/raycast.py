@@ -260,8 +260,9 @@ _PRIMARY: dict = {}
 def primary_kernel(want_normals: bool, want_points: bool):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
 
-    Launch dims (F, rows, W) from row ``band0`` (``flowsynth.parallel``).
-    Outputs per pixel (every pixel written): ``dist`` ray length [m] (0 = no hit), ``item`` (-1 = no
+    Launch dims (F, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread casts
+    the W pixels of its row (a Warp CPU thread per pixel spends ~35 ns unravelling its 3-D index: the pair
+    kernel's measurement, flowsynth/kernels/reproject.py). Outputs per pixel (every pixel written): ``dist`` ray length [m] (0 = no hit), ``item`` (-1 = no
     hit), ``face`` (-1 = no hit), and when requested ``point`` (object-frame hit point [m], 0 = no hit)
     and ``normal`` (unit, reference/camera frame, facing the camera; 0 = no hit).
     """
@@ -283,34 +284,35 @@ def primary_kernel(want_normals: bool, want_points: bool):
         point: wp.array3d[wp.vec3],
         normal: wp.array3d[wp.vec3],
     ):
-        f, i, j = wp.tid()
+        f, i = wp.tid()
         i += band0
-        d = pixel_ray(i, j, cam)
-        lst = (f * tiles.tiles_y + (i >> tiles.tile_shift)) * tiles.tiles_x + (j >> tiles.tile_shift)
-        item, t, face, u, v = closest_from_camera(inst, f, tiles.start, tiles.items, lst, d, max_t)
-        if item < 0:
-            item_out[f, i, j] = -1
-            face_out[f, i, j] = -1
-            dist[f, i, j] = 0.0
+        for j in range(dist.shape[2]):
+            d = pixel_ray(i, j, cam)
+            lst = (f * tiles.tiles_y + (i >> tiles.tile_shift)) * tiles.tiles_x + (j >> tiles.tile_shift)
+            item, t, face, u, v = closest_from_camera(inst, f, tiles.start, tiles.items, lst, d, max_t)
+            if item < 0:
+                item_out[f, i, j] = -1
+                face_out[f, i, j] = -1
+                dist[f, i, j] = 0.0
+                if wp.static(want_points):
+                    point[f, i, j] = wp.vec3(0.0)
+                if wp.static(want_normals):
+                    normal[f, i, j] = wp.vec3(0.0)
+                continue
+            item_out[f, i, j] = item
+            face_out[f, i, j] = face
+            dist[f, i, j] = t
             if wp.static(want_points):
-                point[f, i, j] = wp.vec3(0.0)
+                point[f, i, j] = wp.mesh_eval_position(inst.item_mesh[item], face, u, v)
             if wp.static(want_normals):
-                normal[f, i, j] = wp.vec3(0.0)
-            return
-        item_out[f, i, j] = item
-        face_out[f, i, j] = face
-        dist[f, i, j] = t
-        if wp.static(want_points):
-            point[f, i, j] = wp.mesh_eval_position(inst.item_mesh[item], face, u, v)
-        if wp.static(want_normals):
-            m = wp.mesh_get(inst.item_mesh[item])
-            a = m.points[m.indices[3 * face + 0]]
-            b = m.points[m.indices[3 * face + 1]]
-            c = m.points[m.indices[3 * face + 2]]
-            n = wp.normalize(wp.transform_vector(inst.ref_T_obj[item], wp.cross(b - a, c - a)))
-            if wp.dot(n, d) > 0.0:
-                n = -n
-            normal[f, i, j] = n
+                m = wp.mesh_get(inst.item_mesh[item])
+                a = m.points[m.indices[3 * face + 0]]
+                b = m.points[m.indices[3 * face + 1]]
+                c = m.points[m.indices[3 * face + 2]]
+                n = wp.normalize(wp.transform_vector(inst.ref_T_obj[item], wp.cross(b - a, c - a)))
+                if wp.dot(n, d) > 0.0:
+                    n = -n
+                normal[f, i, j] = n
 
     _PRIMARY[key] = primary
     return primary

@@ -262,8 +262,8 @@ _SHADE: dict = {}
 def shade_kernel(mode: str):
     """The shading kernel for render mode "flat", "direct" or "path" (other modes' code compiled out).
 
-    Launch dims (T, rows, W) from row ``band0`` (``flowsynth.parallel``).
-    Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
+    Launch dims (T, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread shades
+    the W pixels of its row. Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
     """
     if mode in _SHADE:
         return _SHADE[mode]
@@ -289,51 +289,52 @@ def shade_kernel(mode: str):
         # outputs
         radiance: wp.array3d[wp.vec3],
     ):
-        t, i, j = wp.tid()
+        t, i = wp.tid()
         i += band0
-        pix = wp.uint32(i * radiance.shape[2] + j)
         seed_t = wp.int32(hash3(t, 0, seed))
-        prng = wp.rand_init(wp.int32(hash3(t, 1, seed)), wp.int32(pix))
-        scramble = wp.uint32(wp.randi(prng))
-        t_off = wp.randi(prng, 0, slices)
-        acc = wp.vec3(0.0)
-        for k in range(spp):
-            rng = wp.rand_init(seed_t, wp.int32(pix * wp.uint32(spp) + wp.uint32(k)))
-            g = t * slices + (k + t_off) % slices
-            item = wp.int32(-1)
-            face = wp.int32(-1)
-            dist = wp.float32(0.0)
-            p_obj = wp.vec3(0.0)
-            d = wp.vec3(0.0)
-            if reuse != 0:
-                d = camera_ray(wp.float32(i), wp.float32(j), cam)
-                item = gb_item[t, i, j]
-                face = gb_face[t, i, j]
-                dist = gb_dist[t, i, j]
-                p_obj = gb_point[t, i, j]
-            else:
-                du = (wp.float32(k) + wp.randf(rng)) / wp.float32(spp)
-                dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
-                d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
-                item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh,
-                                                         sc.inst.obj_T_ref, wp.vec3(0.0), d, sc.max_t)
-                if item >= 0:
-                    p_obj = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
-            if item < 0:
-                acc += sc.sky
-                continue
-            spread = dist * sc.pix_angle
-            n, albedo, spec, rough = surface(sc, item, face, p_obj, d, spread)
-            x = d * dist
-            L = wp.vec3(0.0)
-            if wp.static(path):
-                L = path_radiance(sc, g, x, n, -d, albedo, spec, rough, bounces, rng, spread)
-            else:
-                L = wp.cw_mul(sc.sky, albedo * (1.0 - spec) + wp.vec3(spec))
-                L += direct_light(sc, g, x, n, -d, albedo, spec, rough, wp.static(shadows))
-            if wp.isfinite(L):
-                acc += L
-        radiance[t, i, j] = acc / wp.float32(spp)
+        for j in range(radiance.shape[2]):
+            pix = wp.uint32(i * radiance.shape[2] + j)
+            prng = wp.rand_init(wp.int32(hash3(t, 1, seed)), wp.int32(pix))
+            scramble = wp.uint32(wp.randi(prng))
+            t_off = wp.randi(prng, 0, slices)
+            acc = wp.vec3(0.0)
+            for k in range(spp):
+                rng = wp.rand_init(seed_t, wp.int32(pix * wp.uint32(spp) + wp.uint32(k)))
+                g = t * slices + (k + t_off) % slices
+                item = wp.int32(-1)
+                face = wp.int32(-1)
+                dist = wp.float32(0.0)
+                p_obj = wp.vec3(0.0)
+                d = wp.vec3(0.0)
+                if reuse != 0:
+                    d = camera_ray(wp.float32(i), wp.float32(j), cam)
+                    item = gb_item[t, i, j]
+                    face = gb_face[t, i, j]
+                    dist = gb_dist[t, i, j]
+                    p_obj = gb_point[t, i, j]
+                else:
+                    du = (wp.float32(k) + wp.randf(rng)) / wp.float32(spp)
+                    dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
+                    d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
+                    item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh,
+                                                             sc.inst.obj_T_ref, wp.vec3(0.0), d, sc.max_t)
+                    if item >= 0:
+                        p_obj = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
+                if item < 0:
+                    acc += sc.sky
+                    continue
+                spread = dist * sc.pix_angle
+                n, albedo, spec, rough = surface(sc, item, face, p_obj, d, spread)
+                x = d * dist
+                L = wp.vec3(0.0)
+                if wp.static(path):
+                    L = path_radiance(sc, g, x, n, -d, albedo, spec, rough, bounces, rng, spread)
+                else:
+                    L = wp.cw_mul(sc.sky, albedo * (1.0 - spec) + wp.vec3(spec))
+                    L += direct_light(sc, g, x, n, -d, albedo, spec, rough, wp.static(shadows))
+                if wp.isfinite(L):
+                    acc += L
+            radiance[t, i, j] = acc / wp.float32(spp)
 
     _SHADE[mode] = shade
     return shade
