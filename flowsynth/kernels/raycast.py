@@ -263,8 +263,9 @@ def primary_kernel(want_normals: bool, want_points: bool):
     Launch dims (F, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread casts
     the W pixels of its row (a Warp CPU thread per pixel spends ~35 ns unravelling its 3-D index: the pair
     kernel's measurement, flowsynth/kernels/reproject.py). Outputs per pixel (every pixel written): ``dist``
-    ray length [m] (0 = no hit), ``item`` (-1 = no hit), ``face`` (-1 = no hit), and when requested ``point`` (object-frame hit point [m], 0 = no hit)
-    and ``normal`` (unit, reference/camera frame, facing the camera; 0 = no hit).
+    ray length [m] (0 = no hit), ``item`` (-1 = no hit), ``face`` (-1 = no hit), and when requested ``point``
+    (object-frame hit point [m], 0 = no hit) and ``normal`` (unit, reference/camera frame, facing the camera;
+    0 = no hit).
     """
     key = (bool(want_normals), bool(want_points))
     if key in _PRIMARY:

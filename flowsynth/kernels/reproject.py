@@ -280,14 +280,15 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                     pf = wp.vec3(wp.float32(x), wp.float32(y), wp.float32(z))
                     L = wp.length(pf)
                     if L > 0.0:
+                        d = pf / L
                         max_t = L * (1.0 - rel_tol)
                         if inst.use_bvh != 0:
                             blocked = trace_any(inst.bvh, inst.roots[r], inst.item_mesh, inst.obj_T_ref,
-                                                wp.vec3(0.0), pf / L, max_t)
+                                                wp.vec3(0.0), d, max_t)
                         else:
                             # cheapest first: the flat groups without the own item (room walls: three dot
-                            # products), then the own item's plane and the ray's direction d = pf / L and its
-                            # inverse only when a test needs them
+                            # products), then the own item's plane and the ray's inverse direction only when a
+                            # test needs them
                             X = wp.vec3d(x, y, z)
                             keep = wp.float64(1.0) - wp.float64(rel_tol)
                             margin = wp.float64(1.0e-6) * wp.float64(L) + wp.float64(1.0e-9)
@@ -300,7 +301,6 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                                 skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep, margin,
                                                 r * n_inst + n)
                                 have_skip = True
-                                d = pf / L
                                 blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
                                                       inst.obj_T_ref, cull.slab_n, cull.slab_lh, cull.grp_n,
                                                       cull.grp_ab, cull.grp_item, cull.mem_start, cull.mem_items, g0,
@@ -317,10 +317,9 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                                     if not have_skip:
                                         skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep,
                                                         margin, r * n_inst + n)
-                                    d2 = pf / L
                                     blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
                                                           inst.obj_T_ref, cull.sphere, cull.inner, cull.sil,
-                                                          cull.sil_z, tiles.items, a, b, d2, inverse_dir(d2), max_t,
+                                                          cull.sil_z, tiles.items, a, b, d, inverse_dir(d), max_t,
                                                           X, wp.float64(1.0) / wp.dot(X, X), keep, margin, skip)
                 occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
             if wp.static(occ_mode == 2):

@@ -292,9 +292,10 @@ def shade_kernel(mode: str):
         t, i = wp.tid()
         i += band0
         seed_t = wp.int32(hash3(t, 0, seed))
+        seed_p = wp.int32(hash3(t, 1, seed))
         for j in range(radiance.shape[2]):
             pix = wp.uint32(i * radiance.shape[2] + j)
-            prng = wp.rand_init(wp.int32(hash3(t, 1, seed)), wp.int32(pix))
+            prng = wp.rand_init(seed_p, wp.int32(pix))
             scramble = wp.uint32(wp.randi(prng))
             t_off = wp.randi(prng, 0, slices)
             acc = wp.vec3(0.0)
