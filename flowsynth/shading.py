@@ -118,8 +118,7 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
         sc, gbuf(gb.item, wp.int32, -1), gbuf(gb.face, wp.int32, -1), gbuf(gb.dist, wp.float32, 0.0),
         gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), pinhole(scene.camera), spp, slices, _seed32(plan.seed),
         int(plan.bounces), BAND0], [radiance], device, plan.threads, row_loop=True)
-    out = radiance.numpy()
-    return np.nan_to_num(np.maximum(out, 0.0), nan=0.0, posinf=0.0)
+    return radiance.numpy()  # finite and >= 0: the kernel clamps each value (kernels/shade.finite_nonneg)
 
 
 def _light_tables(delta: list, cam_T_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

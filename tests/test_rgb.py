@@ -406,3 +406,26 @@ def test_tonemap_kernel_equals_numpy_tonemap(method, exposure):
     np.testing.assert_array_equal(got, want)
     c = np.linspace(0.0, 1.0, 1001)
     assert np.abs(srgb_to_linear(c) - to_linear(c)).max() < 1e-6
+
+
+def test_radiance_clamp_in_kernel_equals_numpy_clamp():
+    """The shading kernel's last step (``finite_nonneg``) gives what ``render_radiance`` computed in numpy before
+    it moved into the kernel, bit for bit, sign of zero included: NaN, +-inf, negatives and -0 -> +0."""
+    import warp as wp
+
+    from flowsynth.kernels.shade import finite_nonneg
+
+    @wp.kernel(enable_backward=False)
+    def clamp(x: wp.array[wp.vec3], y: wp.array[wp.vec3]):
+        k = wp.tid()
+        y[k] = finite_nonneg(x[k])
+
+    special = [np.nan, np.inf, -np.inf, -0.0, 0.0, -1e-30, 1e-45, 3.4e38, -2.0, 0.5]
+    x = np.array(np.meshgrid(special, special, special[::-1])).reshape(3, -1).T.astype(np.float32)
+    got = wp.empty(len(x), dtype=wp.vec3, device="cpu")
+    wp.launch(clamp, len(x), inputs=[wp.array(x, dtype=wp.vec3, device="cpu")], outputs=[got], device="cpu")
+    with np.errstate(invalid="ignore"):
+        want = np.nan_to_num(np.maximum(x, 0.0), nan=0.0, posinf=0.0)
+    assert want.dtype == np.float32
+    np.testing.assert_array_equal(got.numpy().view(np.uint32), want.view(np.uint32))
+    assert (want > 0).sum() > 100  # the finite positives pass through, not everything is zeroed

@@ -256,6 +256,23 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
     return L
 
 
+FLT_MAX = wp.constant(wp.float32(3.4028234663852886e38))  # largest finite float32
+
+
+@wp.func
+def finite_nonneg1(x: wp.float32):
+    if x > 0.0 and x < FLT_MAX:
+        return x
+    return wp.float32(0.0)
+
+
+@wp.func
+def finite_nonneg(c: wp.vec3):
+    """c with each component that is not finite and > 0 (NaN, +-inf, negative, -0) set to +0: what
+    ``np.nan_to_num(np.maximum(c, 0), nan=0, posinf=0)`` gives, in the kernel instead of a pass over the frames."""
+    return wp.vec3(finite_nonneg1(c[0]), finite_nonneg1(c[1]), finite_nonneg1(c[2]))
+
+
 _SHADE: dict = {}
 
 
@@ -335,7 +352,7 @@ def shade_kernel(mode: str):
                     L += direct_light(sc, g, x, n, -d, albedo, spec, rough, wp.static(shadows))
                 if wp.isfinite(L):
                     acc += L
-            radiance[t, i, j] = acc / wp.float32(spp)
+            radiance[t, i, j] = finite_nonneg(acc / wp.float32(spp))
 
     _SHADE[mode] = shade
     return shade
