@@ -128,6 +128,7 @@ class SceneAccel:
         self.frame_items = wp.array(order.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
         self.use_bvh = int(N > ORDERED_MAX)
         self._tiles: dict = {}
+        self._bounds: dict = {}  # (W, H, K bytes) -> _screen_bounds
         groups = np.repeat(np.arange(F, dtype=np.int32), N)
         self._lowers = wp.array(lowers, dtype=wp.vec3, device=device)
         self._uppers = wp.array(uppers, dtype=wp.vec3, device=device)
@@ -141,6 +142,15 @@ class SceneAccel:
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self._meshes, self._cam_T_obj, self._cull = meshes, cam_T_obj, None
+        # object-frame boxes, padded like the camera-frame ones (size plus the camera's farthest distance)
+        v_lo = np.array([np.asarray(m.vertices, np.float64).min(0) for m in meshes])  # (N, 3)
+        v_hi = np.array([np.asarray(m.vertices, np.float64).max(0) for m in meshes])
+        ext = v_hi - v_lo
+        far = np.abs(obj_T_cam[..., :3, 3]).max((0, 2)) + np.abs(np.concatenate([v_lo, v_hi], 1)).max(1)
+        o_pad = (BOX_PAD_REL * (ext.max(1) + far) + 1e-30)[:, None]
+        self.thin = wp.array((ext.min(1) <= FLAT_REL * ext.max(1)).astype(np.int32), dtype=wp.int32, device=device)
+        self.obj_lo = wp.array((v_lo - o_pad).astype(np.float32), dtype=wp.vec3, device=device)
+        self.obj_hi = wp.array((v_hi + o_pad).astype(np.float32), dtype=wp.vec3, device=device)
 
     def instances(self):
         """The kernels' ``Instances`` struct (flowsynth.kernels.raycast) over this accel's arrays (no copy):
@@ -153,6 +163,7 @@ class SceneAccel:
         inst.lowers, inst.uppers = self._lowers, self._uppers
         inst.item_mesh, inst.obj_T_ref, inst.ref_T_obj, inst.n_inst = (self.item_mesh, self.obj_T_ref,
                                                                        self.ref_T_obj, self.N)
+        inst.thin, inst.obj_lo, inst.obj_hi = self.thin, self.obj_lo, self.obj_hi
         return inst
 
     def culling(self):
@@ -205,7 +216,8 @@ class SceneAccel:
 
     def tile_lists(self, camera, flat: bool = True):
         """The primary cast's per-(frame, screen tile) candidate lists: a ``TileLists`` struct
-        (flowsynth.kernels.raycast) holding the instances whose box projects onto each tile, near to far;
+        (flowsynth.kernels.raycast) holding the instances whose hull, clipped to z >= ``CLIP_Z``, projects within
+        a pixel of each tile (``_screen_bounds``), near to far;
         ``flat=False``: without the flat instances of ``culling()`` (visibility rays test those apart)."""
         from flowsynth.kernels.raycast import TileLists
 
@@ -223,8 +235,11 @@ class SceneAccel:
                     local = order - (np.arange(self.F) * self.N)[:, None]
                     keep = ~self._flat[local]  # (F, N): the same instances are flat in every frame
                     order = order[keep].reshape(self.F, -1)
-                start, items, tx, ty = _tile_lists(self._lo, self._hi, order, camera.K, camera.width,
-                                                   camera.height, TILE)
+                kb = key[:3]
+                if kb not in self._bounds:
+                    self._bounds[kb] = _screen_bounds(self._meshes, self._cam_T_obj, camera.K)
+                bounds = self._bounds[kb]
+                start, items, tx, ty = _tile_lists(bounds, order, camera.width, camera.height, TILE)
             t = TileLists()
             t.start = wp.array(start, dtype=wp.int32, device=self.device)
             t.items = wp.array(items if len(items) else np.zeros(1, np.int32), dtype=wp.int32, device=self.device)
@@ -387,24 +402,59 @@ def _flat_groups(n_cam: np.ndarray, lh_cam: np.ndarray, flat_inst: np.ndarray):
     return np.array(g_off, np.int32), g_n, g_ab, g_item, np.array(m_start, np.int32), m_items
 
 
-def _tile_lists(lo: np.ndarray, hi: np.ndarray, order: np.ndarray, K: np.ndarray, W: int, H: int,
+# Screen bounds of an instance's hull clip it at this depth [m]: the part nearer the camera plane is not seen.
+CLIP_Z = 1e-9
+# Hulls of up to this many points are clipped at CLIP_Z pair by pair (V^2 per frame); a larger hull reaching
+# behind the camera plane gets every tile.
+CLIP_MAX_POINTS = 64
+
+
+def _screen_bounds(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(F, N, 4) float64 (u_min, u_max, v_min, v_max) [px] of the projection of each instance's convex hull
+    clipped to z >= ``CLIP_Z`` (camera frame of ``cam_T_obj`` (F, N, 4, 4)), NaN where nothing of it lies
+    there. The clipped hull is the convex hull of its points with z >= CLIP_Z and of the points where the
+    segments between a point in front and one behind cross z = CLIP_Z; perspective projection keeps convex
+    sets convex, so the bounds of those points' projections bound every hit a camera ray can make. A hull
+    of more than ``CLIP_MAX_POINTS`` points reaching behind the plane gets infinite bounds (every tile)."""
+    F, N = cam_T_obj.shape[:2]
+    out = np.full((F, N, 4), np.nan)
+    for n, m in enumerate(meshes):
+        P = np.matmul(_hull_points(m), np.swapaxes(cam_T_obj[:, n, :3, :3], 1, 2)) + cam_T_obj[:, n, None, :3, 3]
+        z = P[..., 2]
+        front = z >= CLIP_Z  # (F, V)
+        pts, ok = P, front
+        if not front.all() and P.shape[1] <= CLIP_MAX_POINTS:
+            za, zb = z[:, :, None], z[:, None, :]
+            cross = front[:, :, None] & ~front[:, None, :]  # (F, V, V): a in front, b behind
+            s = np.where(cross, (za - CLIP_Z) / np.where(cross, za - zb, 1.0), 0.0)
+            X = P[:, :, None] + s[..., None] * (P[:, None] - P[:, :, None])
+            X[..., 2] = CLIP_Z
+            pts = np.concatenate([P, X.reshape(F, -1, 3)], 1)
+            ok = np.concatenate([front, cross.reshape(F, -1)], 1)
+        zz = np.where(ok, pts[..., 2], 1.0)
+        u = (K[0, 0] * pts[..., 0] + K[0, 1] * pts[..., 1]) / zz + K[0, 2]
+        v = K[1, 1] * pts[..., 1] / zz + K[1, 2]
+        b = np.stack([np.where(ok, u, np.inf).min(1), np.where(ok, u, -np.inf).max(1),
+                      np.where(ok, v, np.inf).min(1), np.where(ok, v, -np.inf).max(1)], -1)
+        if not front.all() and P.shape[1] > CLIP_MAX_POINTS:
+            b[~front.all(1)] = (-np.inf, np.inf, -np.inf, np.inf)
+        out[:, n] = np.where(ok.any(1)[:, None], b, np.nan)
+    return out
+
+
+def _tile_lists(bounds: np.ndarray, order: np.ndarray, W: int, H: int,
                 tile: int) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """CSR lists (start, items) of the instances whose camera-frame box [lo, hi] (F, N, 3) can be seen by
-    a pixel-centre ray of each screen tile, in near-to-far ``order`` (F, N) of global item indices."""
-    F, N, _ = lo.shape
+    """CSR lists (start, items) of the instances whose screen ``bounds`` (F, N, 4) (``_screen_bounds``, one
+    pixel of margin) touch each screen tile, in near-to-far ``order`` (F, N) of global item indices."""
+    F, N, _ = bounds.shape
     tx, ty = -(-W // tile), -(-H // tile)
-    corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
-    P = lo[:, :, None] + corners * (hi - lo)[:, :, None]  # (F, N, 8, 3)
-    front = P[..., 2].min(-1) > 1e-9
-    z = np.where(front[..., None], P[..., 2], 1.0)
-    u = (K[0, 0] * P[..., 0] + K[0, 1] * P[..., 1]) / z + K[0, 2]
-    v = K[1, 1] * P[..., 1] / z + K[1, 2]
-    # a box with a corner at or behind the camera plane may project anywhere: give it every tile
-    j0 = np.where(front, np.floor(u.min(-1)) - 1, 0).clip(0, W - 1).astype(np.int64) // tile
-    j1 = np.where(front, np.ceil(u.max(-1)) + 1, W - 1).clip(0, W - 1).astype(np.int64) // tile
-    i0 = np.where(front, np.floor(v.min(-1)) - 1, 0).clip(0, H - 1).astype(np.int64) // tile
-    i1 = np.where(front, np.ceil(v.max(-1)) + 1, H - 1).clip(0, H - 1).astype(np.int64) // tile
-    offscreen = front & ((u.max(-1) < -1) | (u.min(-1) > W) | (v.max(-1) < -1) | (v.min(-1) > H))
+    seen = ~np.isnan(bounds[..., 0])
+    b = np.where(seen[..., None], bounds, 0.0)
+    j0 = (np.floor(b[..., 0]) - 1).clip(0, W - 1).astype(np.int64) // tile
+    j1 = (np.ceil(b[..., 1]) + 1).clip(0, W - 1).astype(np.int64) // tile
+    i0 = (np.floor(b[..., 2]) - 1).clip(0, H - 1).astype(np.int64) // tile
+    i1 = (np.ceil(b[..., 3]) + 1).clip(0, H - 1).astype(np.int64) // tile
+    offscreen = ~seen | (b[..., 1] < -1) | (b[..., 0] > W) | (b[..., 3] < -1) | (b[..., 2] > H)
     local = order - (np.arange(F) * N)[:, None]  # (F, N) instance index, near to far
     i0, i1, j0, j1, offscreen = (np.take_along_axis(a, local, axis=1)[..., None, None]
                                  for a in (i0, i1, j0, j1, offscreen))

@@ -288,3 +288,59 @@ def test_unknown_output_key_lists_valid_ones():
     scene = fs.Scene(fs.Camera.from_fov(8, 8), 1)
     with pytest.raises(fs.ConfigError, match="valid outputs are:.*depth"):
         fs.render(scene, ["depht"])
+
+
+def test_camera_inside_room_and_mesh_across_camera_plane_match_brute_force():
+    """Screen tiles list an instance by the projection of its hull clipped to the camera plane
+    (``accel._screen_bounds``): walls around the camera and a box reaching behind it must still be found
+    wherever the float64 brute-force oracle hits them; the bounds hold every hit pixel and every sampled
+    point of the clipped hull, and are tight enough to matter (a wall behind the camera is in no tile)."""
+    from flowsynth.accel import CLIP_Z, _screen_bounds
+    from flowsynth.assets import room_walls
+
+    cam = fs.Camera.from_fov(64, 48, 70)
+    scene = fs.Scene(cam, 2)
+    cams = np.stack([oracle.look_at([-3.0 + 0.2 * t, 0.3, 1.2], [2.0, -0.5 + 0.3 * t, 0.8], up=(0, 0, 1))
+                     for t in range(2)])
+    scene.set_camera_poses(cams)
+    meshes = list(room_walls((-4.0, -3.0, 0.0), (4.0, 3.0, 2.5)))
+    meshes += [trimesh.creation.box((0.6, 0.8, 0.5)), trimesh.creation.icosphere(1, radius=0.4)]
+    poses = [np.tile(np.eye(4), (2, 1, 1)) for _ in range(6)]
+    straddle = oracle.pose((0.3, 0.2, 0.1), (-2.75, -0.55, 1.1))  # reaches behind camera 0, at the image edge
+    poses += [np.stack([straddle, straddle]), np.stack([oracle.pose(t=(1.5, 0.2, 1.0))] * 2)]
+    for m, P in zip(meshes, poses):
+        scene.add_object(m, P)
+    out = fs.render(scene, ["instance", "distance"])
+    for t in range(2):
+        cam_T_world = np.linalg.inv(cams[t])
+        tt, kk, _, _ = brute_force(cam, cam_T_world, meshes, [P[t] for P in poses])
+        sil = near_silhouette(cam, cam_T_world, meshes, [P[t] for P in poses])
+        inst = out["instance"][t, 0].numpy() - 1
+        assert (inst == kk)[~sil].all() and (kk >= 0).all()
+        assert np.isin([0, 1, 3, 4, 5, 7] + [6] * (t == 0), kk).all()  # all but the wall behind; the box in frame 0
+        dist = out["distance"][t, 0].numpy()
+        assert (np.abs(dist - tt) / tt)[~sil].max() <= 1e-5
+
+        cam_T_obj = np.stack([cam_T_world @ P[t] for P in poses])[None]
+        b = _screen_bounds(meshes, cam_T_obj, cam.K)[0]  # (N, 4) u_min, u_max, v_min, v_max
+        v, u = np.mgrid[0:48, 0:64]
+        for n in range(8):
+            hit = kk == n
+            if hit.any():
+                assert b[n, 0] - 1e-6 <= u[hit].min() and u[hit].max() <= b[n, 1] + 1e-6
+                assert b[n, 2] - 1e-6 <= v[hit].min() and v[hit].max() <= b[n, 3] + 1e-6
+            # random points of the hull in front of the clip plane project inside the bounds
+            V = oracle.apply(cam_T_obj[0, n], np.asarray(meshes[n].vertices, np.float64))
+            w = np.random.default_rng(n).dirichlet(np.full(len(V), 0.3), 4000)
+            X = w @ V
+            X = X[X[:, 2] >= CLIP_Z]
+            if len(X):
+                p = oracle.project(cam.K, X)
+                assert (p[:, 0] >= b[n, 0] - 1e-6).all() and (p[:, 0] <= b[n, 1] + 1e-6).all()
+                assert (p[:, 1] >= b[n, 2] - 1e-6).all() and (p[:, 1] <= b[n, 3] + 1e-6).all()
+        behind = [n for n in range(6) if (oracle.apply(cam_T_obj[0, n], meshes[n].vertices)[:, 2] < 0).all()]
+        assert behind and np.isnan(b[behind]).all()  # the wall behind the camera: no tile
+        crossing = [n for n in range(7) if n not in behind and not np.isinf(b[n]).any()
+                    and (oracle.apply(cam_T_obj[0, n], meshes[n].vertices)[:, 2] < 0).any()]
+        assert len(crossing) >= 4  # floor, ceiling, side walls and the box: finite bounds, not every tile
+        assert 0 < b[0, 2] < 47 and 0 < b[1, 3] < 47  # floor below the horizon, ceiling above: rows without them

@@ -22,8 +22,8 @@ planes with a margin of 1e-6 |X| + 1e-9 m (float32 rounding of the ray the mesh 
   is (n . x is linear along the segment);
 - flat items (room walls), tested one by one: the segment stays on one side of the item's slab;
 - the other items: those of the screen tile of (u', v') in the primary cast's lists without the flat
-  items (every instance whose box projects within a pixel of that tile: boxes elsewhere cannot meet the
-  ray), near to far, down to the first whose box starts beyond the segment, box entry tested, then the
+  items (every instance whose clipped hull projects within a pixel of that tile: instances elsewhere cannot
+  meet the ray), near to far, down to the first whose box starts beyond the segment, box entry tested, then the
   bounding sphere, then the planes through the camera centre that bound the item's projected convex hull
   (``beyond_silhouette``: near misses of convex items need no mesh query).
 The cheapest tests run first: the flat groups without the own item, and only when a test needs them the
