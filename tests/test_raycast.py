@@ -344,3 +344,40 @@ def test_camera_inside_room_and_mesh_across_camera_plane_match_brute_force():
                     and (oracle.apply(cam_T_obj[0, n], meshes[n].vertices)[:, 2] < 0).any()]
         assert len(crossing) >= 4  # floor, ceiling, side walls and the box: finite bounds, not every tile
         assert 0 < b[0, 2] < 47 and 0 < b[1, 3] < 47  # floor below the horizon, ceiling above: rows without them
+
+
+def test_more_than_ordered_max_instances_take_the_bvh_and_match_the_oracle(monkeypatch):
+    """Above ``ORDERED_MAX`` instances camera rays traverse the top-level BVH (``trace_closest`` /
+    ``trace_any``, with the thin-instance box test) instead of the tile lists: same hits as the brute-force
+    oracle, and the same G-buffer and exact occlusion as the list walk forced on the same scene."""
+    import flowsynth.accel as accel
+
+    rng = np.random.default_rng(5)
+    cam = fs.Camera.from_fov(40, 30, 60)
+    scene = fs.Scene(cam, 2)
+    cams = np.stack([oracle.look_at([0.1 * t, 0.0, -7.0], [0.0, 0.0, 0.0]) for t in range(2)])
+    scene.set_camera_poses(cams)
+    meshes = [trimesh.creation.box((6.0, 5.0, 0.02))]  # a thin plate behind everything
+    poses = [np.tile(oracle.pose(t=(0.0, 0.0, 2.0)), (2, 1, 1))]
+    for _ in range(66):
+        meshes.append(trimesh.creation.icosphere(1, radius=rng.uniform(0.15, 0.35)))
+        c = rng.uniform([-2.5, -2.0, -1.5], [2.5, 2.0, 1.5])
+        poses.append(np.stack([oracle.pose(t=c), oracle.pose(t=c + rng.normal(0, 0.05, 3))]))
+    for m, P in zip(meshes, poses):
+        scene.add_object(m, P)
+    assert len(meshes) > accel.ORDERED_MAX
+    keys = ["instance", "distance", "normals", "flow_fw", "occ_fw"]
+    via_bvh = fs.render(scene, keys)
+    monkeypatch.setattr(accel, "ORDERED_MAX", 1000)
+    via_lists = fs.render(scene, keys)
+    for k in keys:
+        np.testing.assert_array_equal(via_bvh[k].numpy(), via_lists[k].numpy())
+    for t in range(2):
+        cam_T_world = np.linalg.inv(cams[t])
+        tt, kk, _, _ = brute_force(cam, cam_T_world, meshes, [P[t] for P in poses])
+        sil = near_silhouette(cam, cam_T_world, meshes, [P[t] for P in poses])
+        inst = via_bvh["instance"][t, 0].numpy() - 1
+        assert (inst == kk)[~sil].all() and (kk == 0).sum() > 50 and len(np.unique(kk)) > 30
+        hit = (kk >= 0) & ~sil
+        assert (np.abs(via_bvh["distance"][t, 0].numpy() - tt)[hit] / tt[hit]).max() <= 1e-5
+    assert via_bvh["occ_fw"].any()

@@ -111,10 +111,12 @@ class Pinhole:
 
 @wp.func
 def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
+                  thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n_inst: wp.int32,
                   o: wp.vec3, d: wp.vec3, max_t: wp.float32):
     """Closest hit along o + t d, t in [0, max_t), below BVH node ``root`` (a frame's group root).
-    Returns (item or -1, t, face, u, v). Takes the ``Instances`` arrays it reads, not the struct: Warp
-    passes a struct to a function by value, a copy per ray on this hot path."""
+    Returns (item or -1, t, face, u, v). A thin instance is mesh-queried only when the ray enters its object-
+    frame box first (``trace_any``). Takes the ``Instances`` arrays it reads, not the struct: Warp passes a
+    struct to a function by value, a copy per ray on this hot path."""
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
@@ -124,7 +126,14 @@ def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64]
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, best_t):
         X = obj_T_ref[item]
-        hit = wp.mesh_query_ray(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), best_t)
+        o_obj = wp.transform_point(X, o)
+        d_obj = wp.transform_vector(X, d)
+        n = item % n_inst
+        if thin[n] != 0:
+            te = box_entry(obj_lo[n] - o_obj, obj_hi[n] - o_obj, d_obj)
+            if te < 0.0 or te >= best_t:
+                continue
+        hit = wp.mesh_query_ray(item_mesh[item], o_obj, d_obj, best_t)
         if hit.result and hit.t < best_t:
             best_t = hit.t
             best_item = item
@@ -136,14 +145,24 @@ def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64]
 
 @wp.func
 def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
+              thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n_inst: wp.int32,
               o: wp.vec3, d: wp.vec3, max_t: wp.float32):
     """True when anything below BVH node ``root`` is hit along o + t d with t in [0, max_t) (first blocker
-    ends the ray). Takes the arrays it reads, like ``trace_closest``."""
+    ends the ray). A thin instance (``Instances.thin``: a wall, whose reference-frame box is loose) is mesh-
+    queried only when the ray enters its object-frame box before max_t. Takes the arrays it reads, like
+    ``trace_closest``."""
     query = wp.bvh_query_ray(bvh, o, d, root)
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, max_t):
         X = obj_T_ref[item]
-        if wp.mesh_query_ray_anyhit(item_mesh[item], wp.transform_point(X, o), wp.transform_vector(X, d), max_t):
+        o_obj = wp.transform_point(X, o)
+        d_obj = wp.transform_vector(X, d)
+        n = item % n_inst
+        if thin[n] != 0:
+            te = box_entry(obj_lo[n] - o_obj, obj_hi[n] - o_obj, d_obj)
+            if te < 0.0 or te >= max_t:
+                continue
+        if wp.mesh_query_ray_anyhit(item_mesh[item], o_obj, d_obj, max_t):
             return True
     return False
 
@@ -195,7 +214,8 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
     queries per ray instead of one per box crossed.
     """
     if inst.use_bvh != 0:
-        return trace_closest(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, wp.vec3(0.0), d, max_t)
+        return trace_closest(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, inst.thin, inst.obj_lo,
+                             inst.obj_hi, inst.n_inst, wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
@@ -254,7 +274,8 @@ def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32)
     """``trace_any`` for a ray leaving the camera centre of frame g: the frame's instances near to far,
     first blocker ends the walk (any-hit mesh queries)."""
     if inst.use_bvh != 0:
-        return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, wp.vec3(0.0), d, max_t)
+        return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi,
+                         inst.n_inst, wp.vec3(0.0), d, max_t)
     return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref, inst.frame_items,
                        inst.frame_start[g], inst.frame_start[g + 1], d, max_t)
 
