@@ -110,12 +110,23 @@ class Pinhole:
 
 
 @wp.func
+def thin_skip(thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n: wp.int32,
+              o_obj: wp.vec3, d_obj: wp.vec3, max_t: wp.float32):
+    """True when instance n is thin (``Instances.thin``: a wall, whose reference-frame box is loose) and the
+    object-frame ray o_obj + t d_obj does not enter its padded object-frame box before max_t: no mesh query."""
+    if thin[n] == 0:
+        return False
+    te = box_entry(obj_lo[n] - o_obj, obj_hi[n] - o_obj, d_obj)
+    return te < 0.0 or te >= max_t
+
+
+@wp.func
 def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
                   thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n_inst: wp.int32,
                   o: wp.vec3, d: wp.vec3, max_t: wp.float32):
     """Closest hit along o + t d, t in [0, max_t), below BVH node ``root`` (a frame's group root).
     Returns (item or -1, t, face, u, v). A thin instance is mesh-queried only when the ray enters its object-
-    frame box first (``trace_any``). Takes the ``Instances`` arrays it reads, not the struct: Warp passes a
+    frame box first (``thin_skip``). Takes the ``Instances`` arrays it reads, not the struct: Warp passes a
     struct to a function by value, a copy per ray on this hot path."""
     best_t = max_t
     best_item = wp.int32(-1)
@@ -128,11 +139,8 @@ def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64]
         X = obj_T_ref[item]
         o_obj = wp.transform_point(X, o)
         d_obj = wp.transform_vector(X, d)
-        n = item % n_inst
-        if thin[n] != 0:
-            te = box_entry(obj_lo[n] - o_obj, obj_hi[n] - o_obj, d_obj)
-            if te < 0.0 or te >= best_t:
-                continue
+        if thin_skip(thin, obj_lo, obj_hi, item % n_inst, o_obj, d_obj, best_t):
+            continue
         hit = wp.mesh_query_ray(item_mesh[item], o_obj, d_obj, best_t)
         if hit.result and hit.t < best_t:
             best_t = hit.t
@@ -148,8 +156,7 @@ def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], ob
               thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n_inst: wp.int32,
               o: wp.vec3, d: wp.vec3, max_t: wp.float32):
     """True when anything below BVH node ``root`` is hit along o + t d with t in [0, max_t) (first blocker
-    ends the ray). A thin instance (``Instances.thin``: a wall, whose reference-frame box is loose) is mesh-
-    queried only when the ray enters its object-frame box before max_t. Takes the arrays it reads, like
+    ends the ray), skipping thin instances as ``trace_closest`` does. Takes the arrays it reads, like
     ``trace_closest``."""
     query = wp.bvh_query_ray(bvh, o, d, root)
     item = wp.int32(0)
@@ -157,11 +164,8 @@ def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], ob
         X = obj_T_ref[item]
         o_obj = wp.transform_point(X, o)
         d_obj = wp.transform_vector(X, d)
-        n = item % n_inst
-        if thin[n] != 0:
-            te = box_entry(obj_lo[n] - o_obj, obj_hi[n] - o_obj, d_obj)
-            if te < 0.0 or te >= max_t:
-                continue
+        if thin_skip(thin, obj_lo, obj_hi, item % n_inst, o_obj, d_obj, max_t):
+            continue
         if wp.mesh_query_ray_anyhit(item_mesh[item], o_obj, d_obj, max_t):
             return True
     return False
@@ -230,15 +234,16 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
         o = wp.vec3(X[0, 3], X[1, 3], X[2, 3])
         d_obj = wp.vec3(0.0)
         n = item - g * inst.n_inst
-        te = wp.float32(0.0)
+        query = False
         if inst.thin[n] != 0:  # a wall's camera-frame box is loose, its object-frame box tight
             d_obj = wp.transform_vector(X, d)
-            te = box_entry(inst.obj_lo[n] - o, inst.obj_hi[n] - o, d_obj)
+            query = not thin_skip(inst.thin, inst.obj_lo, inst.obj_hi, n, o, d_obj, best_t)
         else:
             te = box_entry_inv(inst.lowers[item], inst.uppers[item], d, inv)
             if te >= 0.0 and te < best_t:
                 d_obj = wp.transform_vector(X, d)
-        if te >= 0.0 and te < best_t:
+                query = True
+        if query:
             hit = wp.mesh_query_ray(inst.item_mesh[item], o, d_obj, best_t)
             if hit.result and hit.t < best_t:
                 best_t = hit.t
