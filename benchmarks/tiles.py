@@ -1,7 +1,7 @@
 """Primary cast with per-screen-tile candidate lists against one list per frame (``flowsynth.accel.TILE``).
 
 Below ``ORDERED_MAX`` instances a primary ray walks a near-to-far candidate list instead of the top-level
-BVH; the list is per TILE x TILE screen tile (the instances whose box projects onto the tile). A tile as
+BVH; the list is per TILE x TILE screen tile (the instances whose clipped hull projects onto the tile). A tile as
 large as the image is one list per frame, which is the baseline here. Scene: benchmarks/raycast.py's 30
 icospheres x 5120 faces at 640x480, one core, one thread, kernel cast with normals (``cast_gbuffer``),
 round-robin medians of process CPU time. Hit maps must agree exactly across tile sizes.
