@@ -111,8 +111,10 @@ class SceneAccel:
         lo = np.empty((F, N, 3))
         hi = np.empty((F, N, 3))
         scale = np.empty((F, N, 1))
+        v_lo, v_hi = np.empty((N, 3)), np.empty((N, 3))  # object-frame boxes: those of the hull points
         for n, m in enumerate(meshes):  # tight boxes: the posed hull vertices, not the posed local box
             hull = _hull_points(m)
+            v_lo[n], v_hi[n] = hull.min(0), hull.max(0)
             pts = np.matmul(hull, np.swapaxes(cam_T_obj[:, n, :3, :3], 1, 2)) + cam_T_obj[:, n, None, :3, 3]
             lo[:, n], hi[:, n] = pts.min(1), pts.max(1)
             scale[:, n, 0] = (hi[:, n] - lo[:, n]).max(-1) + np.abs(pts).max((1, 2))
@@ -142,15 +144,15 @@ class SceneAccel:
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self._meshes, self._cam_T_obj, self._cull = meshes, cam_T_obj, None
-        # object-frame boxes, padded like the camera-frame ones (size plus the camera's farthest distance)
-        v_lo = np.array([np.asarray(m.vertices, np.float64).min(0) for m in meshes])  # (N, 3)
-        v_hi = np.array([np.asarray(m.vertices, np.float64).max(0) for m in meshes])
+        # object-frame boxes, padded like the camera-frame ones (size plus the camera's farthest distance);
+        # per item (tiled over the frames), so the kernels index them by item like every other array
         ext = v_hi - v_lo
         far = np.abs(obj_T_cam[..., :3, 3]).max((0, 2)) + np.abs(np.concatenate([v_lo, v_hi], 1)).max(1)
         o_pad = (BOX_PAD_REL * (ext.max(1) + far) + 1e-30)[:, None]
-        self.thin = wp.array((ext.min(1) <= FLAT_REL * ext.max(1)).astype(np.int32), dtype=wp.int32, device=device)
-        self.obj_lo = wp.array((v_lo - o_pad).astype(np.float32), dtype=wp.vec3, device=device)
-        self.obj_hi = wp.array((v_hi + o_pad).astype(np.float32), dtype=wp.vec3, device=device)
+        thin = (ext.min(1) <= FLAT_REL * ext.max(1)).astype(np.int32)
+        self.thin = wp.array(np.tile(thin, F), dtype=wp.int32, device=device)
+        self.obj_lo = wp.array(np.tile((v_lo - o_pad).astype(np.float32), (F, 1)), dtype=wp.vec3, device=device)
+        self.obj_hi = wp.array(np.tile((v_hi + o_pad).astype(np.float32), (F, 1)), dtype=wp.vec3, device=device)
 
     def instances(self):
         """The kernels' ``Instances`` struct (flowsynth.kernels.raycast) over this accel's arrays (no copy):

@@ -38,8 +38,8 @@ class Instances:
     obj_T_ref: wp.array[wp.mat44]  # (F * N,) reference (camera) frame -> object frame
     ref_T_obj: wp.array[wp.mat44]  # (F * N,) object frame -> reference frame
     n_inst: wp.int32  # N
-    thin: wp.array[wp.int32]  # (N,) 1: the instance's object-frame box is thin (a room wall); camera rays test it
-    obj_lo: wp.array[wp.vec3]  # (N,) object-frame box of the instance's mesh, padded [m]
+    thin: wp.array[wp.int32]  # (F * N,) 1: the item's object-frame box is thin (a room wall); rays test it first
+    obj_lo: wp.array[wp.vec3]  # (F * N,) object-frame box of the item's mesh, padded [m]
     obj_hi: wp.array[wp.vec3]
 
 
@@ -110,20 +110,20 @@ class Pinhole:
 
 
 @wp.func
-def thin_skip(thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n: wp.int32,
+def thin_skip(thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], item: wp.int32,
               o_obj: wp.vec3, d_obj: wp.vec3, max_t: wp.float32):
-    """True when instance n is thin (``Instances.thin``: a wall, whose reference-frame box is loose) and the
+    """True when ``item`` is thin (``Instances.thin``: a wall, whose reference-frame box is loose) and the
     object-frame ray o_obj + t d_obj does not enter its padded object-frame box before max_t: no mesh query."""
-    if thin[n] == 0:
+    if thin[item] == 0:
         return False
-    te = box_entry(obj_lo[n] - o_obj, obj_hi[n] - o_obj, d_obj)
+    te = box_entry(obj_lo[item] - o_obj, obj_hi[item] - o_obj, d_obj)
     return te < 0.0 or te >= max_t
 
 
 @wp.func
 def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
-                  thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n_inst: wp.int32,
-                  o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+                  thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], o: wp.vec3,
+                  d: wp.vec3, max_t: wp.float32):
     """Closest hit along o + t d, t in [0, max_t), below BVH node ``root`` (a frame's group root).
     Returns (item or -1, t, face, u, v). A thin instance is mesh-queried only when the ray enters its object-
     frame box first (``thin_skip``). Takes the ``Instances`` arrays it reads, not the struct: Warp passes a
@@ -139,7 +139,7 @@ def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64]
         X = obj_T_ref[item]
         o_obj = wp.transform_point(X, o)
         d_obj = wp.transform_vector(X, d)
-        if thin_skip(thin, obj_lo, obj_hi, item % n_inst, o_obj, d_obj, best_t):
+        if thin_skip(thin, obj_lo, obj_hi, item, o_obj, d_obj, best_t):
             continue
         hit = wp.mesh_query_ray(item_mesh[item], o_obj, d_obj, best_t)
         if hit.result and hit.t < best_t:
@@ -153,8 +153,8 @@ def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64]
 
 @wp.func
 def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
-              thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], n_inst: wp.int32,
-              o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+              thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], o: wp.vec3,
+              d: wp.vec3, max_t: wp.float32):
     """True when anything below BVH node ``root`` is hit along o + t d with t in [0, max_t) (first blocker
     ends the ray), skipping thin instances as ``trace_closest`` does. Takes the arrays it reads, like
     ``trace_closest``."""
@@ -164,7 +164,7 @@ def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], ob
         X = obj_T_ref[item]
         o_obj = wp.transform_point(X, o)
         d_obj = wp.transform_vector(X, d)
-        if thin_skip(thin, obj_lo, obj_hi, item % n_inst, o_obj, d_obj, max_t):
+        if thin_skip(thin, obj_lo, obj_hi, item, o_obj, d_obj, max_t):
             continue
         if wp.mesh_query_ray_anyhit(item_mesh[item], o_obj, d_obj, max_t):
             return True
@@ -219,7 +219,7 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
     """
     if inst.use_bvh != 0:
         return trace_closest(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, inst.thin, inst.obj_lo,
-                             inst.obj_hi, inst.n_inst, wp.vec3(0.0), d, max_t)
+                             inst.obj_hi, wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
@@ -233,11 +233,10 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
         X = inst.obj_T_ref[item]
         o = wp.vec3(X[0, 3], X[1, 3], X[2, 3])
         d_obj = wp.vec3(0.0)
-        n = item - g * inst.n_inst
         query = False
-        if inst.thin[n] != 0:  # a wall's camera-frame box is loose, its object-frame box tight
+        if inst.thin[item] != 0:  # a wall's camera-frame box is loose, its object-frame box tight
             d_obj = wp.transform_vector(X, d)
-            query = not thin_skip(inst.thin, inst.obj_lo, inst.obj_hi, n, o, d_obj, best_t)
+            query = not thin_skip(inst.thin, inst.obj_lo, inst.obj_hi, item, o, d_obj, best_t)
         else:
             te = box_entry_inv(inst.lowers[item], inst.uppers[item], d, inv)
             if te >= 0.0 and te < best_t:
@@ -280,7 +279,7 @@ def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32)
     first blocker ends the walk (any-hit mesh queries)."""
     if inst.use_bvh != 0:
         return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi,
-                         inst.n_inst, wp.vec3(0.0), d, max_t)
+                         wp.vec3(0.0), d, max_t)
     return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref, inst.frame_items,
                        inst.frame_start[g], inst.frame_start[g + 1], d, max_t)
 

@@ -176,7 +176,7 @@ def direct_light(sc: ShadeScene, g: wp.int32, x: wp.vec3, n: wp.vec3, wo: wp.vec
             continue
         if shadows:
             if trace_any(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh, sc.inst.obj_T_ref, sc.inst.thin,
-                         sc.inst.obj_lo, sc.inst.obj_hi, sc.inst.n_inst, o, wi, t_max):
+                         sc.inst.obj_lo, sc.inst.obj_hi, o, wi, t_max):
                 continue
         L += wp.cw_mul(brdf(n, wi, wo, albedo, spec, rough), E) * ci
     return L
@@ -243,8 +243,7 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
             beta = beta / q
         o = offset_origin(x, n)
         item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh, sc.inst.obj_T_ref,
-                                                 sc.inst.thin, sc.inst.obj_lo, sc.inst.obj_hi, sc.inst.n_inst, o, wi,
-                                                 sc.max_t)
+                                                 sc.inst.thin, sc.inst.obj_lo, sc.inst.obj_hi, o, wi, sc.max_t)
         if item < 0:
             L += clamp_indirect(wp.cw_mul(beta, sc.sky))
             break
@@ -338,7 +337,7 @@ def shade_kernel(mode: str):
                     d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
                     item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh,
                                                              sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo,
-                                                             sc.inst.obj_hi, sc.inst.n_inst, wp.vec3(0.0), d, sc.max_t)
+                                                             sc.inst.obj_hi, wp.vec3(0.0), d, sc.max_t)
                     if item >= 0:
                         p_obj = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
                 if item < 0:
