@@ -90,13 +90,17 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
     cfg = fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
                                   max_objects=32)
     sets = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in counts}
-    index = iter(range(10**6))
+    index = {k: iter(range(10**6)) for k in counts}
 
     def full(k: int) -> None:
-        sets[k].sample(next(index) % 4)  # the same four scenes for every thread count
+        # scenes 0, 1, 2, 3, 0, ... for every thread count alike (a counter shared by the thread counts gave
+        # each count other scenes: in a round-robin over 2 counts, threads 1 got scenes 0 and 2, threads 2 got 1, 3)
+        sets[k].sample(next(index[k]) % 4)
 
     fns.update({("sample", k): (lambda k=k: full(k)) for k in counts})
-    times = time_round_robin(fns, repeat=repeat, warmup=1)
+    # warm-up: every thread count renders all four scenes once first, so the process-wide caches (meshes, BVHs,
+    # textures) hold them for both; else the count timed second in a round finds the scene the first one warmed
+    times = time_round_robin(fns, repeat=repeat, warmup=4)
     rays = cam.width * cam.height
     rows = []
     for k in counts:
