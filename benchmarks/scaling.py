@@ -93,13 +93,12 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
     index = {k: iter(range(10**6)) for k in counts}
 
     def full(k: int) -> None:
-        # scenes 0, 1, 2, 3, 0, ... for every thread count alike (a counter shared by the thread counts gave
-        # each count other scenes: in a round-robin over 2 counts, threads 1 got scenes 0 and 2, threads 2 got 1, 3)
+        # a counter per thread count: every count renders scenes 0, 1, 2, 3, 0, ... alike
         sets[k].sample(next(index[k]) % 4)
 
     fns.update({("sample", k): (lambda k=k: full(k)) for k in counts})
-    # warm-up: every thread count renders all four scenes once first, so the process-wide caches (meshes, BVHs,
-    # textures) hold them for both; else the count timed second in a round finds the scene the first one warmed
+    # warm-up over all four scenes with every count: the process-wide caches (meshes, BVHs, textures) then hold
+    # each scene before any count is timed on it
     times = time_round_robin(fns, repeat=repeat, warmup=4)
     rays = cam.width * cam.height
     rows = []
