@@ -114,6 +114,10 @@ class BouncingThingsConfig:
     """RGB shading: "flat" (lit, no shadows), "direct" (lights and shadows) or "path" (path traced)."""
     spp: int = 1
     """Samples per pixel for RGB, >= 1 [count]."""
+    edge_spp: int = 4
+    """Samples per pixel for RGB at silhouettes, >= 1 [count]: a pixel whose 4-neighbour sees another instance
+    (or the sky) gets max(spp, edge_spp) samples, so object outlines are anti-aliased at a fraction of what
+    spp = edge_spp everywhere costs (docs/rendering.md, Anti-aliasing); 1 = off."""
     shutter: float = 0.0
     """Shutter open time as a fraction of the frame interval, in [0, 1]; 0 disables motion blur."""
     bounces: int = DEFAULT_BOUNCES
@@ -345,6 +349,7 @@ def _validate(cfg: BouncingThingsConfig) -> None:
                           "or enlarge room_size")
     _choice(cfg, "render_mode", RENDER_MODES)
     _int(cfg, "spp", 1)
+    _int(cfg, "edge_spp", 1)
     _set(cfg, "shutter", _float(cfg, "shutter", lo=0.0, hi=1.0))
     if cfg.texture_dir is not None and not isinstance(cfg.texture_dir, str):
         raise ConfigError(f"texture_dir must be a folder path or None, got {cfg.texture_dir!r}")

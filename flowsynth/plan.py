@@ -68,6 +68,7 @@ class Plan:
     max_objects: int | None = None
     render_mode: str = DEFAULT_RENDER_MODE
     spp: int = 1
+    edge_spp: int = 1
     shutter: float = 0.0
     seed: int | None = None
     bounces: int = DEFAULT_BOUNCES
@@ -168,7 +169,7 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
               render_mode: str = DEFAULT_RENDER_MODE, spp: int = 1, shutter: float = 0.0, seed: int | None = None,
               bounces: int = DEFAULT_BOUNCES, tonemap: str = DEFAULT_TONEMAP, exposure: float = 1.0,
               threads: int | None = None, flow_gaps=(1,), num_tracks: int = 256,
-              track_sampling: str = "uniform", stereo_baseline: float = 0.0) -> Plan:
+              track_sampling: str = "uniform", stereo_baseline: float = 0.0, edge_spp: int = 1) -> Plan:
     """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys.
 
     ``num_tracks`` (Q >= 1) and ``track_sampling`` (TRACK_SAMPLING): point tracks, see flowsynth/tracks.py.
@@ -177,6 +178,7 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
     ``gap_key(key, k)`` for every k (``flow_fw`` for k = 1, ``flow_fw_k2`` for k = 2, ...); keys named with
     a gap (``flow_fw_k3``) may also be requested directly. ``Plan.outputs`` holds the expanded keys.
 
+    ``edge_spp``: RGB samples of pixels at silhouettes and creases, max(spp, edge_spp) (docs/rendering.md).
     ``threads``: threads of every ray launch (None = all cores the process may use, 1 inside DataLoader and
     export workers; flowsynth.parallel). Results do not depend on it. ``seed``: the renderer's noise seed; None
     (default) uses the scene's ``render_seed``."""
@@ -199,6 +201,8 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
         raise ConfigError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     if not isinstance(spp, int) or spp < 1:
         raise ConfigError(f"spp must be an integer >= 1, got {spp!r}")
+    if isinstance(edge_spp, bool) or not isinstance(edge_spp, int) or edge_spp < 1:
+        raise ConfigError(f"edge_spp must be an integer >= 1, got {edge_spp!r}")
     if not (0.0 <= float(shutter) <= 1.0):
         raise ConfigError(f"shutter must be in [0, 1] (fraction of the frame interval), got {shutter!r}")
     if isinstance(bounces, bool) or not isinstance(bounces, int) or not 0 <= bounces <= MAX_BOUNCES:
@@ -219,6 +223,6 @@ def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
     stereo = [k for k in outputs if k in STEREO_KEYS]
     if stereo and stereo_baseline == 0:
         raise ConfigError(f"{stereo} need a right camera: set stereo_baseline > 0 [m] (e.g. 0.1)")
-    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), float(shutter),
+    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), int(edge_spp), float(shutter),
                 None if seed is None else int(seed), int(bounces),
                 tonemap, float(exposure), threads, gaps, num_tracks, track_sampling, float(stereo_baseline))

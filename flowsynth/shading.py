@@ -108,15 +108,18 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
     # Ray-cone spread per metre of one sample: a pixel's angle shared by spp samples (texture filtering).
     sc.pix_angle = float(1.0 / np.sqrt(scene.camera.K[0, 0] * scene.camera.K[1, 1] * spp))
 
-    def gbuf(a, dtype, fill):
-        if reuse:
+    edge_spp = int(plan.edge_spp) if plan.edge_spp > spp else 0  # 0: no pixel gets extra samples
+
+    def gbuf(a, dtype, fill, needed=False):
+        if reuse or needed:
             return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=device != "cpu")
         return wp.full((1, 1, 1), fill, dtype=dtype, device=device)
 
     radiance = wp.empty((T, H, W), dtype=wp.vec3, device=device)  # the kernel writes every pixel
     launch_bands(shade_kernel(plan.render_mode), (T, H, W), 1, [
-        sc, gbuf(gb.item, wp.int32, -1), gbuf(gb.face, wp.int32, -1), gbuf(gb.dist, wp.float32, 0.0),
-        gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), pinhole(scene.camera), spp, slices, _seed32(plan.seed),
+        sc, gbuf(gb.item, wp.int32, -1, edge_spp > 0), gbuf(gb.face, wp.int32, -1),
+        gbuf(gb.dist, wp.float32, 0.0), gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), pinhole(scene.camera), spp,
+        edge_spp, slices, _seed32(plan.seed),
         int(plan.bounces), BAND0], [radiance], device, plan.threads, row_loop=True)
     return radiance.numpy()  # finite and >= 0: the kernel clamps each value (kernels/shade.finite_nonneg)
 

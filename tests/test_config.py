@@ -98,6 +98,7 @@ INVALID = [
     ({"max_objects": 0, "num_objects": (0, 0)}, "max_objects"),
     ({"render_mode": "raytrace"}, "render_mode"),
     ({"spp": 0}, "spp"),
+    ({"edge_spp": 0}, "edge_spp"),
     ({"shutter": 1.5}, "shutter"),
     ({"texture_families": ()}, "texture_families"),
     ({"texture_dir": 3}, "texture_dir"),

@@ -45,8 +45,8 @@ def fine_bands(monkeypatch):
 @pytest.mark.parametrize("options", [
     dict(),
     dict(render_mode="direct"),
-    dict(render_mode="path", bounces=2, spp=2),
-    dict(render_mode="direct", spp=3, shutter=0.5),
+    dict(render_mode="path", bounces=2, spp=2, edge_spp=4),
+    dict(render_mode="direct", spp=3, shutter=0.5, edge_spp=5),
 ], ids=["gbuffer+flow+occ", "direct", "path", "motion-blur"])
 def test_results_bit_identical_for_any_thread_count(fine_bands, options):
     scene = busy_scene()

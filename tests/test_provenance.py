@@ -31,7 +31,7 @@ def _texture_dir(tmp_path):
 
 def _rerender(sample, cfg):
     scene = fs.Scene.from_meta(sample["provenance"])
-    return fs.render(scene, KEYS, render_mode=cfg.render_mode, spp=cfg.spp, shutter=cfg.shutter)
+    return fs.render(scene, KEYS, render_mode=cfg.render_mode, spp=cfg.spp, edge_spp=cfg.edge_spp, shutter=cfg.shutter)
 
 
 @pytest.mark.parametrize("motion,mode", [("physics", "direct"), ("kinematic", "path")])

@@ -79,8 +79,8 @@ class BouncingThings(IterableDataset):
         requested = list(outputs)
         self.plan = make_plan(
             tuple(dict.fromkeys(requested + ["K", "cam_T_world"])), occlusion=occlusion,
-            max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, shutter=cfg.shutter,
-            bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure, threads=threads,
+            max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, edge_spp=cfg.edge_spp,
+            shutter=cfg.shutter, bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure, threads=threads,
             flow_gaps=cfg.flow_gaps, num_tracks=cfg.num_tracks, track_sampling=cfg.track_sampling,
             stereo_baseline=cfg.stereo_baseline)
         if cfg.num_frames < 2 and self.plan.flow_stage:

@@ -261,6 +261,22 @@ FLT_MAX = wp.constant(wp.float32(3.4028234663852886e38))  # largest finite float
 
 
 @wp.func
+def edge_pixel(item: wp.array3d[wp.int32], t: wp.int32, i: wp.int32, j: wp.int32) -> wp.bool:
+    """True at a silhouette: a 4-neighbour of pixel (i, j) sees another instance (or the sky) at its centre."""
+    c = item[t, i, j]
+    e = False
+    if i > 0:
+        e = e or item[t, i - 1, j] != c
+    if i + 1 < item.shape[1]:
+        e = e or item[t, i + 1, j] != c
+    if j > 0:
+        e = e or item[t, i, j - 1] != c
+    if j + 1 < item.shape[2]:
+        e = e or item[t, i, j + 1] != c
+    return e
+
+
+@wp.func
 def finite_nonneg1(x: wp.float32):
     if x > 0.0 and x < FLT_MAX:
         return x
@@ -300,6 +316,7 @@ def shade_kernel(mode: str):
         reuse: wp.int32,
         cam: Pinhole,
         spp: wp.int32,
+        edge_spp: wp.int32,
         slices: wp.int32,
         seed: wp.int32,
         bounces: wp.int32,
@@ -311,28 +328,39 @@ def shade_kernel(mode: str):
         i += band0
         seed_t = wp.int32(hash3(t, 0, seed))
         seed_p = wp.int32(hash3(t, 1, seed))
+        seed_e = wp.int32(hash3(t, 2, seed))
         for j in range(radiance.shape[2]):
             pix = wp.uint32(i * radiance.shape[2] + j)
             prng = wp.rand_init(seed_p, wp.int32(pix))
             scramble = wp.uint32(wp.randi(prng))
             t_off = wp.randi(prng, 0, slices)
             acc = wp.vec3(0.0)
-            for k in range(spp):
-                rng = wp.rand_init(seed_t, wp.int32(pix * wp.uint32(spp) + wp.uint32(k)))
+            ns = spp
+            own = reuse  # 1: shade the G-buffer's pixel-centre hit
+            seed_k = seed_t
+            pix_angle = sc.pix_angle
+            if edge_spp > spp:
+                if edge_pixel(gb_item, t, i, j):
+                    ns = edge_spp
+                    own = 0
+                    seed_k = seed_e
+                    pix_angle = sc.pix_angle * wp.sqrt(wp.float32(spp) / wp.float32(edge_spp))
+            for k in range(ns):
+                rng = wp.rand_init(seed_k, wp.int32(pix * wp.uint32(ns) + wp.uint32(k)))
                 g = t * slices + (k + t_off) % slices
                 item = wp.int32(-1)
                 face = wp.int32(-1)
                 dist = wp.float32(0.0)
                 p_obj = wp.vec3(0.0)
                 d = wp.vec3(0.0)
-                if reuse != 0:
+                if own != 0:
                     d = camera_ray(wp.float32(i), wp.float32(j), cam)
                     item = gb_item[t, i, j]
                     face = gb_face[t, i, j]
                     dist = gb_dist[t, i, j]
                     p_obj = gb_point[t, i, j]
                 else:
-                    du = (wp.float32(k) + wp.randf(rng)) / wp.float32(spp)
+                    du = (wp.float32(k) + wp.randf(rng)) / wp.float32(ns)
                     dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
                     d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
                     item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh,
@@ -343,7 +371,7 @@ def shade_kernel(mode: str):
                 if item < 0:
                     acc += sc.sky
                     continue
-                spread = dist * sc.pix_angle
+                spread = dist * pix_angle
                 n, albedo, spec, rough = surface(sc, item, face, p_obj, d, spread)
                 x = d * dist
                 L = wp.vec3(0.0)
@@ -354,7 +382,7 @@ def shade_kernel(mode: str):
                     L += direct_light(sc, g, x, n, -d, albedo, spec, rough, wp.static(shadows))
                 if wp.isfinite(L):
                     acc += L
-            radiance[t, i, j] = finite_nonneg(acc / wp.float32(spp))
+            radiance[t, i, j] = finite_nonneg(acc / wp.float32(ns))
 
     _SHADE[mode] = shade
     return shade
