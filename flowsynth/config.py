@@ -173,6 +173,12 @@ class BouncingThingsConfig:
             raise ConfigError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
         return cls.from_dict({**PRESETS[name], **overrides})
 
+    def plan_options(self) -> dict[str, Any]:
+        """The ``flowsynth.plan.make_plan`` (and ``flowsynth.render``) options this config's samples are made with.
+        A sample re-renders from its provenance alone: ``cfg = BouncingThingsConfig.from_dict(meta["meta"]["config"])``
+        and ``fs.render(fs.Scene.from_meta(meta), keys, **cfg.plan_options())`` (docs/rendering.md, Provenance)."""
+        return {name: getattr(self, name) for name in PLAN_OPTIONS}
+
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-compatible dict (tuples become lists); ``from_dict(cfg.to_dict()) == cfg``."""
         return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
@@ -191,6 +197,10 @@ class BouncingThingsConfig:
             raise ConfigError(f"unknown BouncingThingsConfig field(s) {unknown}; valid fields: {names}")
         return cls(**d)
 
+
+# Config fields that are options of flowsynth.plan.make_plan, under the same names.
+PLAN_OPTIONS = ("max_objects", "render_mode", "spp", "edge_spp", "shutter", "bounces", "tonemap", "exposure",
+                "flow_gaps", "num_tracks", "track_sampling", "stereo_baseline")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},

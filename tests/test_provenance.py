@@ -29,9 +29,11 @@ def _texture_dir(tmp_path):
     return str(folder)
 
 
-def _rerender(sample, cfg):
-    scene = fs.Scene.from_meta(sample["provenance"])
-    return fs.render(scene, KEYS, render_mode=cfg.render_mode, spp=cfg.spp, edge_spp=cfg.edge_spp, shutter=cfg.shutter)
+def _rerender(provenance: str | dict, keys=KEYS):
+    """Render ``keys`` from a sample's provenance alone: the scene and, from the config it records, the options."""
+    meta = json.loads(provenance) if isinstance(provenance, str) else provenance
+    cfg = BouncingThingsConfig.from_dict(meta["meta"]["config"])
+    return fs.render(fs.Scene.from_meta(meta), keys, **cfg.plan_options())
 
 
 @pytest.mark.parametrize("motion,mode", [("physics", "direct"), ("kinematic", "path")])
@@ -44,7 +46,7 @@ def test_from_meta_rerenders_the_sample_bit_for_bit(tmp_path, motion, mode):
         sample = ds.sample(i)
         prov = json.loads(sample["provenance"])
         families = {layer["texture"] for o in prov["objects"] for layer in o["material"].get("layers", [o["material"]])}
-        again = _rerender(sample, cfg)
+        again = _rerender(sample["provenance"])
         for k in KEYS:
             assert torch.equal(again[k], sample[k]), (motion, i, k)
         if "image" in families:
@@ -98,7 +100,7 @@ def test_provenance_survives_export_and_collate(tmp_path):
     meta = json.loads((tmp_path / "meta.json").read_text())
     assert meta["provenance"]["render_seed"] == json.loads(sample["provenance"])["render_seed"]
     assert read_sample(tmp_path)["provenance"] == sample["provenance"]
-    again = fs.render(fs.Scene.from_meta(meta), ["rgb"], render_mode=cfg.render_mode)
+    again = _rerender(meta["provenance"], ["rgb"])
     assert torch.equal(again["rgb"], sample["rgb"])
     batch = next(iter(DataLoader(ds, batch_size=2)))
     assert batch["provenance"] == [ds.sample(0)["provenance"], ds.sample(1)["provenance"]]

@@ -77,12 +77,8 @@ class BouncingThings(IterableDataset):
         if length is not None and (not isinstance(length, (int, np.integer)) or length < 1):
             raise ConfigError(f"length must be None (endless) or an integer >= 1, got {length!r}")
         requested = list(outputs)
-        self.plan = make_plan(
-            tuple(dict.fromkeys(requested + ["K", "cam_T_world"])), occlusion=occlusion,
-            max_objects=cfg.max_objects, render_mode=cfg.render_mode, spp=cfg.spp, edge_spp=cfg.edge_spp,
-            shutter=cfg.shutter, bounces=cfg.bounces, tonemap=cfg.tonemap, exposure=cfg.exposure, threads=threads,
-            flow_gaps=cfg.flow_gaps, num_tracks=cfg.num_tracks, track_sampling=cfg.track_sampling,
-            stereo_baseline=cfg.stereo_baseline)
+        self.plan = make_plan(tuple(dict.fromkeys(requested + ["K", "cam_T_world"])), occlusion=occlusion,
+                              threads=threads, **cfg.plan_options())
         if cfg.num_frames < 2 and self.plan.flow_stage:
             raise ConfigError(f"flow outputs need num_frames >= 2, got {cfg.num_frames}; raise num_frames "
                               "(--num-frames) or leave the flow outputs out")
