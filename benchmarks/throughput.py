@@ -2,8 +2,13 @@
 
     python benchmarks/throughput.py [--quick]
     python benchmarks/throughput.py --ratio [--samples 12]
+    python benchmarks/throughput.py --edge [--samples 8]
 
 Writes benchmarks/results/throughput.json. Times are wall-clock on this machine (see "machine").
+
+``--edge`` runs only the cost of silhouette anti-aliasing (``edge_spp``, default 4) on the full stream at
+256x192 and 512x384, flat and direct rgb: the same indices with edge_spp 1 and the default, alternated in one
+process; writes benchmarks/results/throughput_edge.json.
 
 ``--ratio`` runs only issue 13's "skipping pays" check (goal: depth-only >= 4x faster than the full stream at
 256x192, T=2): depth-only and full samples of the same indices, alternated in one process after a warm-up
@@ -88,25 +93,16 @@ def skip_savings(cfg, n: int) -> list[dict]:
     return rows
 
 
-def depth_vs_full(n: int, warm: int = 30) -> dict:
-    """Process CPU and wall seconds per sample of the depth-only and the full stream at 256x192, T=2, the same
-    indices alternated, after ``warm`` depth-only samples of other indices (asset BVHs, hulls and Newton's
-    per-hull data cached, as in a long stream) and one sample of each stream (kernel load)."""
+def alternate(streams: dict, n: int, warm_stream: str, warm: int = 30) -> dict:
+    """Process CPU and wall seconds per sample of each stream of ``streams`` (name -> BouncingThings), the same
+    indices alternated (the order flips every index), after ``warm`` samples of other indices from
+    ``streams[warm_stream]`` (asset BVHs, hulls and Newton's per-hull data cached, as in a long stream) and one
+    sample of each stream (kernel load)."""
     import os
 
-    import flowsynth as fs
-    from flowsynth.plan import CORE_OUTPUTS
-
-    streams = {
-        "depth": fs.datasets.BouncingThings(fs.BouncingThingsConfig(width=256, height=192, num_frames=2),
-                                            outputs=["depth"], seed=0, start=4000),
-        "everything+direct rgb": fs.datasets.BouncingThings(
-            fs.BouncingThingsConfig(width=256, height=192, num_frames=2, render_mode="direct"),
-            outputs=list(CORE_OUTPUTS), seed=0, start=4000),
-    }
     load0 = os.getloadavg()[0]
     for i in range(warm):
-        streams["depth"].sample(5000 + i)
+        streams[warm_stream].sample(5000 + i)
     for ds in streams.values():
         ds.sample(0)
     cpu = dict.fromkeys(streams, 0.0)
@@ -118,9 +114,40 @@ def depth_vs_full(n: int, warm: int = 30) -> dict:
             cpu[name] += time.process_time() - c
             wall[name] += time.perf_counter() - t
     rows = [{"outputs": k, "cpu s/sample": cpu[k] / n, "wall s/sample": wall[k] / n} for k in streams]
-    return {"rows": rows, "full/depth cpu": cpu["everything+direct rgb"] / cpu["depth"],
-            "full/depth wall": wall["everything+direct rgb"] / wall["depth"], "samples": n, "warm": warm,
+    return {"rows": rows, "cpu": cpu, "wall": wall, "samples": n, "warm": warm,
             "load_average": [load0, os.getloadavg()[0]]}
+
+
+def depth_vs_full(n: int) -> dict:
+    """Issue 13's "skipping pays": the depth-only and the full stream at 256x192, T=2 (``alternate``)."""
+    import flowsynth as fs
+    from flowsynth.plan import CORE_OUTPUTS
+
+    streams = {
+        "depth": fs.datasets.BouncingThings(fs.BouncingThingsConfig(width=256, height=192, num_frames=2),
+                                            outputs=["depth"], seed=0, start=4000),
+        "everything+direct rgb": fs.datasets.BouncingThings(
+            fs.BouncingThingsConfig(width=256, height=192, num_frames=2, render_mode="direct"),
+            outputs=list(CORE_OUTPUTS), seed=0, start=4000),
+    }
+    r = alternate(streams, n, "depth")
+    return {**r, "full/depth cpu": r["cpu"]["everything+direct rgb"] / r["cpu"]["depth"],
+            "full/depth wall": r["wall"]["everything+direct rgb"] / r["wall"]["depth"]}
+
+
+def edge_cost(n: int, size: tuple[int, int], mode: str) -> dict:
+    """What silhouette anti-aliasing costs a whole sample: the full stream (every core output, ``mode`` rgb,
+    T=2) with ``edge_spp`` 1 (off) and with the config's default, same indices alternated (``alternate``)."""
+    import flowsynth as fs
+    from flowsynth.plan import CORE_OUTPUTS
+
+    default = fs.BouncingThingsConfig().edge_spp
+    streams = {f"edge_spp {e}": fs.datasets.BouncingThings(
+        fs.BouncingThingsConfig(width=size[0], height=size[1], num_frames=2, render_mode=mode, edge_spp=e),
+        outputs=list(CORE_OUTPUTS), seed=0, start=4000) for e in (1, default)}
+    r = alternate(streams, n, f"edge_spp {default}", warm=10)
+    return {**r, "size": list(size), "mode": mode,
+            "default/off cpu": r["cpu"][f"edge_spp {default}"] / r["cpu"]["edge_spp 1"]}
 
 
 def memory_curve(cfg, n: int) -> list[dict]:
@@ -141,7 +168,19 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--samples", type=int, default=None, help="samples per measurement (default 24 quick, 64 full)")
     p.add_argument("--ratio", action="store_true", help="only depth-only vs full at 256x192 (process CPU time)")
+    p.add_argument("--edge", action="store_true",
+                   help="only the full stream with edge_spp 1 vs the default, 256x192 and 512x384 (process CPU time)")
     args = p.parse_args()
+    if args.edge:
+        runs = [edge_cost(args.samples or 8, size, mode) for size in ((256, 192), (512, 384))
+                for mode in ("flat", "direct")]
+        rows = [{"size": f"{r['size'][0]}x{r['size'][1]}", "rgb": r["mode"], **row,
+                 "vs edge_spp 1": row["cpu s/sample"] / r["rows"][0]["cpu s/sample"]} for r in runs for row in r["rows"]]
+        print(f"\nFull stream (every core output, T=2), edge_spp 1 vs the default, {runs[0]['samples']} samples each "
+              f"alternated; load average {runs[0]['load_average'][0]:.2f} -> {runs[-1]['load_average'][1]:.2f}")
+        print_table(rows, ["size", "rgb", "outputs", "cpu s/sample", "wall s/sample", "vs edge_spp 1"])
+        write_json("throughput_edge", {"machine": machine_info(), "runs": runs, "rows": rows})
+        return
     if args.ratio:
         r = depth_vs_full(args.samples or 12)
         print(f"\nDepth-only vs full stream, 256x192, T=2, {r['samples']} samples each alternated, after "
