@@ -1,35 +1,30 @@
-"""Per-asset BVH on one CPU core: Warp's constructor and leaf size against build time and primary cast time.
+"""Per-asset BVH on one CPU core: flowsynth's 4-wide BVH (``flowsynth.blas``) against Warp's ``wp.Mesh``.
 
-flowsynth casts camera rays against one ``wp.Mesh`` (a triangle BVH) per asset, built once per process by
-``flowsynth.accel.asset_mesh`` as ``wp.Mesh(points, indices)``: on the CPU that is Warp's SAH builder with
-4 triangles per leaf (warp 1.19, ``Mesh.__init__``; row ``default``). This script builds the same meshes
-with every CPU constructor and a range of leaf sizes (``bvh_constructor``, ``bvh_leaf_size``):
+flowsynth casts rays against one BVH per asset, in the asset's object frame. Until 2026-11-24 that was a
+``wp.Mesh`` (Warp's CPU SAH builder, 4 triangles a leaf) queried with ``wp.mesh_query_ray``; now it is the
+4-wide tree of ``flowsynth.blas`` queried with ``flowsynth.kernels.blas.blas_closest`` / ``blas_any``. This
+script casts the same rays both ways in one kernel that differs only in that query:
 
-- ``sah``: Warp's top-down surface-area-heuristic builder (16 buckets);
-- ``median``: Warp's top-down builder splitting at the median centroid;
-- ``cubql``: cuBQL's CPU SAH builder, converted to Warp's node layout (experimental in Warp; leaf size is
-  cuBQL's ``makeLeafThreshold``);
-- ``lbvh`` is GPU-only: on the CPU Warp warns and builds SAH instead, so it is not measured.
+- ``wp.Mesh``: ``wp.mesh_query_ray`` / ``wp.mesh_query_ray_anyhit`` on ``wp.Mesh(points, indices)``;
+- ``bvh4``: ``blas_closest`` / ``blas_any`` on ``flowsynth.blas.atlas`` of the same mesh.
 
 Scenes, 640x480 pixels, 60 deg horizontal fov, camera at the origin looking down +z:
 
 - ``single``: one icosphere (radius 1 m, random rotation) 1.5 m in front of the camera, filling the view
   (every ray hits);
-- ``30 spheres``: the scene of benchmarks/raycast.py (``make_scene``: 30 icospheres 4-12 m away).
+- ``30 spheres``: the scene of benchmarks/raycast.py (``make_scene``: 30 icospheres 4-12 m away); each ray
+  walks the instances near to far (sorted by the distance to their boxes) and stops at the first box beyond
+  its best hit, as flowsynth's camera rays do (``flowsynth.kernels.raycast.closest_from_camera``).
 
-For icospheres of 1280, 5120, 20480 and 81920 faces the script reports the build time of one mesh and the
-time of the primary G-buffer kernel (``primary_kernel(want_normals=True, want_points=False)``, launched as
-``flowsynth.render.cast_gbuffer`` launches it, into preallocated outputs) with the variant meshes swapped
-into a ``SceneAccel``'s ``item_mesh`` array. With at most ``ORDERED_MAX`` instances the camera rays walk the
-instances near to far without the top-level BVH, so only the per-asset BVH changes between variants.
-Every variant's hits are checked against the default's (same instance per pixel, same distance). The
-same cast against a 20-face icosahedron (``floor_ms``) estimates the time that no BVH can save: pixel
-rays, the instance walk, the mesh-query setup and the outputs.
+For icospheres of 1280, 5120, 20480 and 81920 faces: closest-hit and any-hit cast time of both, their ratio
+(``x_wp_mesh`` > 1: bvh4 is faster), hits compared (same hit mask, same instance, distance within 1e-5
+relative, any-hit mask equal to the closest-hit mask), and build times: ``wp.Mesh``; bvh4's tree (numpy, once
+per shape: ``flowsynth.blas.topology``); bvh4's per-mesh part (``atlas``: gather and refit; what every new size
+of a shape costs).
 
 Times are medians of process CPU time over round-robin rounds on one pinned core. Run
-``python benchmarks/bvh.py [--quick]``: prints tables, writes ``benchmarks/results/bvh.json``,
-``bvh_cast_single.png``, ``bvh_cast_30_spheres.png`` (cast time / default's vs leaf size) and
-``bvh_build.png`` (build time vs leaf size).
+``python benchmarks/bvh.py [--quick]``: prints a table, writes ``benchmarks/results/bvh.json`` and
+``bvh_cast.png`` (Mrays/s against faces).
 """
 
 from __future__ import annotations
@@ -52,19 +47,75 @@ import trimesh
 from raycast import FOV_DEG, HEIGHT, WIDTH, make_scene
 from scipy.spatial.transform import Rotation
 
-from flowsynth.accel import ORDERED_MAX, SceneAccel, pinhole
+from flowsynth import blas
+from flowsynth.accel import SceneAccel
 from flowsynth.camera import Camera
 from flowsynth.kernels import wp_runtime
-from flowsynth.kernels.raycast import primary_kernel
+
+wp = wp_runtime()
+
+from flowsynth.kernels.blas import blas_any, blas_closest
+from flowsynth.kernels.raycast import box_entry_inv, inverse_dir, pixel_ray, Pinhole
 
 SUBDIVISIONS = {1280: 3, 5120: 4, 20480: 5, 81920: 6}  # icosphere faces -> subdivisions
-FLOOR_SUBDIVISIONS = {20: 0}  # the icosahedron, for the cast time that does not depend on the BVH
-CONSTRUCTORS = ("sah", "median", "cubql")
-DEFAULT = ("default", None)  # wp.Mesh(points, indices), as flowsynth.accel.asset_mesh builds it
-DEFAULT_EQUIVALENT = ("sah", 4)  # what DEFAULT is on the CPU in warp 1.19
+ENGINES = ("wp.Mesh", "bvh4")
 SINGLE_DISTANCE = 1.5  # [m]: a unit sphere this close covers the whole 60 deg x 46.8 deg view
-DIST_REL_TOL = 1e-5  # float32 ray-triangle distance agreement between BVH variants
-FLOOR_REPEAT = 7  # timed rounds of the 20-face cast (cheap; the BVH share is a difference of two times)
+DIST_REL_TOL = 1e-5  # float32 ray-triangle distance agreement between the two
+
+
+def make_cast(use_bvh4: bool, anyhit: bool):
+    """Camera-ray kernel: per pixel, the instances near to far; one mesh query per box the ray enters."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def cast(cam: Pinhole, order: wp.array[wp.int32], near: wp.array[wp.float32], lowers: wp.array[wp.vec3],
+             uppers: wp.array[wp.vec3], obj_T_ref: wp.array[wp.mat44], mesh: wp.array[wp.uint64],
+             root: wp.array[wp.int32], bounds: wp.array[wp.vec4], kids: wp.array[wp.vec4i],
+             tris: wp.array[wp.vec3], face: wp.array[wp.int32],
+             # outputs
+             dist: wp.array2d[wp.float32], item_out: wp.array2d[wp.int32]):
+        i = wp.tid()
+        for j in range(dist.shape[1]):
+            d = pixel_ray(i, j, cam)
+            inv = inverse_dir(d)
+            best_t = wp.float32(1.0e9)
+            best = wp.int32(-1)
+            for k in range(order.shape[0]):
+                item = order[k]
+                if near[item] >= best_t:
+                    break
+                te = box_entry_inv(lowers[item], uppers[item], d, inv)
+                if te < 0.0 or te >= best_t:
+                    continue
+                X = obj_T_ref[item]
+                o = wp.vec3(X[0, 3], X[1, 3], X[2, 3])
+                dd = wp.transform_vector(X, d)
+                if wp.static(anyhit):
+                    hit = False
+                    if wp.static(use_bvh4):
+                        hit = blas_any(bounds, kids, tris, root[item], o, dd, best_t)
+                    else:
+                        hit = wp.mesh_query_ray_anyhit(mesh[item], o, dd, best_t)
+                    if hit:
+                        best = item
+                        break
+                else:
+                    if wp.static(use_bvh4):
+                        f, t, u, v = blas_closest(bounds, kids, tris, face, root[item], o, dd, best_t)
+                        if f >= 0:
+                            best_t = t
+                            best = item
+                    else:
+                        q = wp.mesh_query_ray(mesh[item], o, dd, best_t)
+                        if q.result and q.t < best_t:
+                            best_t = q.t
+                            best = item
+            dist[i, j] = wp.where(best >= 0, best_t, 0.0)
+            item_out[i, j] = best
+
+    return cast
+
+
+KERNELS = {(b, a): make_cast(b, a) for b in (False, True) for a in (False, True)}
 
 
 def single_scene_poses(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -81,12 +132,10 @@ def raycast_scene_poses() -> tuple[np.ndarray, np.ndarray]:
     return scene.cam_T_world, np.stack([o.poses for o in scene.objects], 1)
 
 
-def build_mesh(wp, mesh: trimesh.Trimesh, constructor: str, leaf: int | None):
+def build_mesh(mesh: trimesh.Trimesh):
     points = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3)
     indices = wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32)
-    if constructor == DEFAULT[0]:
-        return lambda: wp.Mesh(points=points, indices=indices)
-    return lambda: wp.Mesh(points=points, indices=indices, bvh_constructor=constructor, bvh_leaf_size=leaf)
+    return lambda: wp.Mesh(points=points, indices=indices)
 
 
 def build_times(make, repeat: int) -> float:
@@ -99,155 +148,104 @@ def build_times(make, repeat: int) -> float:
     return float(np.median(times))
 
 
-def measure(wp, scene_name: str, faces: int, poses, variants, camera: Camera, repeat: int,
-            build_repeat: int) -> list[dict]:
-    """Build and cast every (constructor, leaf) variant for one scene and face count."""
-    mesh = trimesh.creation.icosphere(subdivisions={**SUBDIVISIONS, **FLOOR_SUBDIVISIONS}[faces], radius=1.0)
+def measure(scene_name: str, faces: int, poses, camera: Camera, repeat: int, build_repeat: int) -> list[dict]:
+    """Closest- and any-hit casts of both engines for one scene and face count."""
+    mesh = trimesh.creation.icosphere(subdivisions=SUBDIVISIONS[faces], radius=1.0)
     cam_T_world, world_T_obj = poses
     N = world_T_obj.shape[1]
-    assert N <= ORDERED_MAX
+    builds = {}
+    if build_repeat:
+        builds["wp_mesh_build_ms"] = 1e3 * build_times(build_mesh(mesh), build_repeat)
+
+        def fresh_topology():
+            blas._TOPOLOGY.clear()
+            return blas.topology(mesh.vertices, mesh.faces)
+
+        builds["bvh4_tree_build_ms"] = 1e3 * build_times(fresh_topology, build_repeat)
+        builds["bvh4_refit_ms"] = 1e3 * build_times(lambda: blas.atlas([mesh]), build_repeat)
     accel = SceneAccel([mesh] * N, cam_T_world, world_T_obj)
-    shape = (1, camera.height, camera.width)
-    dist, item, face = (wp.zeros(shape, dtype=t) for t in (wp.float32, wp.int32, wp.int32))
-    point, normal = wp.zeros((1, 1, 1), dtype=wp.vec3), wp.zeros(shape, dtype=wp.vec3)
-    kernel = primary_kernel(True, False)
-    default_ids = accel.item_mesh
-    built, fns, results, build_s = {}, {}, {}, {}
-    for key in variants:
-        make = build_mesh(wp, mesh, *key)
-        built[key] = make()
-        build_s[key] = build_times(make, build_repeat) if build_repeat else None
-        accel.item_mesh = wp.array(np.full(accel.F * N, built[key].id, np.uint64), dtype=wp.uint64)
-        inputs = [accel.instances(), accel.tile_lists(camera), pinhole(camera), 1e9, 0]
-        fns[key] = lambda inputs=inputs: wp.launch(kernel, dim=shape[:2], inputs=inputs,
-                                                   outputs=[dist, item, face, point, normal])
-        fns[key]()
-        results[key] = (item.numpy().copy(), dist.numpy().copy())
-    accel.item_mesh = default_ids
-    times = time_round_robin(fns, repeat=repeat, warmup=0)
-    ref_item, ref_dist = results[DEFAULT]
-    hit = ref_item >= 0
+    A = accel.blas
+    shape = (camera.height, camera.width)
+    from flowsynth.accel import pinhole
+
+    inputs = [pinhole(camera), accel.frame_items, accel.near, accel._lowers, accel._uppers, accel.obj_T_ref,
+              accel.item_mesh, accel.item_root, A["bounds"], A["kids"], A["tris"], A["face"]]
+    outs = {k: (wp.zeros(shape, dtype=wp.float32), wp.zeros(shape, dtype=wp.int32)) for k in KERNELS}
+    fns = {k: (lambda k=k: wp.launch(KERNELS[k], dim=camera.height, inputs=inputs, outputs=list(outs[k])))
+           for k in KERNELS}
+    for fn in fns.values():
+        fn()
+    times = time_round_robin(fns, repeat=repeat, warmup=0, rotate=True)
+    res = {k: (outs[k][0].numpy(), outs[k][1].numpy()) for k in KERNELS}
+    ref_d, ref_i = res[False, False]
+    hit = ref_i >= 0
     rows = []
-    for key in variants:
-        it, d = results[key]
-        rel = np.abs(d[hit] - ref_dist[hit]) / ref_dist[hit]
-        t = times[key]
-        rows.append({"scene": scene_name, "faces": faces, "constructor": key[0],
-                     "leaf": key[1] if key[0] != DEFAULT[0] else DEFAULT_EQUIVALENT[1],
-                     "build_ms": None if build_s[key] is None else 1e3 * build_s[key],
-                     "cast_ms": 1e3 * t["cpu_s"], "cast_wall_ms": 1e3 * t["wall_s"],
-                     "Mrays_s": hit.size / t["cpu_s"] / 1e6,
-                     "x_default": times[DEFAULT]["cpu_s"] / t["cpu_s"],
-                     "hit_fraction": float(hit.mean()), "item_mismatch": int((it != ref_item).sum()),
-                     "dist_over_tol": int((rel > DIST_REL_TOL).sum())})
+    for anyhit in (False, True):
+        d4, i4 = res[True, anyhit]
+        dw, iw = res[False, anyhit]
+        t4, tw = times[True, anyhit]["cpu_s"], times[False, anyhit]["cpu_s"]
+        row = {"scene": scene_name, "faces": faces, "query": "any hit" if anyhit else "closest",
+               "wp_mesh_ms": 1e3 * tw, "bvh4_ms": 1e3 * t4, "wp_mesh_Mrays_s": hit.size / tw / 1e6,
+               "bvh4_Mrays_s": hit.size / t4 / 1e6, "x_wp_mesh": tw / t4, "hit_fraction": float(hit.mean()),
+               "hit_mismatch": int(((i4 >= 0) != (iw >= 0)).sum())}
+        if anyhit:
+            row["any_vs_closest_mismatch"] = int(((i4 >= 0) != hit).sum())
+        else:
+            both = hit & (i4 >= 0)
+            row["item_mismatch"] = int((i4 != iw).sum())
+            row["dist_over_tol"] = int((np.abs(d4[both] - dw[both]) > DIST_REL_TOL * dw[both]).sum())
+        rows.append({**row, **builds})
     return rows
 
 
-def summaries(rows: list[dict], floor: dict, scenes, leaves) -> tuple[list[dict], list[dict]]:
-    """(best variant per scene and mesh, each variant's speed-up over the default across all of them)."""
-    best_rows = []
+def plot(rows: list[dict], scenes) -> None:
+    series = {}
     for scene_name in scenes:
-        for faces in SUBDIVISIONS:
-            part = {(r["constructor"], r["leaf"]): r for r in rows
-                    if r["scene"] == scene_name and r["faces"] == faces}
-            default = part[DEFAULT[0], DEFAULT_EQUIVALENT[1]]
-            best = min(part.values(), key=lambda r: r["cast_ms"])
-            above = floor[scene_name]
-            best_rows.append({
-                "scene": scene_name, "faces": faces, "floor_ms": above, "default_ms": default["cast_ms"],
-                "best": f"{best['constructor']} leaf {best['leaf']}", "best_ms": best["cast_ms"],
-                "x_default": best["x_default"],
-                "x_default_bvh": (default["cast_ms"] - above) / (best["cast_ms"] - above),
-                "same_tree_noise": abs(part[DEFAULT_EQUIVALENT]["x_default"] - 1.0)})
-    overall = []
-    for c in CONSTRUCTORS:
-        for leaf in leaves:
-            x = np.array([r["x_default"] for r in rows if r["constructor"] == c and r["leaf"] == leaf])
-            build = [r["build_ms"] for r in rows if r["constructor"] == c and r["leaf"] == leaf
-                     and r["faces"] == max(SUBDIVISIONS)]
-            overall.append({"constructor": c, "leaf": leaf,
-                            "x_default_geomean": float(np.exp(np.log(x).mean())),
-                            "x_default_min": float(x.min()), "x_default_max": float(x.max()),
-                            f"build_ms_{max(SUBDIVISIONS)}": build[0]})
-    return best_rows, overall
-
-
-def plot(rows: list[dict], scenes, leaves) -> None:
-    for scene_name in scenes:
-        series = {}
-        for faces in SUBDIVISIONS:
-            part = {(r["constructor"], r["leaf"]): r["x_default"] for r in rows
-                    if r["scene"] == scene_name and r["faces"] == faces}
-            for c in CONSTRUCTORS:
-                series[f"{c}, {faces} faces"] = (list(leaves), [1.0 / part[c, leaf] for leaf in leaves])
-        plot_curves(f"bvh_cast_{scene_name.replace(' ', '_')}", series, "leaf size [triangles]",
-                    "cast time / default's (SAH, leaf 4)", logx=True, logy=False,
-                    title=f"Primary cast, {scene_name}, {WIDTH}x{HEIGHT}")
-    build = {(r["faces"], r["constructor"], r["leaf"]): r["build_ms"] for r in rows}
-    series = {f"{c}, {faces} faces": (list(leaves), [build[faces, c, leaf] for leaf in leaves])
-              for faces in SUBDIVISIONS for c in CONSTRUCTORS}
-    plot_curves("bvh_build", series, "leaf size [triangles]", "build time [ms] (1 core)",
-                title="wp.Mesh build")
+        for query in ("closest", "any hit"):
+            part = [r for r in rows if r["scene"] == scene_name and r["query"] == query]
+            for eng, key in (("wp.Mesh", "wp_mesh_Mrays_s"), ("bvh4", "bvh4_Mrays_s")):
+                series[f"{eng}, {scene_name}, {query}"] = ([r["faces"] for r in part], [r[key] for r in part])
+    plot_curves("bvh_cast", series, "faces per mesh", "Mrays/s (1 core)", logx=True, logy=False,
+                title=f"Per-asset BVH query, {WIDTH}x{HEIGHT} camera rays")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="leaf sizes 1, 4, 16, 2 rounds (else 1-16, 5 rounds)")
+    ap.add_argument("--quick", action="store_true", help="3 rounds (else 7)")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    wp = wp_runtime()
     t_start = time.perf_counter()
-    leaves = (1, 4, 16) if args.quick else (1, 2, 4, 8, 16)
-    repeat = 2 if args.quick else 5
+    repeat = 3 if args.quick else 7
     build_repeat = 3 if args.quick else 5
-    variants = [DEFAULT] + [(c, leaf) for c in CONSTRUCTORS for leaf in leaves]
     camera = Camera.from_fov(WIDTH, HEIGHT, FOV_DEG)
     scenes = {"single": single_scene_poses(), "30 spheres": raycast_scene_poses()}
-    measure(wp, "warmup", 20, scenes["single"], [DEFAULT], camera, 1, 0)  # compile / load the kernel
-    # the same kernel on a 20-face icosahedron: the part of the cast time that is not BVH traversal
-    floor = {name: measure(wp, name, 20, poses, [DEFAULT], camera, FLOOR_REPEAT, 0)[0]["cast_ms"]
-             for name, poses in scenes.items()}
     rows = []
     for scene_name, poses in scenes.items():
         for faces in SUBDIVISIONS:
-            # build time depends on the mesh only: measured with the first scene
-            part = measure(wp, scene_name, faces, poses, variants, camera, repeat,
-                           build_repeat if scene_name == "single" else 0)
+            part = measure(scene_name, faces, poses, camera, repeat, build_repeat if scene_name == "single" else 0)
             rows += part
-            print(f"{scene_name}, {faces} faces: default {part[0]['cast_ms']:.1f} ms", flush=True)
-    build = {(r["faces"], r["constructor"], r["leaf"]): r["build_ms"]
-             for r in rows if r["build_ms"] is not None}
-    for r in rows:
-        r["build_ms"] = build[r["faces"], r["constructor"], r["leaf"]]
-    best_rows, overall = summaries(rows, floor, scenes, leaves)
-
+            print(f"{scene_name}, {faces} faces: closest x_wp_mesh {part[0]['x_wp_mesh']:.3f}", flush=True)
+    builds = {r["faces"]: {k: v for k, v in r.items() if k.endswith("build_ms") or k.endswith("refit_ms")}
+              for r in rows if "wp_mesh_build_ms" in r}
     info = machine_info()
-    print(f"\nPer-asset BVH: build and primary cast (depth + instance + normals kernel), {WIDTH}x{HEIGHT} "
-          f"rays, icospheres; medians of {repeat} round-robin rounds of process CPU time; x_default = "
-          "default's cast time / this one's (> 1 is faster); build_ms for one mesh; default = "
-          f"wp.Mesh(points, indices) = {DEFAULT_EQUIVALENT[0]} leaf {DEFAULT_EQUIVALENT[1]} on the CPU")
+    print(f"\nPer-asset BVH query, {WIDTH}x{HEIGHT} camera rays, icospheres: wp.Mesh (wp.mesh_query_ray) vs "
+          f"flowsynth's bvh4 (blas_closest / blas_any), the same kernel otherwise; medians of {repeat} round-robin "
+          "rounds of process CPU time; x_wp_mesh = wp.Mesh's time / bvh4's (> 1: bvh4 faster)")
     print(f"{info['cpu_model']}, affinity {PINNING['affinity']}, warp {info['warp-lang']}")
-    print_table(rows, ["scene", "faces", "constructor", "leaf", "build_ms", "cast_ms", "Mrays_s", "x_default",
-                       "hit_fraction", "item_mismatch", "dist_over_tol"])
-    print("\nBest variant per scene and mesh. floor_ms: the same cast against a 20-face icosahedron "
-          "(time not spent in the BVH); x_default_bvh: speed-up of the part above the floor; "
-          "same_tree_noise: "
-          f"|x_default - 1| of {DEFAULT_EQUIVALENT[0]} leaf {DEFAULT_EQUIVALENT[1]}, the default's own tree "
-          "(timing noise)")
-    print_table(best_rows, list(best_rows[0]))
-    print(f"\nEach variant over all {len(best_rows)} scene/mesh cases: x_default geometric mean, min, max")
-    print_table(overall, list(overall[0]))
-    plot(rows, scenes, leaves)
+    print_table(rows, ["scene", "faces", "query", "wp_mesh_ms", "bvh4_ms", "wp_mesh_Mrays_s", "bvh4_Mrays_s",
+                       "x_wp_mesh", "hit_fraction", "hit_mismatch", "item_mismatch", "dist_over_tol",
+                       "any_vs_closest_mismatch"])
+    print("\nBuild of one mesh [ms]: wp.Mesh; bvh4 tree (numpy SAH, once per shape); bvh4 refit (per mesh: "
+          "gather + refit kernel, what a new size of a cached shape costs)")
+    print_table([{"faces": f, **b} for f, b in builds.items()],
+                ["faces", "wp_mesh_build_ms", "bvh4_tree_build_ms", "bvh4_refit_ms"])
+    plot(rows, scenes)
     total = time.perf_counter() - t_start
     path = write_json("bvh", {
         "machine": info, "pinning": PINNING, "loadavg_1_5_15": os.getloadavg(), "quick": args.quick,
         "setup": {"width": WIDTH, "height": HEIGHT, "fov_deg": FOV_DEG, "single_distance_m": SINGLE_DISTANCE,
-                  "leaf_sizes": leaves, "constructors": CONSTRUCTORS, "repeat": repeat,
-                  "build_repeat": build_repeat,
-                  "default": f"wp.Mesh(points, indices) = {DEFAULT_EQUIVALENT} on the CPU",
-                  "not_measured": {"lbvh": "GPU only; Warp builds SAH instead on the CPU"}},
-        "rows": rows, "best": best_rows, "overall": overall, "floor_ms": floor, "total_s": total})
+                  "repeat": repeat, "build_repeat": build_repeat, "engines": ENGINES},
+        "rows": rows, "builds": builds, "total_s": total})
     print(f"total {total:.1f} s; wrote {path}")
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import QhullError
 
+from flowsynth.blas import atlas
 from flowsynth.kernels import wp_runtime
 
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH.
@@ -141,6 +142,11 @@ class SceneAccel:
         self.roots = roots
         ids = np.array([m.id for m in self.wp_meshes], dtype=np.uint64)
         self.item_mesh = wp.array(np.tile(ids, F), dtype=wp.uint64, device=device)
+        distinct = {id(m): m for m in meshes}  # instances sharing a mesh share its tree
+        slot = {k: i for i, k in enumerate(distinct)}
+        self.blas = atlas(list(distinct.values()), device)
+        item_roots = self.blas["roots"][[slot[id(m)] for m in meshes]]
+        self.item_root = wp.array(np.tile(item_roots, F), dtype=wp.int32, device=device)
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self._meshes, self._cam_T_obj, self._cull = meshes, cam_T_obj, None
@@ -166,6 +172,9 @@ class SceneAccel:
         inst.item_mesh, inst.obj_T_ref, inst.ref_T_obj, inst.n_inst = (self.item_mesh, self.obj_T_ref,
                                                                        self.ref_T_obj, self.N)
         inst.thin, inst.obj_lo, inst.obj_hi = self.thin, self.obj_lo, self.obj_hi
+        inst.item_root = self.item_root
+        inst.blas_bounds, inst.blas_kids = self.blas["bounds"], self.blas["kids"]
+        inst.blas_tris, inst.blas_face = self.blas["tris"], self.blas["face"]
         return inst
 
     def culling(self):

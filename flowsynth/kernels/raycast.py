@@ -1,8 +1,9 @@
 """Two-level ray casting against rigid instances of cached per-asset meshes.
 
 Top level: one grouped ``wp.Bvh`` over instance boxes, group f = frame f, boxes in that frame's
-*reference* frame (the camera frame of frame f). Bottom level: one ``wp.Mesh`` per asset in the
-object frame. A ray (origin o, unit direction d, reference frame) visits the instances whose box it
+*reference* frame (the camera frame of frame f). Bottom level: one 4-wide BVH per asset in the object frame
+(``flowsynth.blas``, traversed by ``flowsynth.kernels.blas``; the asset's ``wp.Mesh`` stays for the hit point
+and face vertices). A ray (origin o, unit direction d, reference frame) visits the instances whose box it
 crosses, is mapped into each object's frame with ``obj_T_ref`` (float32, composed in float64 on the
 host) and tested against that asset's mesh. Nothing is rebuilt when objects move.
 
@@ -17,6 +18,8 @@ Closest hit only for primary and path rays; visibility and shadow rays ask "is a
 from __future__ import annotations
 
 import warp as wp
+
+from flowsynth.kernels.blas import blas_any, blas_closest
 
 __all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "trace_any", "trace_closest",
            "visibility_kernel"]
@@ -34,7 +37,12 @@ class Instances:
     near: wp.array[wp.float32]  # (F * N,) distance from the frame's camera centre to the item's box [m]
     lowers: wp.array[wp.vec3]  # (F * N,) item box, reference frame [m]
     uppers: wp.array[wp.vec3]
-    item_mesh: wp.array[wp.uint64]  # (F * N,) wp.Mesh id of the item's asset
+    item_mesh: wp.array[wp.uint64]  # (F * N,) wp.Mesh id of the item's asset (vertices, hit points)
+    item_root: wp.array[wp.int32]  # (F * N,) root code of the item's asset tree in the blas_* atlas
+    blas_bounds: wp.array[wp.vec4]  # the scene's asset trees (flowsynth.blas.atlas): child boxes,
+    blas_kids: wp.array[wp.vec4i]  # child codes,
+    blas_tris: wp.array[wp.vec3]  # triangles in leaf order,
+    blas_face: wp.array[wp.int32]  # and each one's face index
     obj_T_ref: wp.array[wp.mat44]  # (F * N,) reference (camera) frame -> object frame
     ref_T_obj: wp.array[wp.mat44]  # (F * N,) object frame -> reference frame
     n_inst: wp.int32  # N
@@ -121,7 +129,8 @@ def thin_skip(thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.ar
 
 
 @wp.func
-def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
+def trace_closest(bvh: wp.uint64, root: wp.int32, item_root: wp.array[wp.int32], bb: wp.array[wp.vec4],
+                  bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3], bf: wp.array[wp.int32], obj_T_ref: wp.array[wp.mat44],
                   thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], o: wp.vec3,
                   d: wp.vec3, max_t: wp.float32):
     """Closest hit along o + t d, t in [0, max_t), below BVH node ``root`` (a frame's group root).
@@ -141,20 +150,20 @@ def trace_closest(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64]
         d_obj = wp.transform_vector(X, d)
         if thin_skip(thin, obj_lo, obj_hi, item, o_obj, d_obj, best_t):
             continue
-        hit = wp.mesh_query_ray(item_mesh[item], o_obj, d_obj, best_t)
-        if hit.result and hit.t < best_t:
-            best_t = hit.t
+        face, t, u, v = blas_closest(bb, bk, bt, bf, item_root[item], o_obj, d_obj, best_t)
+        if face >= 0:
+            best_t = t
             best_item = item
-            best_face = hit.face
-            best_u = hit.u
-            best_v = hit.v
+            best_face = face
+            best_u = u
+            best_v = v
     return best_item, best_t, best_face, best_u, best_v
 
 
 @wp.func
-def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44],
-              thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], o: wp.vec3,
-              d: wp.vec3, max_t: wp.float32):
+def trace_any(bvh: wp.uint64, root: wp.int32, item_root: wp.array[wp.int32], bb: wp.array[wp.vec4],
+              bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3], obj_T_ref: wp.array[wp.mat44], thin: wp.array[wp.int32],
+              obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], o: wp.vec3, d: wp.vec3, max_t: wp.float32):
     """True when anything below BVH node ``root`` is hit along o + t d with t in [0, max_t) (first blocker
     ends the ray), skipping thin instances as ``trace_closest`` does. Takes the arrays it reads, like
     ``trace_closest``."""
@@ -166,7 +175,7 @@ def trace_any(bvh: wp.uint64, root: wp.int32, item_mesh: wp.array[wp.uint64], ob
         d_obj = wp.transform_vector(X, d)
         if thin_skip(thin, obj_lo, obj_hi, item, o_obj, d_obj, max_t):
             continue
-        if wp.mesh_query_ray_anyhit(item_mesh[item], o_obj, d_obj, max_t):
+        if blas_any(bb, bk, bt, item_root[item], o_obj, d_obj, max_t):
             return True
     return False
 
@@ -218,8 +227,9 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
     queries per ray instead of one per box crossed.
     """
     if inst.use_bvh != 0:
-        return trace_closest(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, inst.thin, inst.obj_lo,
-                             inst.obj_hi, wp.vec3(0.0), d, max_t)
+        return trace_closest(inst.bvh, inst.roots[g], inst.item_root, inst.blas_bounds, inst.blas_kids,
+                             inst.blas_tris, inst.blas_face, inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi,
+                             wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
@@ -243,19 +253,21 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
                 d_obj = wp.transform_vector(X, d)
                 query = True
         if query:
-            hit = wp.mesh_query_ray(inst.item_mesh[item], o, d_obj, best_t)
-            if hit.result and hit.t < best_t:
-                best_t = hit.t
+            face, t, u, v = blas_closest(inst.blas_bounds, inst.blas_kids, inst.blas_tris, inst.blas_face,
+                                         inst.item_root[item], o, d_obj, best_t)
+            if face >= 0:
+                best_t = t
                 best_item = item
-                best_face = hit.face
-                best_u = hit.u
-                best_v = hit.v
+                best_face = face
+                best_u = u
+                best_v = v
     return best_item, best_t, best_face, best_u, best_v
 
 
 @wp.func
 def any_in_list(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
-                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], items: wp.array[wp.int32],
+                item_root: wp.array[wp.int32], bb: wp.array[wp.vec4], bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3],
+                obj_T_ref: wp.array[wp.mat44], items: wp.array[wp.int32],
                 a: wp.int32, b: wp.int32, d: wp.vec3, max_t: wp.float32):
     """Any hit before ``max_t`` along the camera-centre ray ``d`` among ``items[a:b]`` (sorted nearest box
     first, so the walk stops at the first box that starts beyond ``max_t``). Takes the Instances arrays it
@@ -267,8 +279,8 @@ def any_in_list(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
         te = box_entry(lowers[item], uppers[item], d)
         if te >= 0.0 and te < max_t:
             X = obj_T_ref[item]
-            if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(X[0, 3], X[1, 3], X[2, 3]),
-                                        wp.transform_vector(X, d), max_t):
+            if blas_any(bb, bk, bt, item_root[item], wp.vec3(X[0, 3], X[1, 3], X[2, 3]), wp.transform_vector(X, d),
+                        max_t):
                 return True
     return False
 
@@ -278,9 +290,10 @@ def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32)
     """``trace_any`` for a ray leaving the camera centre of frame g: the frame's instances near to far,
     first blocker ends the walk (any-hit mesh queries)."""
     if inst.use_bvh != 0:
-        return trace_any(inst.bvh, inst.roots[g], inst.item_mesh, inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi,
-                         wp.vec3(0.0), d, max_t)
-    return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_mesh, inst.obj_T_ref, inst.frame_items,
+        return trace_any(inst.bvh, inst.roots[g], inst.item_root, inst.blas_bounds, inst.blas_kids, inst.blas_tris,
+                         inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi, wp.vec3(0.0), d, max_t)
+    return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_root, inst.blas_bounds, inst.blas_kids,
+                       inst.blas_tris, inst.obj_T_ref, inst.frame_items,
                        inst.frame_start[g], inst.frame_start[g + 1], d, max_t)
 
 

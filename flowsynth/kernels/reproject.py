@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from flowsynth.kernels.blas import blas_any
 from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_silhouette, box_entry_inv, inverse_dir,
                                        trace_any)
 
@@ -93,7 +94,8 @@ def own_skip(face_plane: wp.vec4d, M: wp.mat44d, p: wp.vec3d, keep: wp.float64, 
 
 @wp.func
 def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
-                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], slab_n: wp.array[wp.vec3d],
+                item_root: wp.array[wp.int32], bb: wp.array[wp.vec4], bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3],
+                obj_T_ref: wp.array[wp.mat44], slab_n: wp.array[wp.vec3d],
                 slab_lh: wp.array[wp.vec2d], grp_n: wp.array[wp.vec3d], grp_ab: wp.array[wp.vec2d],
                 grp_item: wp.array[wp.vec2i], mem_start: wp.array[wp.int32], mem_items: wp.array[wp.int32],
                 g0: wp.int32, g1: wp.int32, d: wp.vec3, inv: wp.vec3, max_t: wp.float32, X: wp.vec3d,
@@ -119,15 +121,16 @@ def flat_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
                 te = box_entry_inv(lowers[item], uppers[item], d, inv)
                 if te >= 0.0 and te < max_t:
                     M = obj_T_ref[item]
-                    if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
-                                                wp.transform_vector(M, d), max_t):
+                    if blas_any(bb, bk, bt, item_root[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
+                                wp.transform_vector(M, d), max_t):
                         return True
     return False
 
 
 @wp.func
 def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: wp.array[wp.vec3],
-                item_mesh: wp.array[wp.uint64], obj_T_ref: wp.array[wp.mat44], sphere: wp.array[wp.vec4d],
+                item_root: wp.array[wp.int32], bb: wp.array[wp.vec4], bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3],
+                obj_T_ref: wp.array[wp.mat44], sphere: wp.array[wp.vec4d],
                 inner: wp.array[wp.float64], sil: wp.array[wp.vec4d], sil_z: wp.array[wp.float64],
                 items: wp.array[wp.int32], a: wp.int32, b: wp.int32, d: wp.vec3,
                 inv: wp.vec3, max_t: wp.float32, X: wp.vec3d, inv_xx: wp.float64, keep: wp.float64,
@@ -159,8 +162,8 @@ def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
                 if beyond_silhouette(sil, sil_z, item, X, margin):
                     continue
                 M = obj_T_ref[item]
-                if wp.mesh_query_ray_anyhit(item_mesh[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]),
-                                            wp.transform_vector(M, d), max_t):
+                if blas_any(bb, bk, bt, item_root[item], wp.vec3(M[0, 3], M[1, 3], M[2, 3]), wp.transform_vector(M, d),
+                            max_t):
                     return True
     return False
 
@@ -283,7 +286,8 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                         d = pf / L
                         max_t = L * (1.0 - rel_tol)
                         if inst.use_bvh != 0:
-                            blocked = trace_any(inst.bvh, inst.roots[r], inst.item_mesh, inst.obj_T_ref, inst.thin,
+                            blocked = trace_any(inst.bvh, inst.roots[r], inst.item_root, inst.blas_bounds,
+                                                inst.blas_kids, inst.blas_tris, inst.obj_T_ref, inst.thin,
                                                 inst.obj_lo, inst.obj_hi, wp.vec3(0.0), d, max_t)
                         else:
                             # cheapest first: the flat groups without the own item (room walls: three dot
@@ -301,10 +305,11 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                                 skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep, margin,
                                                 r * n_inst + n)
                                 have_skip = True
-                                blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
-                                                      inst.obj_T_ref, cull.slab_n, cull.slab_lh, cull.grp_n,
-                                                      cull.grp_ab, cull.grp_item, cull.mem_start, cull.mem_items, g0,
-                                                      g1, d, inverse_dir(d), max_t, X, keep, margin, skip)
+                                blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_root,
+                                                      inst.blas_bounds, inst.blas_kids, inst.blas_tris, inst.obj_T_ref,
+                                                      cull.slab_n, cull.slab_lh, cull.grp_n, cull.grp_ab, cull.grp_item,
+                                                      cull.mem_start, cull.mem_items, g0, g1, d, inverse_dir(d), max_t,
+                                                      X, keep, margin, skip)
                             if not blocked:
                                 jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
                                 ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
@@ -317,7 +322,8 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                                     if not have_skip:
                                         skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep,
                                                         margin, r * n_inst + n)
-                                    blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_mesh,
+                                    blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_root,
+                                                          inst.blas_bounds, inst.blas_kids, inst.blas_tris,
                                                           inst.obj_T_ref, cull.sphere, cull.inner, cull.sil,
                                                           cull.sil_z, tiles.items, a, b, d, inverse_dir(d), max_t,
                                                           X, wp.float64(1.0) / wp.dot(X, X), keep, margin, skip)

@@ -31,7 +31,7 @@ __all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel", "to
 
 LIGHT_DIRECTIONAL = 0
 LIGHT_POINT = 1
-# Secondary rays (shadow and bounce) start at x + n * max(OFFSET_REL * |x|, OFFSET_ABS): mesh_query_ray has
+# Secondary rays (shadow and bounce) start at x + n * max(OFFSET_REL * |x|, OFFSET_ABS): the BVH queries have
 # no t_min, and float32 hit points carry ~1e-6 relative error in camera-frame coordinates.
 OFFSET_REL = wp.constant(1.0e-4)
 OFFSET_ABS = wp.constant(1.0e-6)
@@ -175,8 +175,9 @@ def direct_light(sc: ShadeScene, g: wp.int32, x: wp.vec3, n: wp.vec3, wo: wp.vec
         if ci <= 0.0:
             continue
         if shadows:
-            if trace_any(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh, sc.inst.obj_T_ref, sc.inst.thin,
-                         sc.inst.obj_lo, sc.inst.obj_hi, o, wi, t_max):
+            if trace_any(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root, sc.inst.blas_bounds, sc.inst.blas_kids,
+                         sc.inst.blas_tris, sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo, sc.inst.obj_hi, o, wi,
+                         t_max):
                 continue
         L += wp.cw_mul(brdf(n, wi, wo, albedo, spec, rough), E) * ci
     return L
@@ -242,8 +243,10 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
                 break
             beta = beta / q
         o = offset_origin(x, n)
-        item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh, sc.inst.obj_T_ref,
-                                                 sc.inst.thin, sc.inst.obj_lo, sc.inst.obj_hi, o, wi, sc.max_t)
+        item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root,
+                                                 sc.inst.blas_bounds, sc.inst.blas_kids, sc.inst.blas_tris,
+                                                 sc.inst.blas_face, sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo,
+                                                 sc.inst.obj_hi, o, wi, sc.max_t)
         if item < 0:
             L += clamp_indirect(wp.cw_mul(beta, sc.sky))
             break
@@ -363,9 +366,10 @@ def shade_kernel(mode: str):
                     du = (wp.float32(k) + wp.randf(rng)) / wp.float32(ns)
                     dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
                     d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
-                    item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_mesh,
-                                                             sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo,
-                                                             sc.inst.obj_hi, wp.vec3(0.0), d, sc.max_t)
+                    item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root,
+                                                             sc.inst.blas_bounds, sc.inst.blas_kids, sc.inst.blas_tris,
+                                                             sc.inst.blas_face, sc.inst.obj_T_ref, sc.inst.thin,
+                                                             sc.inst.obj_lo, sc.inst.obj_hi, wp.vec3(0.0), d, sc.max_t)
                     if item >= 0:
                         p_obj = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
                 if item < 0:
