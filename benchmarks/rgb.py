@@ -7,7 +7,8 @@ included; kernels compiled beforehand) at the timing resolution on one core. Err
 of the sRGB output [0, 1] from a high-spp ``path`` reference at the (lower) error resolution; the
 reference's own noise is estimated from its two halves and reported. ``rmse_vs_own_ref`` is the error
 against the same mode at the reference spp (the anti-aliasing / Monte Carlo error alone, without the
-difference in light transport between modes).
+difference in light transport between modes). A second table sets spp 1 with ``edge_spp`` 4 (extra samples at
+silhouettes only, BouncingThingsConfig's default) beside spp 1 and spp 4.
 
     python benchmarks/rgb.py            # timing 512x384, errors 128x96 vs path 2x256 spp  (~7 min)
     python benchmarks/rgb.py --quick    # timing 256x192, errors 96x72 vs path 2x128 spp   (< 2 min)
@@ -28,6 +29,7 @@ sys.path[:0] = [str(HERE), str(HERE.parent)]  # _common, and flowsynth from this
 from _common import RESULTS_DIR, machine_info, pin_single_core, print_table, write_json
 
 MODES = ("flat", "direct", "path")
+EDGE_SPP = 4  # BouncingThingsConfig's default edge_spp
 
 
 def room_scene(width: int, height: int, num_objects: int = 16, seed: int = 0, num_frames: int = 1):
@@ -63,10 +65,11 @@ def room_scene(width: int, height: int, num_objects: int = 16, seed: int = 0, nu
     return scene
 
 
-def render_rgb(scene, mode: str, spp: int, seed: int = 0, shutter: float = 0.0):
+def render_rgb(scene, mode: str, spp: int, seed: int = 0, shutter: float = 0.0, edge_spp: int = 1):
     import flowsynth as fs
 
-    return fs.render(scene, ["rgb"], render_mode=mode, spp=spp, seed=seed, shutter=shutter)["rgb"].numpy()
+    return fs.render(scene, ["rgb"], render_mode=mode, spp=spp, seed=seed, shutter=shutter,
+                     edge_spp=edge_spp)["rgb"].numpy()
 
 
 def main() -> None:
@@ -99,20 +102,29 @@ def main() -> None:
 
     own = {mode: render_rgb(scene_e, mode, 2 * ref_half, seed=1003) for mode in MODES if mode != "path"}
     own["path"] = ref
-    rows = []
+    def row(mode: str, spp: int, edge_spp: int = 1) -> dict:
+        t0 = time.perf_counter()
+        render_rgb(scene_t, mode, spp, edge_spp=edge_spp)
+        seconds = time.perf_counter() - t0
+        img = render_rgb(scene_e, mode, spp, edge_spp=edge_spp)
+        rmse = float(np.sqrt(np.mean((img - ref) ** 2)))
+        print(f"{mode:6s} spp {spp:3d} edge_spp {edge_spp:2d}: {seconds:8.3f} s/frame, rmse {rmse:.4f}", flush=True)
+        return {"mode": mode, "spp": spp, "seconds_per_frame": seconds,
+                "us_per_sample": seconds / (time_res[0] * time_res[1] * spp) * 1e6,
+                "rmse_vs_path_ref": rmse, "rmse_corrected": math.sqrt(max(rmse**2 - ref_noise**2, 0.0)),
+                "psnr_db": -20.0 * math.log10(max(rmse, 1e-12)),
+                "rmse_vs_own_ref": float(np.sqrt(np.mean((img - own[mode]) ** 2)))}
+
+    rows = [row(mode, spp) for mode in MODES for spp in spps]
+    # edge_spp (BouncingThingsConfig's default 4): extra samples at silhouettes only, against spp 1 and spp 4
+    edge_rows = []
     for mode in MODES:
-        for spp in spps:
-            t0 = time.perf_counter()
-            render_rgb(scene_t, mode, spp)
-            seconds = time.perf_counter() - t0
-            img = render_rgb(scene_e, mode, spp)
-            rmse = float(np.sqrt(np.mean((img - ref) ** 2)))
-            rows.append({"mode": mode, "spp": spp, "seconds_per_frame": seconds,
-                         "us_per_sample": seconds / (time_res[0] * time_res[1] * spp) * 1e6,
-                         "rmse_vs_path_ref": rmse, "rmse_corrected": math.sqrt(max(rmse**2 - ref_noise**2, 0.0)),
-                         "psnr_db": -20.0 * math.log10(max(rmse, 1e-12)),
-                         "rmse_vs_own_ref": float(np.sqrt(np.mean((img - own[mode]) ** 2)))})
-            print(f"{mode:6s} spp {spp:3d}: {seconds:8.3f} s/frame, rmse {rmse:.4f}", flush=True)
+        base = {r["spp"]: r for r in rows if r["mode"] == mode}
+        e = row(mode, 1, EDGE_SPP)
+        for name, r in (("spp 1", base[1]), (f"spp 1, edge_spp {EDGE_SPP}", e), ("spp 4", base[4])):
+            edge_rows.append({"mode": mode, "samples": name, "seconds_per_frame": r["seconds_per_frame"],
+                              "time_vs_spp1": r["seconds_per_frame"] / base[1]["seconds_per_frame"],
+                              "rmse_vs_path_ref": r["rmse_vs_path_ref"], "rmse_vs_own_ref": r["rmse_vs_own_ref"]})
     blur_spp = 4
     two = room_scene(*time_res, num_frames=2)
     blur = {}
@@ -125,6 +137,9 @@ def main() -> None:
           f"{2 * ref_half} spp (reference noise ~{ref_noise:.4f} rms); G-buffer alone {gbuffer_s:.3f} s/frame")
     print_table(rows, ["mode", "spp", "seconds_per_frame", "us_per_sample", "rmse_vs_path_ref", "rmse_corrected",
                        "psnr_db", "rmse_vs_own_ref"])
+    print(f"\nSilhouette anti-aliasing (edge_spp {EDGE_SPP}: max(spp, {EDGE_SPP}) samples where a 4-neighbour sees "
+          "another instance), same scenes")
+    print_table(edge_rows, list(edge_rows[0]))
     print(f"motion blur, direct spp {blur_spp}, per frame: shutter 0 {blur['shutter_0.0']:.3f} s, "
           f"shutter 0.5 {blur['shutter_0.5']:.3f} s")
     result = {
@@ -135,7 +150,8 @@ def main() -> None:
             "mode": "path", "spp": 2 * ref_half, "seconds": ref_s, "noise_rms": ref_noise},
         "error_metric": "RMS difference of sRGB output in [0, 1] from the reference",
         "gbuffer_seconds_per_frame": gbuffer_s, "compile_seconds": compile_s,
-        "rows": rows, "motion_blur_seconds_per_frame": {"mode": "direct", "spp": blur_spp, **blur},
+        "rows": rows, "edge_spp_rows": edge_rows,
+        "motion_blur_seconds_per_frame": {"mode": "direct", "spp": blur_spp, **blur},
     }
     path = write_json("rgb", result)
     png = plot(rows, RESULTS_DIR / "rgb.png",
