@@ -175,7 +175,8 @@ def main() -> None:
         runs = [edge_cost(args.samples or 8, size, mode) for size in ((256, 192), (512, 384))
                 for mode in ("flat", "direct")]
         rows = [{"size": f"{r['size'][0]}x{r['size'][1]}", "rgb": r["mode"], **row,
-                 "vs edge_spp 1": row["cpu s/sample"] / r["rows"][0]["cpu s/sample"]} for r in runs for row in r["rows"]]
+                 "vs edge_spp 1": row["cpu s/sample"] / r["rows"][0]["cpu s/sample"]}
+                for r in runs for row in r["rows"]]
         print(f"\nFull stream (every core output, T=2), edge_spp 1 vs the default, {runs[0]['samples']} samples each "
               f"alternated; load average {runs[0]['load_average'][0]:.2f} -> {runs[-1]['load_average'][1]:.2f}")
         print_table(rows, ["size", "rgb", "outputs", "cpu s/sample", "wall s/sample", "vs edge_spp 1"])
