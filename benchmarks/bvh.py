@@ -48,7 +48,7 @@ from raycast import FOV_DEG, HEIGHT, WIDTH, make_scene
 from scipy.spatial.transform import Rotation
 
 from flowsynth import blas
-from flowsynth.accel import SceneAccel
+from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.camera import Camera
 from flowsynth.kernels import wp_runtime
 
@@ -166,10 +166,10 @@ def measure(scene_name: str, faces: int, poses, camera: Camera, repeat: int, bui
     accel = SceneAccel([mesh] * N, cam_T_world, world_T_obj)
     A = accel.blas
     shape = (camera.height, camera.width)
-    from flowsynth.accel import pinhole
-
+    warp_mesh = build_mesh(mesh)()  # what flowsynth.accel built per asset until d08ad06
+    item_mesh = wp.array(np.full(accel.F * N, warp_mesh.id, np.uint64), dtype=wp.uint64)
     inputs = [pinhole(camera), accel.frame_items, accel.near, accel._lowers, accel._uppers, accel.obj_T_ref,
-              accel.item_mesh, accel.item_root, A["bounds"], A["kids"], A["tris"], A["face"]]
+              item_mesh, accel.item_root, A["bounds"], A["kids"], A["tris"], A["face"]]
     outs = {k: (wp.zeros(shape, dtype=wp.float32), wp.zeros(shape, dtype=wp.int32)) for k in KERNELS}
     fns = {k: (lambda k=k: wp.launch(KERNELS[k], dim=camera.height, inputs=inputs, outputs=list(outs[k])))
            for k in KERNELS}

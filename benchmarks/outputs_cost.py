@@ -45,12 +45,13 @@ VARIANTS = {
 
 
 def cold_caches() -> None:
-    """Empty the per-process caches keyed by a mesh: scaled assets, asset BVHs, hulls, culling planes."""
+    """Empty the per-process caches keyed by a mesh: scaled assets, asset BVH trees, hulls, culling planes."""
     import flowsynth.accel as accel
+    import flowsynth.blas as blas
     from flowsynth.assets import get_asset
 
     get_asset.cache_clear()
-    for cache in (accel._MESHES, accel._HULLS, accel._PLANES):
+    for cache in (accel._HULLS, accel._PLANES, blas._TOPOLOGY):
         cache.clear()
 
 

@@ -53,6 +53,7 @@ import torch
 import trimesh
 
 import flowsynth as fs
+from flowsynth import blas
 from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.plan import make_plan
@@ -142,8 +143,6 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
     dummy = wp.zeros((1, 1, 1), dtype=wp.vec3)
     raw_outs = outs[:3] + [dummy, dummy]
     mesh = scene.objects[0].mesh
-    pts = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3)
-    idx = wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32)
     fns = {
         "render": lambda: fs.render(scene, OUTPUTS),
         "cast": lambda: cast_gbuffer(accel, cam, want_normals=True, want_points=False),
@@ -151,7 +150,7 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
         "raw": lambda: wp.launch(raw_kernel, dim=shape[:2], inputs=inputs, outputs=raw_outs),
         "scene_accel": lambda: SceneAccel(meshes, cam_T_world, world_T_obj),
         "gbuffer_outputs": lambda: gbuffer_outputs(scene, gb, plan, world_T_obj),
-        "asset_bvh_build": lambda: wp.Mesh(points=pts, indices=idx),
+        "asset_bvh_build": lambda: blas.atlas([mesh]),
     }
     rows = [("flowsynth fs.render", "full", "render", first), ("flowsynth cast_gbuffer", "cast", "cast", None),
             ("flowsynth kernel only", "cast", "kernel", None), ("flowsynth raw kernel", "raw", "raw", None)]

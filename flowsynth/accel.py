@@ -1,4 +1,4 @@
-"""Host side of the two-level ray caster: per-process asset BVH cache and per-clip instance BVH.
+"""Host side of the two-level ray caster: per-clip instance BVH over the assets' own trees (``flowsynth.blas``).
 
 ``SceneAccel`` takes F "frames" (camera pose + one pose per instance); frames need not be the clip's
 frames (motion blur passes sub-frame times). All poses are composed in float64 here and handed to the
@@ -25,9 +25,9 @@ ORDERED_MAX = 64
 # 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits).
 TILE = 16  # a power of two: the kernels find a pixel's tile by a shift
 
-__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "asset_mesh", "pinhole"]
+__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "pinhole"]
 
-# Maximum number of asset BVHs kept per process (least recently used are dropped).
+# Maximum number of per-mesh hulls and face planes kept per process (least recently used are dropped).
 MESH_CACHE_SIZE = 512
 # A mesh is "flat" when it lies between two parallel planes (one of its face planes) closer than this
 # fraction of its extent: visibility rays then test that slab (exact) before its box and mesh (room walls).
@@ -38,9 +38,6 @@ FACE_PLANES_BUDGET = 2e7
 # Instance boxes are inflated by this fraction of their size (plus the same fraction of their distance
 # to the camera) so float32 rounding of the ray never culls a true hit.
 BOX_PAD_REL = 1e-4
-
-_MESHES: OrderedDict = OrderedDict()
-
 
 _KEYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -58,7 +55,7 @@ def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
 
 def _cached(cache: OrderedDict, key, make):
     """``cache[key]``, made by ``make()`` on a miss: a per-process LRU cache of at most ``MESH_CACHE_SIZE``
-    entries (asset BVHs, hull points, face planes)."""
+    entries (hull points, face planes)."""
     hit = cache.get(key)
     if hit is None:
         hit = cache[key] = make()
@@ -67,22 +64,6 @@ def _cached(cache: OrderedDict, key, make):
     else:
         cache.move_to_end(key)
     return hit
-
-
-def asset_mesh(mesh: trimesh.Trimesh, device: str = "cpu"):
-    """The cached ``wp.Mesh`` (BVH) of a triangle mesh, built once per process and device.
-
-    Keyed by the content of the vertex and face arrays, so a mesh regenerated identically for another
-    sample hits the cache.
-    """
-    wp = wp_runtime()
-
-    def build():
-        points = wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3, device=device)
-        indices = wp.array(np.asarray(mesh.faces, np.int32).reshape(-1), dtype=wp.int32, device=device)
-        return wp.Mesh(points=points, indices=indices)
-
-    return _cached(_MESHES, (_mesh_key(mesh), device), build)
 
 
 class SceneAccel:
@@ -105,7 +86,6 @@ class SceneAccel:
         self.empty = N == 0
         if self.empty:
             return
-        self.wp_meshes = [asset_mesh(m, device) for m in meshes]
         # cam_T_obj per (frame, instance), float64
         cam_T_obj = np.einsum("fij,fnjk->fnik", cam_T_world, world_T_obj)
         obj_T_cam = _rigid_inverse(cam_T_obj)
@@ -140,13 +120,12 @@ class SceneAccel:
                           groups=self._groups)
         roots = _group_roots(self.bvh, F, device)
         self.roots = roots
-        ids = np.array([m.id for m in self.wp_meshes], dtype=np.uint64)
-        self.item_mesh = wp.array(np.tile(ids, F), dtype=wp.uint64, device=device)
         distinct = {id(m): m for m in meshes}  # instances sharing a mesh share its tree
         slot = {k: i for i, k in enumerate(distinct)}
         self.blas = atlas(list(distinct.values()), device)
-        item_roots = self.blas["roots"][[slot[id(m)] for m in meshes]]
-        self.item_root = wp.array(np.tile(item_roots, F), dtype=wp.int32, device=device)
+        which = [slot[id(m)] for m in meshes]
+        self.item_root = wp.array(np.tile(self.blas["roots"][which], F), dtype=wp.int32, device=device)
+        self.item_face0 = wp.array(np.tile(self.blas["face0"][which], F), dtype=wp.int32, device=device)
         self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
         self._meshes, self._cam_T_obj, self._cull = meshes, cam_T_obj, None
@@ -169,12 +148,11 @@ class SceneAccel:
         inst.bvh, inst.roots, inst.use_bvh = self.bvh.id, self.roots, self.use_bvh
         inst.frame_start, inst.frame_items, inst.near = self.frame_start, self.frame_items, self.near
         inst.lowers, inst.uppers = self._lowers, self._uppers
-        inst.item_mesh, inst.obj_T_ref, inst.ref_T_obj, inst.n_inst = (self.item_mesh, self.obj_T_ref,
-                                                                       self.ref_T_obj, self.N)
+        inst.obj_T_ref, inst.ref_T_obj, inst.n_inst = self.obj_T_ref, self.ref_T_obj, self.N
         inst.thin, inst.obj_lo, inst.obj_hi = self.thin, self.obj_lo, self.obj_hi
-        inst.item_root = self.item_root
+        inst.item_root, inst.item_face0 = self.item_root, self.item_face0
         inst.blas_bounds, inst.blas_kids = self.blas["bounds"], self.blas["kids"]
-        inst.blas_tris, inst.blas_face = self.blas["tris"], self.blas["face"]
+        inst.blas_tris, inst.blas_face, inst.blas_slot = self.blas["tris"], self.blas["face"], self.blas["slot"]
         return inst
 
     def culling(self):

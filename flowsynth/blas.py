@@ -20,7 +20,8 @@ Layout (one scene: the assets' trees concatenated by ``atlas``):
 - ``kids`` (nodes,) vec4i: child code, >= 0 an inner node, -1 empty, <= -2 a leaf: c = -2 - code, first
   triangle c >> 3, count c & 7;
 - ``tris`` (3 * triangles,) vec3: the triangle's float32 vertices (a, b, c) in leaf order;
-- ``face`` (triangles,) int32: the mesh's face index of each triangle;
+- ``face`` (triangles,) int32: the mesh's face index of each triangle, and ``slot`` the inverse (each face's
+  triangle; a mesh's faces from its ``face0`` on): the kernels read a face's vertices there, no ``wp.Mesh``;
 - an asset's root is a child code (a mesh of at most ``LEAF`` faces has a leaf root).
 """
 
@@ -208,13 +209,14 @@ def atlas(meshes: list, device: str = "cpu") -> dict:
     """The trees of a scene's distinct meshes (trimesh or anything with ``vertices`` and ``faces``) in one set
     of Warp arrays (module docstring layout): each mesh's cached topology, its inner-node codes shifted by its
     node offset and its leaf codes by its triangle offset, its triangles gathered from its float32 vertices,
-    and every box refitted (``refit_kernel``). Returns {"bounds", "kids", "tris", "face"} Warp arrays and
-    "roots" (len(meshes),) int32 numpy, the root code of each mesh's tree."""
+    and every box refitted (``refit_kernel``). Returns {"bounds", "kids", "tris", "face", "slot"} Warp arrays
+    ("slot": each face's triangle in leaf order, faces of mesh m from "face0"[m] on) and numpy int32 "roots"
+    (the root code of each mesh's tree) and "face0"."""
     from flowsynth.kernels import wp_runtime
     from flowsynth.kernels.blas import refit_kernel
 
     wp = wp_runtime()
-    kids, tris, face, roots = [], [], [], []
+    kids, tris, face, roots, face0 = [], [], [], [], []
     n_nodes = n_tris = 0
     for m in meshes:
         v = np.asarray(m.vertices, np.float32)
@@ -228,15 +230,21 @@ def atlas(meshes: list, device: str = "cpu") -> dict:
         roots.append(int(leaf_code((rc >> LEAF_BITS) + n_tris, rc & 7)) if top.root <= -2 else top.root + n_nodes)
         tris.append(v[f[top.order]].reshape(-1, 3))
         face.append(top.order)
+        face0.append(n_tris)
         n_nodes += len(code)
         n_tris += len(top.order)
     if n_tris >= 1 << (31 - LEAF_BITS):
         raise ValueError(f"a scene of {n_tris} triangles is more than a leaf code holds")
     k = np.concatenate(kids).astype(np.int32) if n_nodes else np.zeros((0, 4), np.int32)
+    slot = np.empty(n_tris, np.int32)
+    for f0, order in zip(face0, face):
+        slot[f0 + order] = f0 + np.arange(len(order), dtype=np.int32)
     out = {"kids": wp.array(k, dtype=wp.vec4i, device=device),
            "tris": wp.array(np.concatenate(tris), dtype=wp.vec3, device=device),
            "face": wp.array(np.concatenate(face).astype(np.int32), dtype=wp.int32, device=device),
-           "bounds": wp.empty(6 * n_nodes, dtype=wp.vec4, device=device), "roots": np.asarray(roots, np.int32)}
+           "slot": wp.array(slot, dtype=wp.int32, device=device),
+           "bounds": wp.empty(6 * n_nodes, dtype=wp.vec4, device=device), "roots": np.asarray(roots, np.int32),
+           "face0": np.asarray(face0, np.int32)}
     if n_nodes:
         wp.launch(refit_kernel, dim=1, inputs=[out["kids"], out["tris"]], outputs=[out["bounds"]], device=device)
     return out

@@ -119,6 +119,11 @@ def test_scaled_copies_share_one_tree_and_refit_holds_every_triangle():
     for node, lane, first, cnt in zip(n, j, c >> 3, c & 7):
         t = tris[first:first + cnt].reshape(-1, 3)
         assert np.array_equal(bounds[node, :3, lane], t.min(0)) and np.array_equal(bounds[node, 3:, lane], t.max(0))
+    # slot: face f of mesh m is the triangle slot[face0[m] + f] (its vertices, in the mesh's order)
+    slot = A["slot"].numpy()
+    for m, f0 in zip(meshes, A["face0"]):
+        got = tris[slot[f0:f0 + len(m.faces)]]
+        assert np.array_equal(got, np.asarray(m.vertices, np.float32)[np.asarray(m.faces)])
     n, j = np.nonzero(inner)
     child = bounds[kids[n, j]]
     assert np.array_equal(bounds[n, :3, j], child[:, :3].min(2))

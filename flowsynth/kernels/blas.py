@@ -1,6 +1,7 @@
 """Traversal of the per-asset 4-wide BVHs (layout: ``flowsynth.blas``) and their refit kernel.
 
-``blas_closest`` and ``blas_any`` replace ``wp.mesh_query_ray`` / ``wp.mesh_query_ray_anyhit``: the same
+``blas_closest`` and ``blas_any`` replace ``wp.mesh_query_ray`` / ``wp.mesh_query_ray_anyhit`` (and
+``face_vertices`` / ``eval_position`` replace ``wp.mesh_get`` / ``wp.mesh_eval_position``): the same
 watertight ray-triangle test (Woop, Benthin and Wald 2013, as Warp's ``intersect_ray_tri_woop``, with the
 ray's shear computed once per ray instead of once per triangle), the same hits (t in [0, max_t)), the same
 (u, v) convention (hit point u a + v b + (1 - u - v) c of the face's vertices a, b, c). What is faster
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 import warp as wp
 
-__all__ = ["STACK", "blas_any", "blas_closest", "refit_kernel"]
+__all__ = ["STACK", "blas_any", "blas_closest", "eval_position", "face_vertices", "refit_kernel"]
 
 # Stack entries per ray: a 4-wide tree of depth D needs at most 3 D + 1 (flowsynth.blas checks each tree).
 STACK = 64
@@ -204,6 +205,22 @@ def blas_any(bounds: wp.array[wp.vec4], kids: wp.array[wp.vec4i], tris: wp.array
     """Is o + t d hit with t in [0, max_t) in the tree whose root code is ``root``? (the first hit ends it)"""
     k, t, u, v = _walk_any(bounds, kids, tris, root, o, d, max_t)
     return k >= 0
+
+
+@wp.func
+def face_vertices(tris: wp.array[wp.vec3], slot: wp.array[wp.int32], face0: wp.int32, face: wp.int32):
+    """Vertices (a, b, c) of face ``face`` of the mesh whose faces start at ``face0`` in the atlas
+    (``slot``: each face's triangle in leaf order)."""
+    k = 3 * slot[face0 + face]
+    return tris[k], tris[k + 1], tris[k + 2]
+
+
+@wp.func
+def eval_position(tris: wp.array[wp.vec3], slot: wp.array[wp.int32], face0: wp.int32, face: wp.int32,
+                  u: wp.float32, v: wp.float32):
+    """Point (u, v) of a face, u a + v b + (1 - u - v) c, as ``wp.mesh_eval_position`` computes it."""
+    a, b, c = face_vertices(tris, slot, face0, face)
+    return a * u + b * v + c * (1.0 - u - v)
 
 
 @wp.kernel(enable_backward=False)

@@ -2,8 +2,7 @@
 
 Top level: one grouped ``wp.Bvh`` over instance boxes, group f = frame f, boxes in that frame's
 *reference* frame (the camera frame of frame f). Bottom level: one 4-wide BVH per asset in the object frame
-(``flowsynth.blas``, traversed by ``flowsynth.kernels.blas``; the asset's ``wp.Mesh`` stays for the hit point
-and face vertices). A ray (origin o, unit direction d, reference frame) visits the instances whose box it
+(``flowsynth.blas``, traversed by ``flowsynth.kernels.blas``, which also holds every face's vertices). A ray (origin o, unit direction d, reference frame) visits the instances whose box it
 crosses, is mapped into each object's frame with ``obj_T_ref`` (float32, composed in float64 on the
 host) and tested against that asset's mesh. Nothing is rebuilt when objects move.
 
@@ -19,7 +18,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from flowsynth.kernels.blas import blas_any, blas_closest
+from flowsynth.kernels.blas import blas_any, blas_closest, eval_position, face_vertices
 
 __all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "trace_any", "trace_closest",
            "visibility_kernel"]
@@ -37,12 +36,13 @@ class Instances:
     near: wp.array[wp.float32]  # (F * N,) distance from the frame's camera centre to the item's box [m]
     lowers: wp.array[wp.vec3]  # (F * N,) item box, reference frame [m]
     uppers: wp.array[wp.vec3]
-    item_mesh: wp.array[wp.uint64]  # (F * N,) wp.Mesh id of the item's asset (vertices, hit points)
     item_root: wp.array[wp.int32]  # (F * N,) root code of the item's asset tree in the blas_* atlas
+    item_face0: wp.array[wp.int32]  # (F * N,) first blas_slot row of the item's asset (its face 0)
     blas_bounds: wp.array[wp.vec4]  # the scene's asset trees (flowsynth.blas.atlas): child boxes,
     blas_kids: wp.array[wp.vec4i]  # child codes,
     blas_tris: wp.array[wp.vec3]  # triangles in leaf order,
-    blas_face: wp.array[wp.int32]  # and each one's face index
+    blas_face: wp.array[wp.int32]  # and each one's face index; blas_slot: each face's triangle
+    blas_slot: wp.array[wp.int32]
     obj_T_ref: wp.array[wp.mat44]  # (F * N,) reference (camera) frame -> object frame
     ref_T_obj: wp.array[wp.mat44]  # (F * N,) object frame -> reference frame
     n_inst: wp.int32  # N
@@ -355,12 +355,9 @@ def primary_kernel(want_normals: bool, want_points: bool):
             face_out[f, i, j] = face
             dist[f, i, j] = t
             if wp.static(want_points):
-                point[f, i, j] = wp.mesh_eval_position(inst.item_mesh[item], face, u, v)
+                point[f, i, j] = eval_position(inst.blas_tris, inst.blas_slot, inst.item_face0[item], face, u, v)
             if wp.static(want_normals):
-                m = wp.mesh_get(inst.item_mesh[item])
-                a = m.points[m.indices[3 * face + 0]]
-                b = m.points[m.indices[3 * face + 1]]
-                c = m.points[m.indices[3 * face + 2]]
+                a, b, c = face_vertices(inst.blas_tris, inst.blas_slot, inst.item_face0[item], face)
                 n = wp.normalize(wp.transform_vector(inst.ref_T_obj[item], wp.cross(b - a, c - a)))
                 if wp.dot(n, d) > 0.0:
                     n = -n

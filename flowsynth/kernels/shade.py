@@ -24,6 +24,7 @@ from __future__ import annotations
 import warp as wp
 
 from flowsynth.kernels import RENDER_MODES
+from flowsynth.kernels.blas import eval_position, face_vertices
 from flowsynth.kernels.raycast import Instances, Pinhole, trace_any, trace_closest
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
@@ -136,10 +137,7 @@ def brdf(n: wp.vec3, wi: wp.vec3, wo: wp.vec3, albedo: wp.vec3, spec: wp.float32
 def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: wp.vec3, spread: wp.float32):
     """Shading normal (camera frame, facing against d), albedo, specular weight, roughness at a hit; the
     texture is filtered over the footprint of a ray cone of width ``spread`` [m] at the hit."""
-    m = wp.mesh_get(sc.inst.item_mesh[item])
-    a = m.points[m.indices[3 * face + 0]]
-    b = m.points[m.indices[3 * face + 1]]
-    c = m.points[m.indices[3 * face + 2]]
+    a, b, c = face_vertices(sc.inst.blas_tris, sc.inst.blas_slot, sc.inst.item_face0[item], face)
     n_obj = wp.normalize(wp.cross(b - a, c - a))
     n = wp.normalize(wp.transform_vector(sc.inst.ref_T_obj[item], n_obj))
     cos = wp.dot(n, d)
@@ -253,7 +251,7 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
         x = o + wi * dist
         wo = -wi
         spread += dist * BOUNCE_SPREAD
-        p_hit = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
+        p_hit = eval_position(sc.inst.blas_tris, sc.inst.blas_slot, sc.inst.item_face0[item], face, bu, bv)
         n, albedo, spec, rough = surface(sc, item, face, p_hit, wi, spread)
         rough = wp.max(rough, MIN_INDIRECT_ROUGHNESS)
         L += clamp_indirect(wp.cw_mul(beta, direct_light(sc, g, x, n, wo, albedo, spec, rough, True)))
@@ -371,7 +369,8 @@ def shade_kernel(mode: str):
                                                              sc.inst.blas_face, sc.inst.obj_T_ref, sc.inst.thin,
                                                              sc.inst.obj_lo, sc.inst.obj_hi, wp.vec3(0.0), d, sc.max_t)
                     if item >= 0:
-                        p_obj = wp.mesh_eval_position(sc.inst.item_mesh[item], face, bu, bv)
+                        p_obj = eval_position(sc.inst.blas_tris, sc.inst.blas_slot, sc.inst.item_face0[item], face,
+                                              bu, bv)
                 if item < 0:
                     acc += sc.sky
                     continue
