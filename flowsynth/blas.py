@@ -38,7 +38,6 @@ __all__ = ["BINS", "LEAF", "atlas", "build_topology", "topology"]
 BINS = 16  # SAH bins per axis and node
 LEAF = 4  # most triangles in a leaf (LEAF_BITS bits of the leaf code)
 LEAF_BITS = 3
-EMPTY_LO, EMPTY_HI = 1.0e30, -1.0e30  # an empty child slot's box: no ray enters it
 TOPOLOGY_CACHE_SIZE = 256  # distinct faces arrays kept (least recently used dropped)
 _TOPOLOGY: OrderedDict = OrderedDict()
 
@@ -46,6 +45,15 @@ _TOPOLOGY: OrderedDict = OrderedDict()
 def leaf_code(first, count):
     """Child code of a leaf of ``count`` triangles from ``first`` (arrays or ints)."""
     return -2 - ((np.asarray(first, np.int64) << LEAF_BITS) | np.asarray(count, np.int64))
+
+
+def _shift(code, n_nodes: int, n_tris: int) -> np.ndarray:
+    """Child codes (array or int) of one tree moved into an atlas after ``n_nodes`` nodes and ``n_tris``
+    triangles: inner nodes shifted by the one, leaves' first triangles by the other, empty slots kept."""
+    code = np.asarray(code, np.int64)
+    c = -2 - code
+    moved = leaf_code((c >> LEAF_BITS) + n_tris, c & ((1 << LEAF_BITS) - 1))
+    return np.where(code <= -2, moved, np.where(code >= 0, code + n_nodes, code))
 
 
 @dataclass(frozen=True)
@@ -222,16 +230,12 @@ def atlas(meshes: list, device: str = "cpu") -> dict:
         v = np.asarray(m.vertices, np.float32)
         f = np.asarray(m.faces, np.int64).reshape(-1, 3)
         top = topology(v, f)
-        code = top.kids
-        c = -2 - code
-        moved = leaf_code((c >> LEAF_BITS) + n_tris, c & ((1 << LEAF_BITS) - 1))
-        kids.append(np.where(code <= -2, moved, np.where(code >= 0, code + n_nodes, code)))
-        rc = -2 - top.root
-        roots.append(int(leaf_code((rc >> LEAF_BITS) + n_tris, rc & 7)) if top.root <= -2 else top.root + n_nodes)
+        kids.append(_shift(top.kids, n_nodes, n_tris))
+        roots.append(int(_shift(top.root, n_nodes, n_tris)))
         tris.append(v[f[top.order]].reshape(-1, 3))
         face.append(top.order)
         face0.append(n_tris)
-        n_nodes += len(code)
+        n_nodes += len(top.kids)
         n_tris += len(top.order)
     if n_tris >= 1 << (31 - LEAF_BITS):
         raise ValueError(f"a scene of {n_tris} triangles is more than a leaf code holds")

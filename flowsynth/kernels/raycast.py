@@ -2,7 +2,8 @@
 
 Top level: one grouped ``wp.Bvh`` over instance boxes, group f = frame f, boxes in that frame's
 *reference* frame (the camera frame of frame f). Bottom level: one 4-wide BVH per asset in the object frame
-(``flowsynth.blas``, traversed by ``flowsynth.kernels.blas``, which also holds every face's vertices). A ray (origin o, unit direction d, reference frame) visits the instances whose box it
+(``flowsynth.blas``, traversed by ``flowsynth.kernels.blas``, which also holds every face's vertices). A ray
+(origin o, unit direction d, reference frame) visits the instances whose box it
 crosses, is mapped into each object's frame with ``obj_T_ref`` (float32, composed in float64 on the
 host) and tested against that asset's mesh. Nothing is rebuilt when objects move.
 
