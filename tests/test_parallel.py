@@ -126,3 +126,54 @@ def test_default_threads_is_one_in_export_workers(tmp_path):
     with ProcessPoolExecutor(1, mp_context=mp.get_context("fork"), initializer=export._init_pool_worker,
                              initargs=(cfg, ("depth",), 0, "exact", layouts.get("native"))) as pool:
         assert list(pool.map(_worker_default, [0])) == [1]
+
+
+def _small_stream(threads: int, length: int = 4) -> fs.datasets.BouncingThings:
+    cfg = fs.BouncingThingsConfig(width=48, height=36, num_frames=2, num_objects=(3, 5), render_mode="direct")
+    return fs.datasets.BouncingThings(cfg, outputs=("rgb", "flow_fw", "occ_fw", "depth"), seed=3, length=length,
+                                      threads=threads)
+
+
+def _same_item(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        if isinstance(a[k], torch.Tensor):
+            assert torch.equal(a[k], b[k]), k
+        else:
+            assert a[k] == b[k], k
+
+
+def test_prefetching_stream_equals_random_access():
+    """With threads > 1 the stream simulates and prepares sample i + 1 on a thread of its own while sample i
+    renders: its items are still exactly ``sample(i)`` at one thread, in order, and a stream left early resumes
+    where it stopped."""
+    ref = _small_stream(1)
+    want = [ref.sample(i) for i in range(4)]
+    ds = _small_stream(2)
+    it = iter(ds)
+    first = [next(it), next(it)]
+    it.close()  # leave with sample 2 prefetched: it is not lost, the next iter() yields it
+    rest = list(ds)  # the epoch's remaining samples
+    got = first + rest
+    assert [int(x["index"]) for x in got] == [0, 1, 2, 3]
+    for a, b in zip(got, want):
+        _same_item(a, b)
+
+
+def test_prefetch_error_surfaces_at_its_sample(monkeypatch):
+    """A scene that fails on the prefetch thread raises when the stream reaches it, not before: the samples
+    ahead of it are yielded first."""
+    ds = _small_stream(2)
+    real = ds.scene
+
+    def scene(i):
+        if i == 2:
+            raise RuntimeError("scene 2 fails")
+        return real(i)
+
+    monkeypatch.setattr(ds, "scene", scene)
+    got = []
+    with pytest.raises(RuntimeError, match="scene 2 fails"):
+        for item in ds:
+            got.append(int(item["index"]))
+    assert got == [0, 1]
