@@ -186,9 +186,9 @@ def main() -> None:
     before = load()
     print(f"{cpus} CPUs allowed; {before}")
     threads = thread_scaling(counts, 3 if args.quick else 7)
-    print("\nThreads: primary cast (30 icospheres x 5120 faces, 640x480) and full sample (512x384, T=2, "
-          "20 objects, direct RGB, depth/normals/instance/flow+occ both ways): sample(i) one after another, "
-          "and the stream (iter(), per sample); wall-clock medians")
+    print("\nThreads: primary cast (30 icospheres x 5120 faces, 640x480) and full sample (512x384, T=2, 20 objects, "
+          "direct RGB, depth/normals/instance/flow+occ both ways): sample(i) one after another, and the stream (iter(), "
+          "per sample); wall-clock medians")
     print("cores_got: process CPU time / wall time, the cores this process actually had (less than the threads "
           "when other processes load the machine)")
     print_table(threads, ["threads", "cast_ms", "cast_Mrays_s", "cast_speedup", "cast_cores_got", "sample_s",
