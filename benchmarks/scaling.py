@@ -9,10 +9,7 @@ this process may use:
 - the primary G-buffer cast alone (``cast_gbuffer``, depth + instance + normals) of benchmarks/raycast.py's
   scene (30 icospheres x 5120 faces, 640x480): Mrays/s;
 - the issue-13 full sample: ``BouncingThings`` 512x384, T=2, 20 objects, physics, direct RGB, with depth,
-  normals, instance, flow and occlusion both ways (scene sampling and physics included): samples/s, two ways
-  over the same four scenes: random access (``sample(i)``, one sample after another) and the stream
-  (``iter()``, what a training loop reads: with threads > 1 it simulates and prepares sample i + 1 on a
-  thread of its own while sample i renders).
+  normals, instance, flow and occlusion both ways (scene sampling and physics included): samples/s.
 
 Part 2, curves: hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid
 motion) rendered with depth + flow_fw + occ_fw + instance, at threads 1 and all; each curve fitted
@@ -40,7 +37,6 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUME
 from _common import fit_exponent, machine_info, plot_curves, print_table, time_round_robin, write_json
 
 OUTPUTS = ["depth", "flow_fw", "occ_fw", "instance"]
-STREAM = 4  # scenes of the full-sample rows (the stream's epoch)
 FULL_OUTPUTS = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "occ_fw", "occ_bw"]
 
 
@@ -93,21 +89,14 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
            for k in counts}
     cfg = fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
                                   max_objects=32)
-    sets = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k, length=STREAM)
-            for k in counts}
+    sets = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in counts}
     index = {k: iter(range(10**6)) for k in counts}
 
     def full(k: int) -> None:
         # a counter per thread count: every count renders scenes 0, 1, 2, 3, 0, ... alike
-        sets[k].sample(next(index[k]) % STREAM)
-
-    def stream(k: int) -> None:
-        sets[k].set_epoch(0)  # scenes 0 .. STREAM - 1 again, the ones sample() renders
-        for _ in sets[k]:
-            pass
+        sets[k].sample(next(index[k]) % 4)
 
     fns.update({("sample", k): (lambda k=k: full(k)) for k in counts})
-    fns.update({("stream", k): (lambda k=k: stream(k)) for k in counts})
     # warm-up over all four scenes with every count: the process-wide caches (meshes, BVHs, textures) then hold
     # each scene before any count is timed on it
     times = time_round_robin(fns, repeat=repeat, warmup=4)
@@ -118,13 +107,10 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
         rows.append({"threads": k, "cast_ms": 1e3 * cast, "cast_Mrays_s": rays / cast / 1e6,
                      "cast_cores_got": times[("cast", k)]["cpu_s"] / cast,
                      "sample_s": sample, "samples_s": 1.0 / sample,
-                     "sample_cores_got": times[("sample", k)]["cpu_s"] / sample,
-                     "stream_s": times[("stream", k)]["wall_s"] / STREAM,
-                     "stream_cores_got": times[("stream", k)]["cpu_s"] / times[("stream", k)]["wall_s"]})
+                     "sample_cores_got": times[("sample", k)]["cpu_s"] / sample})
     for r in rows:
         r["cast_speedup"] = rows[0]["cast_ms"] / r["cast_ms"]
         r["sample_speedup"] = rows[0]["sample_s"] / r["sample_s"]
-        r["stream_speedup"] = rows[0]["stream_s"] / r["stream_s"]
     return rows
 
 
@@ -187,13 +173,11 @@ def main() -> None:
     print(f"{cpus} CPUs allowed; {before}")
     threads = thread_scaling(counts, 3 if args.quick else 7)
     print("\nThreads: primary cast (30 icospheres x 5120 faces, 640x480) and full sample (512x384, T=2, 20 objects, "
-          "direct RGB, depth/normals/instance/flow+occ both ways): sample(i) one after another, and the stream (iter(), "
-          "per sample); wall-clock medians")
+          "direct RGB, depth/normals/instance/flow+occ both ways); wall-clock medians")
     print("cores_got: process CPU time / wall time, the cores this process actually had (less than the threads "
           "when other processes load the machine)")
     print_table(threads, ["threads", "cast_ms", "cast_Mrays_s", "cast_speedup", "cast_cores_got", "sample_s",
-                          "samples_s", "sample_speedup", "sample_cores_got", "stream_s", "stream_speedup",
-                          "stream_cores_got"])
+                          "samples_s", "sample_speedup", "sample_cores_got"])
     print(load())
     print("\nSamples/s (wall) at threads " + ", ".join(map(str, counts)) + "; others at 256x192, 20 objects, "
           "1280 faces, T=2")

@@ -9,7 +9,6 @@ ever see camera-relative coordinates: precision does not depend on the distance 
 from __future__ import annotations
 
 import hashlib
-import threading
 import weakref
 from collections import OrderedDict
 
@@ -41,7 +40,6 @@ FACE_PLANES_BUDGET = 2e7
 BOX_PAD_REL = 1e-4
 
 _KEYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_CACHE_LOCK = threading.Lock()
 
 
 def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
@@ -57,20 +55,14 @@ def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
 
 def _cached(cache: OrderedDict, key, make):
     """``cache[key]``, made by ``make()`` on a miss: a per-process LRU cache of at most ``MESH_CACHE_SIZE``
-    entries (hull points, face planes). Safe from several threads (a stream simulates and prepares the next
-    scene on a thread of its own, ``BouncingThings``): the lock covers the cache, not ``make()``, so two
-    threads missing the same key both make it and the first stored wins (the same value)."""
-    with _CACHE_LOCK:
-        hit = cache.get(key)
-        if hit is not None:
-            cache.move_to_end(key)
-            return hit
-    made = make()
-    with _CACHE_LOCK:
-        hit = cache.setdefault(key, made)
-        cache.move_to_end(key)
+    entries (hull points, face planes)."""
+    hit = cache.get(key)
+    if hit is None:
+        hit = cache[key] = make()
         while len(cache) > MESH_CACHE_SIZE:
             cache.popitem(last=False)
+    else:
+        cache.move_to_end(key)
     return hit
 
 

@@ -28,7 +28,6 @@ Layout (one scene: the assets' trees concatenated by ``atlas``):
 from __future__ import annotations
 
 import hashlib
-import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -41,7 +40,6 @@ LEAF = 4  # most triangles in a leaf (LEAF_BITS bits of the leaf code)
 LEAF_BITS = 3
 TOPOLOGY_CACHE_SIZE = 256  # distinct faces arrays kept (least recently used dropped)
 _TOPOLOGY: OrderedDict = OrderedDict()
-_TOPOLOGY_LOCK = threading.Lock()
 
 
 def leaf_code(first, count):
@@ -198,22 +196,20 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     s = np.abs(v).max()
     unit = v / (s if s > 0 else 1.0)
     key = hashlib.blake2b(f.tobytes(), digest_size=16).digest()
-    with _TOPOLOGY_LOCK:  # several threads may ask (a stream prepares the next scene on its own thread)
-        for cand, top in _TOPOLOGY.get(key, ()):
-            if cand.shape == unit.shape and np.allclose(cand, unit, rtol=0.0, atol=1e-5):
-                _TOPOLOGY.move_to_end(key)
-                return top
+    for cand, top in _TOPOLOGY.get(key, ()):
+        if cand.shape == unit.shape and np.allclose(cand, unit, rtol=0.0, atol=1e-5):
+            _TOPOLOGY.move_to_end(key)
+            return top
     from flowsynth.kernels.blas import STACK
 
     top = build_topology(v, f)
     if 3 * len(top.levels) + 1 > STACK:
         raise ValueError(f"a mesh of {len(f)} faces gives a BVH of depth {len(top.levels)}: more than the "
                          f"ray stack of {STACK} entries holds")
-    with _TOPOLOGY_LOCK:
-        _TOPOLOGY.setdefault(key, []).append((unit, top))
-        _TOPOLOGY.move_to_end(key)
-        while len(_TOPOLOGY) > TOPOLOGY_CACHE_SIZE:
-            _TOPOLOGY.popitem(last=False)
+    _TOPOLOGY.setdefault(key, []).append((unit, top))
+    _TOPOLOGY.move_to_end(key)
+    while len(_TOPOLOGY) > TOPOLOGY_CACHE_SIZE:
+        _TOPOLOGY.popitem(last=False)
     return top
 
 

@@ -101,39 +101,12 @@ def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, d
     return render_plan(scene, plan, device=device)
 
 
-@dataclass
-class Prepared:
-    """What ``render_plan`` needs of a scene before its first ray: the poses and the ray-casting structure with
-    the candidate lists and culling data the plan's launches read (``prepare``)."""
-
-    cam_T_world: np.ndarray
-    world_T_obj: np.ndarray
-    accel: SceneAccel
-
-
-def prepare(scene: Scene, plan: Plan, device: str = "cpu") -> Prepared:
-    """The host-side set-up of ``render_plan`` for ``scene`` (numpy and one refit launch, no ray): a stream
-    does it for the next sample on the thread that simulates that sample (``BouncingThings``), while this one
-    renders. The result is the same whichever thread makes it."""
-    meshes, cam_T_world, world_T_obj = scene_arrays(scene)
-    accel = SceneAccel(meshes, cam_T_world, world_T_obj, device=device)
-    if accel.empty:
-        return Prepared(cam_T_world, world_T_obj, accel)
-    accel.tile_lists(scene.camera)
-    if plan.flow_stage:
-        accel.tile_lists(scene.camera, flat=False)  # visibility rays' lists (and the culling data)
-    return Prepared(cam_T_world, world_T_obj, accel)
-
-
-def render_plan(scene: Scene, plan: Plan, device: str = "cpu", prepared: Prepared | None = None
-                ) -> dict[str, torch.Tensor]:
-    """Run the stages of ``plan`` on ``scene`` (``prepared``: ``prepare(scene, plan, device)``, made here
-    when None)."""
+def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torch.Tensor]:
+    """Run the stages of ``plan`` on ``scene``."""
     if plan.seed is None:  # the renderer's noise seed: the scene's unless the plan sets one
         plan = replace(plan, seed=int(scene.render_seed))
-    if prepared is None:
-        prepared = prepare(scene, plan, device)
-    cam_T_world, world_T_obj, accel = prepared.cam_T_world, prepared.world_T_obj, prepared.accel
+    meshes, cam_T_world, world_T_obj = scene_arrays(scene)
+    accel = SceneAccel(meshes, cam_T_world, world_T_obj, device=device)
     gb = cast_gbuffer(accel, scene.camera, want_normals=plan.normals, want_points=plan.points, threads=plan.threads)
     out: dict[str, torch.Tensor] = {}
     out.update(gbuffer_outputs(scene, gb, plan, world_T_obj))

@@ -20,14 +20,12 @@ the samples an uninterrupted run would have produced.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
-from flowsynth.parallel import resolve_threads
 from flowsynth.plan import make_plan
 from flowsynth.sampling import sample_seed
 from flowsynth.scene import Scene, provenance_json
@@ -106,22 +104,12 @@ class BouncingThings(IterableDataset):
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
         """Sample ``i``: exactly the item the stream yields for index ``i``."""
-        if not isinstance(i, (int, np.integer)) or i < 0:
-            raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
-        return self._render(int(i), self.scene(i))
-
-    def _prepared(self, i: int):
-        """Scene ``i`` simulated, and its ray-casting set-up (``flowsynth.render.prepare``)."""
-        from flowsynth.render import prepare
-
-        scene = self.scene(i)
-        return scene, prepare(scene, self.plan, device=self.device)
-
-    def _render(self, i: int, scene: Scene, prepared=None) -> dict[str, torch.Tensor]:
-        """Sample ``i`` from its simulated scene (``scene(i)``) and, when given, its set-up."""
         from flowsynth.render import render_plan
 
-        out = render_plan(scene, self.plan, device=self.device, prepared=prepared)
+        if not isinstance(i, (int, np.integer)) or i < 0:
+            raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
+        scene = self.scene(i)
+        out = render_plan(scene, self.plan, device=self.device)
         out["index"] = torch.tensor(int(i), dtype=torch.int64)
         out["seed"] = torch.tensor(self.seed, dtype=torch.int64)
         out["provenance"] = provenance_json(scene)
@@ -147,36 +135,12 @@ class BouncingThings(IterableDataset):
             torch.set_num_threads(1)
         g, G = _shard()
         epoch = self._epoch
-        indices = self._indices(g, G, epoch, self._pos)
-        if resolve_threads(self.plan.threads) == 1:
-            for i, next_pos in indices:
-                item = self.sample(i)
-                self._pos = next_pos
-                yield item
-        else:
-            yield from self._prefetching(indices)
+        for i, next_pos in self._indices(g, G, epoch, self._pos):
+            item = self.sample(i)
+            self._pos = next_pos
+            yield item
         # finite epoch exhausted: the next iter() starts the next epoch
         self._epoch, self._pos = epoch + 1, 0
-
-    def _prefetching(self, indices: Iterator[tuple[int, int]]) -> Iterator[dict[str, torch.Tensor]]:
-        """The stream with the next sample's scene simulated and prepared (``_prepared``) on a thread of its own
-        while this sample renders: the serial host work of one sample overlaps the other's banded ray launches.
-        Items are the same as ``sample(i)``'s."""
-        with ThreadPoolExecutor(1, thread_name_prefix="flowsynth-scene") as pool:
-            nxt = next(indices, None)
-            pending = pool.submit(self._prepared, nxt[0]) if nxt is not None else None
-            try:
-                while pending is not None:
-                    i, next_pos = nxt
-                    scene, prepared = pending.result()
-                    nxt = next(indices, None)
-                    pending = pool.submit(self._prepared, nxt[0]) if nxt is not None else None
-                    item = self._render(i, scene, prepared)
-                    self._pos = next_pos
-                    yield item
-            finally:
-                if pending is not None:
-                    pending.cancel()
 
     def state_dict(self) -> dict:
         """This copy's position (per worker under StatefulDataLoader)."""
