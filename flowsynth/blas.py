@@ -28,6 +28,7 @@ Layout (one scene: the assets' trees concatenated by ``atlas``):
 from __future__ import annotations
 
 import hashlib
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -213,6 +214,22 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     return top
 
 
+_OF_MESH: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _topology_of(mesh, v: np.ndarray, f: np.ndarray) -> Topology:
+    """``topology(v, f)`` of ``mesh`` (its float32 vertices and faces), remembered per mesh object: a mesh object
+    seen in an earlier scene skips the face hash and vertex comparison. Meshes are not modified after Scene
+    cleaning (as ``flowsynth.accel._mesh_key`` assumes); objects that take no weak reference are not remembered."""
+    try:
+        top = _OF_MESH.get(mesh)
+    except TypeError:
+        return topology(v, f)
+    if top is None:
+        top = _OF_MESH[mesh] = topology(v, f)
+    return top
+
+
 def atlas(meshes: list, device: str = "cpu") -> dict:
     """The trees of a scene's distinct meshes (trimesh or anything with ``vertices`` and ``faces``) in one set
     of Warp arrays (module docstring layout): each mesh's cached topology, its inner-node codes shifted by its
@@ -229,7 +246,7 @@ def atlas(meshes: list, device: str = "cpu") -> dict:
     for m in meshes:
         v = np.asarray(m.vertices, np.float32)
         f = np.asarray(m.faces, np.int64).reshape(-1, 3)
-        top = topology(v, f)
+        top = _topology_of(m, v, f)
         kids.append(_shift(top.kids, n_nodes, n_tris))
         roots.append(int(_shift(top.root, n_nodes, n_tris)))
         tris.append(v[f[top.order]].reshape(-1, 3))
