@@ -55,6 +55,8 @@ LR = 2e-3  # peak learning rate of the one-cycle schedule (Adam)
 # every net is tested on each: homography-warped photos with frame 1 made two ways (photo_pairs), and a real
 # stereo pair with measured disparity (stereo_pairs)
 TESTS = ("resampled", "symmetric", "stereo")
+# pixels the training loss covers (--mask): flow defined (every pixel of chairs2d), or seen in both frames
+MASKS = ("valid", "visible")
 PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "immunohistochemistry", "camera", "coins", "grass",
           "gravel", "brick")
 
@@ -153,7 +155,9 @@ def multiscale_loss(preds, flow, valid):
 
 # -- data ---------------------------------------------------------------------------------------------------
 def flowsynth_pairs(n: int, seed: int, workers: int):
-    """n flowsynth pairs: (img1, img2, flow, valid) tensors (n, C, H, W); and the config used."""
+    """n flowsynth pairs: (img1, img2, flow, valid, visible) tensors (n, C, H, W), and the config used. ``valid``
+    is ``valid_fw`` (occluded and out-of-frame pixels included), ``visible`` is ``valid_fw & ~occ_fw`` (as
+    ``FlowPairs(mask="visible")``); a net trains on (img1, img2, flow, one of the two)."""
     import torch
     from torch.utils.data import DataLoader
 
@@ -163,11 +167,13 @@ def flowsynth_pairs(n: int, seed: int, workers: int):
     cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2,
                                   flow_px=tuple(x / SCALE for x in base.flow_px))
     assert cfg.texture_dir is None
-    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, length=n)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw", "occ_fw"], seed=seed, length=n)
     batches = list(DataLoader(ds, batch_size=16, num_workers=workers))
     rgb = torch.cat([b["rgb"] for b in batches])
-    return (rgb[:, 0], rgb[:, 1], torch.cat([b["flow_fw"][:, 0] for b in batches]),
-            torch.cat([b["valid_fw"][:, 0] for b in batches]).float()), cfg
+    valid = torch.cat([b["valid_fw"][:, 0] for b in batches])
+    visible = valid & ~torch.cat([b["occ_fw"][:, 0] for b in batches])
+    return (rgb[:, 0], rgb[:, 1], torch.cat([b["flow_fw"][:, 0] for b in batches]), valid.float(),
+            visible.float()), cfg
 
 
 def _affine(rng, shift_px: float, rot: float, zoom: float):
@@ -182,10 +188,13 @@ def _affine(rng, shift_px: float, rot: float, zoom: float):
     return np.concatenate([R, t[:, None]], 1)
 
 
-def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0):
+def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0, visible: bool = False):
     """n FlyingChairs-style pairs from ``sources`` (m, 3, H, W) images: a background and 2-5 shapes, each under
     its own random affine map; flow exact for every pixel of frame 0 (all valid, as in FlyingChairs).
-    ``motion_scale`` multiplies every shift, rotation and log-zoom range."""
+    ``motion_scale`` multiplies every shift, rotation and log-zoom range. ``visible``: the mask is instead the
+    pixels seen in both frames (their flow lands inside frame 1, on the same layer: the layer of frame 1's
+    nearest pixel there, painter's order), the baseline's counterpart of flowsynth's ``valid_fw & ~occ_fw``.
+    The images and flow do not depend on it (the same random draws)."""
     import cv2
     import numpy as np
     import torch
@@ -201,7 +210,8 @@ def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0):
         A = _affine(rng, 1.5 * motion_scale, 0.05 * motion_scale, 0.05 * motion_scale)
         img1, img2 = bg.copy(), cv2.warpAffine(bg, A, (W, H), borderMode=cv2.BORDER_REFLECT)
         flow = grid @ A.T - grid[..., :2]
-        for _ in range(rng.integers(2, 6)):
+        layer1, layer2 = np.zeros((H, W), np.int32), np.zeros((H, W), np.int32)  # 0: background, k: shape k
+        for shape in range(1, rng.integers(2, 6) + 1):
             tex = src[rng.integers(len(src))]
             mask = np.zeros((H, W), np.uint8)
             centre = (int(rng.uniform(0.1, 0.9) * W), int(rng.uniform(0.1, 0.9) * H))
@@ -221,7 +231,14 @@ def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0):
             tex2 = cv2.warpAffine(tex, B, (W, H))
             img2[m2] = tex2[m2]
             flow[m1] = (grid @ B.T - grid[..., :2])[m1]
-        for lst, x in zip(out, (img1, img2, flow, np.ones((H, W, 1)))):
+            layer1[m1], layer2[m2] = shape, shape
+        valid = np.ones((H, W, 1))
+        if visible:
+            q = np.rint(grid[..., :2] + flow).astype(np.int64)
+            inside = (q[..., 0] >= 0) & (q[..., 0] < W) & (q[..., 1] >= 0) & (q[..., 1] < H)
+            seen = layer2[q[..., 1].clip(0, H - 1), q[..., 0].clip(0, W - 1)] == layer1
+            valid = (inside & seen)[..., None].astype(np.float64)
+        for lst, x in zip(out, (img1, img2, flow, valid)):
             lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
     return tuple(torch.stack(x) for x in out)
 
@@ -371,6 +388,10 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2, help="DataLoader workers generating flowsynth pairs")
     p.add_argument("--threads", type=int, default=2, help="torch threads in all (split between --jobs)")
     p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of its own")
+    p.add_argument("--mask", choices=MASKS, default="valid",
+                   help="pixels the loss covers in both training sets: 'valid' (flowsynth's valid_fw, every "
+                        "chairs2d pixel) or 'visible' (seen in both frames); a run with 'visible' writes "
+                        "results/learning_visible.json")
     args = p.parse_args()
     import numpy as np
     import torch
@@ -390,11 +411,12 @@ def main() -> None:
         t = time.perf_counter()
         synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers)
         gen_s = time.perf_counter() - t
-        fs_train = tuple(x[:pool] for x in synth)
+        fs_valid = tuple(x[:pool] for x in synth[:4])
+        fs_train = fs_valid if args.mask == "valid" else tuple(x[:pool] for x in synth[:3] + synth[4:])
         sources = synth[0][pool:]  # textures from flowsynth frames not trained on
         pilot = chairs2d_pairs(64, seed + 1, sources)
-        motion_scale = mean_flow(fs_train) / mean_flow(pilot)  # same mean |flow| as the flowsynth pool
-        chairs = chairs2d_pairs(pool, seed, sources, motion_scale)
+        motion_scale = mean_flow(fs_valid) / mean_flow(pilot)  # same mean |flow| as the flowsynth pool
+        chairs = chairs2d_pairs(pool, seed, sources, motion_scale, visible=args.mask == "visible")
         tests = test_sets(n_test, seed)
         zero = {k: float((torch.linalg.vector_norm(v[2], dim=1, keepdim=True) * v[3]).sum() / v[3].sum())
                 for k, v in tests.items()}
@@ -405,7 +427,9 @@ def main() -> None:
             res = {name: f.result() for name, f in futs.items()}
         mags = {name: mean_flow(d) for name, d in (("flowsynth", fs_train), ("chairs2d", chairs),
                                                     ("photos (test)", tests["resampled"]))}
+        trained = {name: float(d[3].mean()) for name, d in zip(names, (fs_train, chairs))}
         runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "mean_flow_px": mags,
+                     "trained_pixel_fraction": trained,
                      "chairs2d_motion_scale": motion_scale, "flowsynth_generation_s": gen_s})
         for kind in TESTS:
             row = {"seed": seed, "test": kind, "zero-flow": zero[kind],
@@ -429,11 +453,15 @@ def main() -> None:
                    "baseline better in every seed" if min(rs) > 1 else "seeds disagree")
         print(f"{kind} test, after {steps} steps: ratio flowsynth / chairs2d mean {m:.3f} "
               f"(min {min(rs):.3f}, max {max(rs):.3f}; {verdict})")
-    print("mean |flow| [px]: " + ", ".join(f"{k} {v:.2f}" for k, v in runs[0]["mean_flow_px"].items()))
-    write_json("learning", {"machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
-                            "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
-                            "photos": list(PHOTOS), "flowsynth_config": cfg.to_dict(), "runs": runs,
-                            "ratios_final": ratios, "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
+    print("mean |flow| [px] over the pixels trained on: " + ", ".join(f"{k} {v:.2f}" for k, v in
+                                                                   runs[0]["mean_flow_px"].items()))
+    print(f"loss mask {args.mask!r}; share of pixels trained on (seed {runs[0]['seed']}): " + ", ".join(
+        f"{k} {v:.3f}" for k, v in runs[0]["trained_pixel_fraction"].items()))
+    write_json("learning" if args.mask == "valid" else f"learning_{args.mask}", {
+        "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
+        "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test, "photos": list(PHOTOS),
+        "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
+        "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
 
 if __name__ == "__main__":
