@@ -171,3 +171,100 @@ def test_default_samples_carry_texture_in_every_render_mode():
         grey = np.mean([float(x.mean()) for x in rgb])
         print(mode, flat, grey)
         assert flat < 0.45 and 0.3 < grey < 0.7
+
+
+def _hash3(x, y, seed: int) -> np.ndarray:
+    """numpy port of flowsynth.kernels.texture.hash3 (lowbias32 finaliser), uint32 arithmetic."""
+    u = np.uint32
+    with np.errstate(over="ignore"):
+        h = u(seed % 2**32) * u(0x27D4EB2F) + np.asarray(x).astype(np.int64).astype(u) * u(0x165667B1)
+        h = (h ^ np.asarray(y).astype(np.int64).astype(u) * u(0x3C6EF372)) + u(0x7F4A7C15)
+        h = h ^ (h >> u(16))
+        h = h * u(0x7FEB352D)
+        h = h ^ (h >> u(15))
+        h = h * u(0x68E31DA4)
+        return h ^ (h >> u(16))
+
+
+def _worley(q: np.ndarray, seed: int) -> np.ndarray:
+    """Brute-force Worley cells: for each point, the value of the nearest jittered lattice feature among the
+    3x3 cells around it (the docstring of flowsynth.kernels.texture.cells), float64."""
+    unit = lambda h: (h >> np.uint32(8)).astype(np.float64) / 16777216.0
+    f = np.floor(q)
+    best = np.full(q.shape[:-1], np.inf)
+    value = np.zeros(q.shape[:-1])
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            cx, cy = f[..., 0] + dx, f[..., 1] + dy
+            px = cx + unit(_hash3(cx, cy, seed))
+            py = cy + unit(_hash3(cx, cy, seed + 1))
+            d2 = (q[..., 0] - px) ** 2 + (q[..., 1] - py) ** 2
+            nearer = d2 < best
+            best = np.where(nearer, d2, best)
+            value = np.where(nearer, unit(_hash3(cx, cy, seed + 2)), value)
+    return value
+
+
+def test_cells_match_a_brute_force_worley_reference():
+    """One octave of "cells" on a plane facing the camera, coarse enough that the octave is not faded: flat
+    mode under a white ambient light renders the pattern value itself (colours black and white). A numpy
+    Worley oracle at the pixel-centre points agrees except where a pixel centre lies within float32 rounding
+    of a cell border."""
+    W, H, seed = 128, 96, 12345
+    mat = {"texture": "cells", "octaves": 1, "scale": 2.5, "seed": seed, "colors": [[0.0] * 3, [1.0] * 3],
+           "specular": 0.0}
+    scene, P = tilted_plane(W, H, mat, tilt_deg=0.0)  # 0.4 m cells, ~11 px at 4 m: octave weight 1 everywhere
+    got = to_linear(fs.render(scene, ["rgb"], render_mode="flat")["rgb"])[0]  # red (= green = blue)
+    ref = _worley(pixel_centre_points(scene, P) * 2.5, seed)
+    agree = np.abs(got - ref) < 1e-4
+    print(f"cells: {agree.mean():.4f} of pixels agree, {len(np.unique(np.round(ref, 6)))} distinct cells")
+    assert len(np.unique(np.round(ref, 6))) > 60
+    assert agree.mean() > 0.995
+
+
+def _blend_mask(q: np.ndarray, seed: int, scale: float) -> np.ndarray:
+    """The blend mask w = smoothstep(0.4, 0.6, 3-octave noise) at object-plane points q (..., 2) [m], evaluated
+    by a kernel of this test from ``fractal`` itself (every octave fully present), not through planar_color."""
+    from flowsynth.kernels import wp_runtime
+
+    wp = wp_runtime()
+    from flowsynth.kernels.texture import F_NOISE, fractal
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def mask(q: wp.array[wp.vec2], seed: wp.int32, scale: wp.float32, out: wp.array[wp.float32]):
+        i = wp.tid()
+        out[i] = wp.smoothstep(0.4, 0.6, fractal(q[i] * scale, seed, 3, F_NOISE, 0.5, 0.0))
+
+    pts = wp.array(q.reshape(-1, 2).astype(np.float32), dtype=wp.vec2)
+    out = wp.zeros(len(pts), dtype=wp.float32)
+    wp.launch(mask, len(pts), [pts, seed, scale], [out])
+    return out.numpy().reshape(q.shape[:-1])
+
+
+def test_blend_is_its_layers_mixed_by_the_mask():
+    """A "blend" renders, at every pixel, a mix (1 - w) a + w b of what its two layers render alone (flat mode,
+    white ambient light: radiance = albedo), one w for all channels; where the mask (``_blend_mask``, computed
+    apart) is 0 or 1 the pixel is exactly that one layer, bit for bit (the kernel then looks up only that
+    layer), and both cases are common."""
+    W, H, mask_scale = 96, 72, 0.4
+    a = {"texture": "stripes", "scale": 3.0, "angle": 0.4, "seed": 1, "colors": [[0.9, 0.2, 0.1], [0.6, 0.5, 0.0]]}
+    b = {"texture": "value", "scale": 1.5, "octaves": 3, "seed": 2, "colors": [[0.1, 0.3, 0.9], [0.0, 0.9, 0.6]]}
+
+    def render(mat):  # a plane facing the camera: the mask's octaves (2.5 m .. 0.6 m) span 12+ px
+        scene, _ = tilted_plane(W, H, {**mat, "specular": 0.0}, tilt_deg=0.0)
+        return fs.render(scene, ["rgb"], render_mode="flat")["rgb"][0].numpy().astype(np.float64)
+
+    got = render({"texture": "blend", "layers": [a, b], "mask_scale": mask_scale, "seed": 3})
+    ra, rb = render(a), render(b)
+    w = _blend_mask(pixel_centre_points(*tilted_plane(W, H, a, tilt_deg=0.0)), 3, mask_scale)
+    lin = lambda c: np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    la, lb, lg = lin(ra), lin(rb), lin(got)
+    span = lb - la
+    ch = np.argmax(np.abs(span), 0)  # the channel where the layers differ most gives the mix weight
+    mix = np.take_along_axis((lg - la) / np.where(span == 0, 1, span), ch[None], 0)[0]
+    print(f"blend: mask 0 on {(w == 0).mean():.3f}, 1 on {(w == 1).mean():.3f}; max |mix - mask| "
+          f"{np.abs(mix - w).max():.2e}")
+    assert (w == 0).mean() > 0.05 and (w == 1).mean() > 0.05 and ((w > 0) & (w < 1)).mean() > 0.02
+    assert np.all(got[:, w == 0] == ra[:, w == 0]) and np.all(got[:, w == 1] == rb[:, w == 1])
+    assert np.abs(la + mix[None] * span - lg).max() < 1e-5  # one w for all three channels
+    assert np.abs(mix - w).max() < 0.02  # and it is the mask (float32 hit points against float64 centres)

@@ -1,0 +1,194 @@
+"""What procedural textures cost: one lookup in a kernel, and the shading of whole samples, on one pinned core.
+
+    python benchmarks/texture_speed.py [--quick]
+
+Shading is most of a default sample (flat mode, 320x240, 24 frames: the radiance kernel is about half of its
+CPU time), and in flat mode most of the shading is texture lookups. Two tables:
+
+(A "blend" material looks up only the layers its mask shows since 2026-11-24: where the mask weight is exactly 0
+or 1, one layer; the families table run at the revision before and after shows what that saves.)
+
+1. **Lookups** (``lookups``): a kernel evaluates one pattern at N random points, 5 octaves each (the frequency
+   doubling as in ``fractal``), once per variant, round-robin:
+   - ``cells`` as the library has it (the winning feature's value hashed once, after the 3x3 search) beside
+     ``cells_per_improvement`` (the form before 2026-11-24, in this file: the value hashed every time a nearer
+     feature is found); the outputs must be identical;
+   - ``wp.noise`` (Perlin, the "noise" family) and ``value_noise`` for scale.
+2. **Shading** (``families``): process CPU of ``flowsynth.shading.render_radiance`` per 2-frame 512x384
+   sample (flat mode, 20 objects, edge_spp 1, seed 0) with every object and wall given one texture family,
+   beside "solid" (x_solid: its time over solid's, the cost of the texture), and the default mix; and the
+   default config's whole sample with the radiance share.
+
+Writes benchmarks/results/texture_speed.json (quick: texture_speed_quick.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path[:0] = [str(HERE), str(HERE.parent)]
+from _common import machine_info, pin_single_core, print_table, time_round_robin, write_json
+
+PINNING = pin_single_core()
+
+import numpy as np
+
+from flowsynth.kernels import wp_runtime
+
+wp = wp_runtime()
+
+from flowsynth.kernels.texture import cells, hash3, unit, value_noise
+
+OCTAVES = 5
+FAMILIES = ("solid", "stripes", "checks", "value", "noise", "cells", "blend")
+
+
+@wp.func
+def cells_per_improvement(q: wp.vec2, seed: wp.int32) -> wp.float32:
+    """``flowsynth.kernels.texture.cells`` before 2026-11-24: the same cells, the value hashed on every
+    improvement."""
+    fx = wp.floor(q[0])
+    fy = wp.floor(q[1])
+    ix = wp.int32(fx)
+    iy = wp.int32(fy)
+    best = wp.float32(1.0e9)
+    value = wp.float32(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            h = hash3(ix + dx, iy + dy, seed)
+            px = fx + wp.float32(dx) + unit(h)
+            py = fy + wp.float32(dy) + unit(hash3(ix + dx, iy + dy, seed + 1))
+            d2 = (q[0] - px) * (q[0] - px) + (q[1] - py) * (q[1] - py)
+            if d2 < best:
+                best = d2
+                value = unit(hash3(ix + dx, iy + dy, seed + 2))
+    return value
+
+
+VARIANTS = ("cells", "cells_per_improvement", "wp.noise", "value_noise", "empty loop")
+
+
+@wp.kernel(enable_backward=False)
+def lookup_kernel(q: wp.array[wp.vec2], variant: wp.int32, out: wp.array[wp.float32]):
+    i = wp.tid()
+    p = q[i]
+    acc = wp.float32(0.0)
+    for o in range(OCTAVES):
+        seed = 7 + o
+        r = wp.float32(0.0)
+        if variant == 0:
+            r = cells(p, seed)
+        elif variant == 1:
+            r = cells_per_improvement(p, seed)
+        elif variant == 2:
+            r = wp.noise(wp.rand_init(seed, o), p)
+        elif variant == 3:
+            r = value_noise(p, seed)
+        acc += r
+        p = p * 2.0
+    out[i] = acc
+
+
+def lookups(n: int, rounds: int) -> list[dict]:
+    rng = np.random.default_rng(0)
+    q = wp.array(rng.uniform(-50.0, 50.0, (n, 2)).astype(np.float32), dtype=wp.vec2)
+    outs = {v: wp.zeros(n, dtype=wp.float32) for v in VARIANTS}
+
+    def run(k):
+        return lambda: wp.launch(lookup_kernel, n, [q, k], [outs[VARIANTS[k]]])
+
+    t = time_round_robin({v: run(k) for k, v in enumerate(VARIANTS)}, repeat=rounds, warmup=1)
+    same = np.array_equal(outs["cells"].numpy(), outs["cells_per_improvement"].numpy())
+    empty = t["empty loop"]["cpu_s"]
+    rows = []
+    for v in VARIANTS:
+        cpu = t[v]["cpu_s"]
+        rows.append({"variant": v, "cpu_ms": cpu * 1e3,
+                     "ns_per_octave": max(cpu - empty, 0.0) / (n * OCTAVES) * 1e9 if v != "empty loop" else None})
+    rows[0]["x_before"] = rows[1]["ns_per_octave"] / max(rows[0]["ns_per_octave"], 1e-12)
+    rows[0]["note"] = f"outputs identical to cells_per_improvement: {same}"
+    if not same:
+        raise SystemExit("cells differs from cells_per_improvement")
+    return rows
+
+
+def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
+    import torch
+
+    import flowsynth as fs
+    from flowsynth import shading
+
+    torch.set_num_threads(1)
+    spent = {"s": 0.0}
+    orig = shading.render_radiance
+
+    def timed(*a, **k):
+        c = time.process_time()
+        out = orig(*a, **k)
+        spent["s"] += time.process_time() - c
+        return out
+
+    shading.render_radiance = timed
+    sets = {"default mix": None, **{f: (f,) for f in FAMILIES}}
+    streams = {}
+    for name, fam in sets.items():
+        kw = {} if fam is None else {"texture_families": fam}
+        cfg = fs.BouncingThingsConfig(width=width, height=height, num_frames=2, render_mode="flat", edge_spp=1,
+                                      num_objects=(20, 20), max_objects=32, **kw)
+        streams[name] = fs.datasets.BouncingThings(cfg, outputs=["rgb"], seed=0, threads=1)
+    default = fs.datasets.BouncingThings(fs.BouncingThingsConfig(), seed=0, threads=1)
+    streams["default config, whole sample"] = default
+
+    def run(name):
+        def go():
+            spent["s"] = 0.0
+            c = time.process_time()
+            for i in range(samples):
+                streams[name].sample(i)
+            go.sample_s.append((time.process_time() - c) / samples)
+            go.radiance_s.append(spent["s"] / samples)
+        go.sample_s, go.radiance_s = [], []
+        return go
+
+    fns = {name: run(name) for name in streams}
+    time_round_robin(fns, repeat=rounds, warmup=1)
+    shading.render_radiance = orig
+    solid = float(np.median(fns["solid"].radiance_s))
+    rows = []
+    for name, fn in fns.items():
+        rad = float(np.median(fn.radiance_s))
+        smp = float(np.median(fn.sample_s))
+        whole = name.startswith("default config")
+        rows.append({"textures": name, "radiance_cpu_ms": rad * 1e3, "x_solid": None if whole else rad / solid,
+                     "sample_cpu_ms": smp * 1e3, "radiance_share": rad / smp})
+    return rows
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true")
+    args = p.parse_args()
+    n, rounds, (W, H), samples = (100_000, 3, (256, 192), 2) if args.quick else (400_000, 5, (512, 384), 3)
+    t0 = time.perf_counter()
+    look = lookups(n, rounds)
+    print(f"\nOne lookup of {OCTAVES} octaves at {n} random points, one pinned core (affinity "
+          f"{PINNING['affinity']}); medians of {rounds} "
+          "round-robin rounds of process CPU time; ns_per_octave net of the empty loop; x_before: the "
+          "previous form's time over this one's")
+    print_table(look, ["variant", "cpu_ms", "ns_per_octave", "x_before", "note"])
+    fam = families(W, H, samples, rounds)
+    print(f"\nrender_radiance per 2-frame {W}x{H} sample (flat, 20 objects, edge_spp 1, seed 0, {samples} samples a "
+          f"round, medians of {rounds} rounds), every surface one family; last row: BouncingThingsConfig() "
+          "(320x240, 24 frames, flat, edge_spp 4), whole sample")
+    print_table(fam, ["textures", "radiance_cpu_ms", "x_solid", "sample_cpu_ms", "radiance_share"])
+    write_json("texture_speed_quick" if args.quick else "texture_speed",
+               {"machine": machine_info(), "pinning": PINNING, "octaves": OCTAVES, "points": n, "rounds": rounds,
+                "resolution": [W, H], "lookups": look, "families": fam, "seconds": time.perf_counter() - t0})
+
+
+if __name__ == "__main__":
+    main()
