@@ -26,7 +26,7 @@ from _common import RESULTS_DIR, machine_info
 
 BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "ray_export",
               "scaling", "physics_graph", "png_level", "tiles", "outputs_cost", "datastats", "learning",
-              "texture", "texture_speed", "cycles"]
+              "texture", "shading_cost", "cycles"]
 # Benchmarks that need an optional outside program print a line starting with this and exit 0 without it
 # (cycles: Blender); their row then reads "skipped".
 SKIP_MARK = "SKIPPED"

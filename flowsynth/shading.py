@@ -33,6 +33,9 @@ REINHARD_WHITE = 4.0
 MAX_TIME_SLICES = 64
 # Rays end at this distance [m] (beyond any scene).
 MAX_RAY_DIST = 1.0e9
+# Camera rays of the shading kernel walk the G-buffer cast's tile lists when there is no motion blur (False: the
+# top-level BVH, as with motion blur; the same hits, tests/test_rgb.py). benchmarks/shading_cost.py measures both.
+CAMERA_RAY_TILES = True
 
 
 def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch.Tensor:
@@ -71,6 +74,7 @@ def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float 
 def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> np.ndarray:
     """Linear radiance of every pixel, (T, H, W, 3) float32, finite and >= 0 (before tone mapping)."""
     wp = wp_runtime()
+    from flowsynth.kernels.raycast import TileLists
     from flowsynth.kernels.shade import ShadeScene, shade_kernel
 
     T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
@@ -93,6 +97,10 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
 
     sc = ShadeScene()
     sc.inst, sc.max_t = accel.instances(), MAX_RAY_DIST
+    # Without motion blur, camera rays (extra samples of edge pixels, spp > 1) walk the G-buffer cast's tile lists
+    # (sample offsets stay within a pixel of the tile, as the lists allow) instead of the top-level BVH.
+    sc.use_tiles = int(shutter == 0 and CAMERA_RAY_TILES)
+    sc.tiles = accel.tile_lists(scene.camera) if sc.use_tiles else TileLists()
     mat_f, mat_i, img_data, img_info = pack_materials(scene)
     sc.mat_f = wp.array(mat_f, dtype=wp.float32, device=device)
     sc.mat_i = wp.array(mat_i, dtype=wp.int32, device=device)

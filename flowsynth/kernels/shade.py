@@ -25,7 +25,7 @@ import warp as wp
 
 from flowsynth.kernels import RENDER_MODES
 from flowsynth.kernels.blas import eval_position, face_vertices
-from flowsynth.kernels.raycast import Instances, Pinhole, trace_any, trace_closest
+from flowsynth.kernels.raycast import Instances, Pinhole, TileLists, closest_from_camera, trace_any, trace_closest
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
 __all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel", "tonemap_kernel"]
@@ -73,6 +73,8 @@ class ShadeScene:
     light_irr: wp.array[wp.vec3]
     sky: wp.vec3
     pix_angle: wp.float32
+    tiles: TileLists  # the G-buffer cast's per-tile candidate lists (when use_tiles)
+    use_tiles: wp.int32  # 1: camera rays walk ``tiles`` near to far (no motion blur: group g is frame g)
 
 
 @wp.func
@@ -364,10 +366,19 @@ def shade_kernel(mode: str):
                     du = (wp.float32(k) + wp.randf(rng)) / wp.float32(ns)
                     dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
                     d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
-                    item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root,
-                                                             sc.inst.blas_bounds, sc.inst.blas_kids, sc.inst.blas_tris,
-                                                             sc.inst.blas_face, sc.inst.obj_T_ref, sc.inst.thin,
-                                                             sc.inst.obj_lo, sc.inst.obj_hi, wp.vec3(0.0), d, sc.max_t)
+                    bu = wp.float32(0.0)
+                    bv = wp.float32(0.0)
+                    if sc.use_tiles != 0:  # the primary cast's walk: candidates of the pixel's tile, near to far
+                        lst = (g * sc.tiles.tiles_y + (i >> sc.tiles.tile_shift)) * sc.tiles.tiles_x + (
+                            j >> sc.tiles.tile_shift)
+                        item, dist, face, bu, bv = closest_from_camera(sc.inst, g, sc.tiles.start, sc.tiles.items, lst,
+                                                                       d, sc.max_t)
+                    else:
+                        item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root,
+                                                                 sc.inst.blas_bounds, sc.inst.blas_kids,
+                                                                 sc.inst.blas_tris, sc.inst.blas_face,
+                                                                 sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo,
+                                                                 sc.inst.obj_hi, wp.vec3(0.0), d, sc.max_t)
                     if item >= 0:
                         p_obj = eval_position(sc.inst.blas_tris, sc.inst.blas_slot, sc.inst.item_face0[item], face,
                                               bu, bv)

@@ -1,9 +1,9 @@
-"""What procedural textures cost: one lookup in a kernel, and the shading of whole samples, on one pinned core.
+"""What shading costs, on one pinned core: texture lookups, texture families, and the shading kernel's camera rays.
 
-    python benchmarks/texture_speed.py [--quick]
+    python benchmarks/shading_cost.py [--quick]
 
 Shading is most of a default sample (flat mode, 320x240, 24 frames: the radiance kernel is about half of its
-CPU time), and in flat mode most of the shading is texture lookups. Two tables:
+CPU time), and in flat mode most of the shading is texture lookups. Three tables:
 
 (A "blend" material looks up only the layers its mask shows since 2026-11-24: where the mask weight is exactly 0
 or 1, one layer; the families table run at the revision before and after shows what that saves.)
@@ -18,8 +18,14 @@ or 1, one layer; the families table run at the revision before and after shows w
    sample (flat mode, 20 objects, edge_spp 1, seed 0) with every object and wall given one texture family,
    beside "solid" (x_solid: its time over solid's, the cost of the texture), and the default mix; and the
    default config's whole sample with the radiance share.
+3. **Camera rays** (``camera_rays``): the shading kernel traces rays of its own from the camera for the extra
+   samples of edge pixels (``edge_spp``) and for spp > 1. Without motion blur they walk the G-buffer cast's
+   screen-tile lists near to far (``flowsynth.shading.CAMERA_RAY_TILES``, since 2026-11-24) instead of the
+   top-level BVH; render_radiance per sample both ways, round-robin, with the images compared (identical).
+   Settings: the default config (flat, edge_spp 4), issue 13's full sample (512x384, 2 frames, direct, 20
+   objects, edge_spp 4) and the same with spp 4.
 
-Writes benchmarks/results/texture_speed.json (quick: texture_speed_quick.json).
+Writes benchmarks/results/shading_cost.json (quick: shading_cost_quick.json).
 """
 
 from __future__ import annotations
@@ -168,6 +174,63 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
     return rows
 
 
+def _tiles_vs_bvh(ds, scenes: list, rounds: int) -> tuple[float, float, bool]:
+    """Median render_radiance CPU per scene [s] with camera rays through the tile lists and through the BVH,
+    alternating each round (one untimed warm-up round), and whether every image came out identical."""
+    import torch
+
+    from flowsynth import shading
+    from flowsynth.render import render_plan
+
+    orig = shading.render_radiance
+    spent = {"s": 0.0}
+
+    def timed(*a, **k):
+        c = time.process_time()
+        out = orig(*a, **k)
+        spent["s"] += time.process_time() - c
+        return out
+
+    per = {True: [], False: []}
+    images = {}
+    shading.render_radiance = timed
+    try:
+        for r in range(rounds + 1):
+            for tiles in (True, False):
+                shading.CAMERA_RAY_TILES = tiles
+                spent["s"] = 0.0
+                images[tiles] = [render_plan(sc, ds.plan)["rgb"] for sc in scenes]
+                if r:
+                    per[tiles].append(spent["s"] / len(scenes))
+    finally:
+        shading.render_radiance = orig
+        shading.CAMERA_RAY_TILES = True
+    same = all(torch.equal(a, b) for a, b in zip(images[True], images[False]))
+    return float(np.median(per[True])), float(np.median(per[False])), same
+
+
+def camera_rays(samples: int, rounds: int, quick: bool) -> list[dict]:
+    import torch
+
+    import flowsynth as fs
+
+    torch.set_num_threads(1)
+    W, H = (256, 192) if quick else (512, 384)
+    full = dict(width=W, height=H, num_frames=2, render_mode="direct", num_objects=(20, 20), max_objects=32)
+    settings = {"default config (flat, edge_spp 4)": fs.BouncingThingsConfig(),
+                f"full sample {W}x{H} direct, edge_spp 4": fs.BouncingThingsConfig(**full),
+                f"full sample {W}x{H} direct, spp 4": fs.BouncingThingsConfig(**full, spp=4)}
+    rows = []
+    for name, cfg in settings.items():
+        ds = fs.datasets.BouncingThings(cfg, outputs=["rgb"], seed=0, threads=1)
+        t, b, same = _tiles_vs_bvh(ds, [ds.scene(i) for i in range(samples)], rounds)
+        if not same:
+            raise SystemExit(f"{name}: the tile walk and the BVH walk rendered different images")
+        rows.append({"setting": name, "bvh_radiance_ms": b * 1e3, "tiles_radiance_ms": t * 1e3, "x_bvh": b / t,
+                     "images_identical": same})
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -185,9 +248,14 @@ def main() -> None:
           f"round, medians of {rounds} rounds), every surface one family; last row: BouncingThingsConfig() "
           "(320x240, 24 frames, flat, edge_spp 4), whole sample")
     print_table(fam, ["textures", "radiance_cpu_ms", "x_solid", "sample_cpu_ms", "radiance_share"])
-    write_json("texture_speed_quick" if args.quick else "texture_speed",
+    cam = camera_rays(samples, rounds, args.quick)
+    print(f"\nrender_radiance per sample [ms], camera rays through the top-level BVH vs the tile lists ({samples} "
+          f"samples a round, medians of {rounds} round-robin rounds, process CPU); x_bvh: BVH time over tiles time")
+    print_table(cam, ["setting", "bvh_radiance_ms", "tiles_radiance_ms", "x_bvh", "images_identical"])
+    write_json("shading_cost_quick" if args.quick else "shading_cost",
                {"machine": machine_info(), "pinning": PINNING, "octaves": OCTAVES, "points": n, "rounds": rounds,
-                "resolution": [W, H], "lookups": look, "families": fam, "seconds": time.perf_counter() - t0})
+                "resolution": [W, H], "lookups": look, "families": fam, "camera_rays": cam,
+                "seconds": time.perf_counter() - t0})
 
 
 if __name__ == "__main__":
