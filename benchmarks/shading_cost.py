@@ -231,31 +231,45 @@ def camera_rays(samples: int, rounds: int, quick: bool) -> list[dict]:
     return rows
 
 
+TABLES = ("lookups", "families", "camera_rays")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--tables", default=",".join(TABLES),
+                   help="comma-separated subset of " + ",".join(TABLES) + " (the families table alone also runs "
+                        "against an older flowsynth: a before/after of the texture kernels)")
     args = p.parse_args()
+    tables = args.tables.split(",")
+    if set(tables) - set(TABLES):
+        raise SystemExit(f"--tables: unknown {sorted(set(tables) - set(TABLES))}; choose from {TABLES}")
     n, rounds, (W, H), samples = (100_000, 3, (256, 192), 2) if args.quick else (400_000, 5, (512, 384), 3)
     t0 = time.perf_counter()
-    look = lookups(n, rounds)
-    print(f"\nOne lookup of {OCTAVES} octaves at {n} random points, one pinned core (affinity "
-          f"{PINNING['affinity']}); medians of {rounds} "
-          "round-robin rounds of process CPU time; ns_per_octave net of the empty loop; x_before: the "
-          "previous form's time over this one's")
-    print_table(look, ["variant", "cpu_ms", "ns_per_octave", "x_before", "note"])
-    fam = families(W, H, samples, rounds)
-    print(f"\nrender_radiance per 2-frame {W}x{H} sample (flat, 20 objects, edge_spp 1, seed 0, {samples} samples a "
-          f"round, medians of {rounds} rounds), every surface one family; last row: BouncingThingsConfig() "
-          "(320x240, 24 frames, flat, edge_spp 4), whole sample")
-    print_table(fam, ["textures", "radiance_cpu_ms", "x_solid", "sample_cpu_ms", "radiance_share"])
-    cam = camera_rays(samples, rounds, args.quick)
-    print(f"\nrender_radiance per sample [ms], camera rays through the top-level BVH vs the tile lists ({samples} "
-          f"samples a round, medians of {rounds} round-robin rounds, process CPU); x_bvh: BVH time over tiles time")
-    print_table(cam, ["setting", "bvh_radiance_ms", "tiles_radiance_ms", "x_bvh", "images_identical"])
-    write_json("shading_cost_quick" if args.quick else "shading_cost",
-               {"machine": machine_info(), "pinning": PINNING, "octaves": OCTAVES, "points": n, "rounds": rounds,
-                "resolution": [W, H], "lookups": look, "families": fam, "camera_rays": cam,
-                "seconds": time.perf_counter() - t0})
+    out = {"machine": machine_info(), "pinning": PINNING, "octaves": OCTAVES, "points": n, "rounds": rounds,
+           "resolution": [W, H]}
+    if "lookups" in tables:
+        out["lookups"] = lookups(n, rounds)
+        print(f"\nOne lookup of {OCTAVES} octaves at {n} random points, one pinned core (affinity "
+              f"{PINNING['affinity']}); medians of {rounds} round-robin rounds of process CPU time; ns_per_octave net "
+              "of the empty loop; x_before: the previous form's time over this one's")
+        print_table(out["lookups"], ["variant", "cpu_ms", "ns_per_octave", "x_before", "note"])
+    if "families" in tables:
+        out["families"] = families(W, H, samples, rounds)
+        print(f"\nrender_radiance per 2-frame {W}x{H} sample (flat, 20 objects, edge_spp 1, seed 0, {samples} "
+              f"samples a round, medians of {rounds} rounds), every surface one family; last row: "
+              "BouncingThingsConfig() (320x240, 24 frames, flat, edge_spp 4), whole sample")
+        print_table(out["families"], ["textures", "radiance_cpu_ms", "x_solid", "sample_cpu_ms", "radiance_share"])
+    if "camera_rays" in tables:
+        out["camera_rays"] = camera_rays(samples, rounds, args.quick)
+        print(f"\nrender_radiance per sample [ms], camera rays through the top-level BVH vs the tile lists "
+              f"({samples} samples a round, medians of {rounds} round-robin rounds, process CPU); x_bvh: BVH time "
+              "over tiles time")
+        print_table(out["camera_rays"], ["setting", "bvh_radiance_ms", "tiles_radiance_ms", "x_bvh",
+                                         "images_identical"])
+    out["seconds"] = time.perf_counter() - t0
+    write_json(("shading_cost_quick" if args.quick else "shading_cost") + ("" if tables == list(TABLES) else
+                                                                         "_" + "_".join(tables)), out)
 
 
 if __name__ == "__main__":
