@@ -392,6 +392,8 @@ def main() -> None:
                    help="pixels the loss covers in both training sets: 'valid' (flowsynth's valid_fw, every "
                         "chairs2d pixel) or 'visible' (seen in both frames); a run with 'visible' writes "
                         "results/learning_visible.json")
+    p.add_argument("--tag", default="", help="appended to the JSON's name (results/learning[_visible]_TAG.json), "
+                                             "e.g. for a run of further seeds beside the main one")
     args = p.parse_args()
     import numpy as np
     import torch
@@ -457,7 +459,7 @@ def main() -> None:
                                                                    runs[0]["mean_flow_px"].items()))
     print(f"loss mask {args.mask!r}; share of pixels trained on (seed {runs[0]['seed']}): " + ", ".join(
         f"{k} {v:.3f}" for k, v in runs[0]["trained_pixel_fraction"].items()))
-    write_json("learning" if args.mask == "valid" else f"learning_{args.mask}", {
+    write_json("learning" + ("" if args.mask == "valid" else f"_{args.mask}") + (f"_{args.tag}" if args.tag else ""), {
         "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
         "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test, "photos": list(PHOTOS),
         "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
