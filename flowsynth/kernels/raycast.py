@@ -21,8 +21,8 @@ import warp as wp
 
 from flowsynth.kernels.blas import blas_any, blas_closest, eval_position, face_vertices
 
-__all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "trace_any", "trace_closest",
-           "visibility_kernel"]
+__all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "tile_list", "trace_any",
+           "trace_closest", "visibility_kernel"]
 
 
 @wp.struct
@@ -61,6 +61,13 @@ class TileLists:
     tiles_x: wp.int32
     tiles_y: wp.int32
     tile_shift: wp.int32  # log2 of the tile size [px] (a power of two: a shift, not an integer division)
+
+
+@wp.func
+def tile_list(tiles_x: wp.int32, tiles_y: wp.int32, tile_shift: wp.int32, f: wp.int32, i: wp.int32, j: wp.int32):
+    """Index of the ``TileLists`` list of frame f's tile holding pixel (row i, col j). Takes the struct's scalars,
+    not the struct (a struct argument is copied per call)."""
+    return (f * tiles_y + (i >> tile_shift)) * tiles_x + (j >> tile_shift)
 
 
 @wp.struct
@@ -341,7 +348,7 @@ def primary_kernel(want_normals: bool, want_points: bool):
         i += band0
         for j in range(dist.shape[2]):
             d = pixel_ray(i, j, cam)
-            lst = (f * tiles.tiles_y + (i >> tiles.tile_shift)) * tiles.tiles_x + (j >> tiles.tile_shift)
+            lst = tile_list(tiles.tiles_x, tiles.tiles_y, tiles.tile_shift, f, i, j)
             item, t, face, u, v = closest_from_camera(inst, f, tiles.start, tiles.items, lst, d, max_t)
             if item < 0:
                 item_out[f, i, j] = -1

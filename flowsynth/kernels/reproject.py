@@ -36,7 +36,7 @@ import warp as wp
 
 from flowsynth.kernels.blas import blas_any
 from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_silhouette, box_entry_inv, inverse_dir,
-                                       trace_any)
+                                       tile_list, trace_any)
 
 __all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "pair_kernel"]
 
@@ -313,8 +313,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                             if not blocked:
                                 jj = wp.min(wp.int32(wp.floor(u + wp.float64(0.5))), W - 1)
                                 ii = wp.min(wp.int32(wp.floor(v + wp.float64(0.5))), H - 1)
-                                sh = tiles.tile_shift
-                                lst = (r * tiles.tiles_y + (ii >> sh)) * tiles.tiles_x + (jj >> sh)
+                                lst = tile_list(tiles.tiles_x, tiles.tiles_y, tiles.tile_shift, r, ii, jj)
                                 a = tiles.start[lst]
                                 b = tiles.start[lst + 1]
                                 # the lists run near to far: nothing to test when the first box starts beyond the end

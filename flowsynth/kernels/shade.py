@@ -25,7 +25,8 @@ import warp as wp
 
 from flowsynth.kernels import RENDER_MODES
 from flowsynth.kernels.blas import eval_position, face_vertices
-from flowsynth.kernels.raycast import Instances, Pinhole, TileLists, closest_from_camera, trace_any, trace_closest
+from flowsynth.kernels.raycast import (Instances, Pinhole, TileLists, closest_from_camera, tile_list, trace_any,
+                                       trace_closest)
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
 __all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel", "tonemap_kernel"]
@@ -369,8 +370,7 @@ def shade_kernel(mode: str):
                     bu = wp.float32(0.0)
                     bv = wp.float32(0.0)
                     if sc.use_tiles != 0:  # the primary cast's walk: candidates of the pixel's tile, near to far
-                        lst = (g * sc.tiles.tiles_y + (i >> sc.tiles.tile_shift)) * sc.tiles.tiles_x + (
-                            j >> sc.tiles.tile_shift)
+                        lst = tile_list(sc.tiles.tiles_x, sc.tiles.tiles_y, sc.tiles.tile_shift, g, i, j)
                         item, dist, face, bu, bv = closest_from_camera(sc.inst, g, sc.tiles.start, sc.tiles.items, lst,
                                                                        d, sc.max_t)
                     else:
