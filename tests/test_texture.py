@@ -252,13 +252,12 @@ def test_blend_is_its_layers_mixed_by_the_mask():
 
     def render(mat):  # a plane facing the camera: the mask's octaves (2.5 m .. 0.6 m) span 12+ px
         scene, _ = tilted_plane(W, H, {**mat, "specular": 0.0}, tilt_deg=0.0)
-        return fs.render(scene, ["rgb"], render_mode="flat")["rgb"][0].numpy().astype(np.float64)
+        return fs.render(scene, ["rgb"], render_mode="flat")["rgb"]
 
-    got = render({"texture": "blend", "layers": [a, b], "mask_scale": mask_scale, "seed": 3})
-    ra, rb = render(a), render(b)
+    rgb = [render(m) for m in ({"texture": "blend", "layers": [a, b], "mask_scale": mask_scale, "seed": 3}, a, b)]
+    got, ra, rb = (x[0].numpy() for x in rgb)  # frame 0, sRGB-encoded, (3, H, W)
+    lg, la, lb = (to_linear(x) for x in rgb)
     w = _blend_mask(pixel_centre_points(*tilted_plane(W, H, a, tilt_deg=0.0)), 3, mask_scale)
-    lin = lambda c: np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    la, lb, lg = lin(ra), lin(rb), lin(got)
     span = lb - la
     ch = np.argmax(np.abs(span), 0)  # the channel where the layers differ most gives the mix weight
     mix = np.take_along_axis((lg - la) / np.where(span == 0, 1, span), ch[None], 0)[0]
