@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -122,15 +123,14 @@ def lookups(n: int, rounds: int) -> list[dict]:
     return rows
 
 
-def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
-    import torch
-
-    import flowsynth as fs
+@contextmanager
+def radiance_timer():
+    """Wraps ``flowsynth.shading.render_radiance`` (which ``render_rgb`` calls) for the ``with`` block: yields a
+    dict whose "s" the wrapper adds each call's process CPU time to; the original is put back on exit."""
     from flowsynth import shading
 
-    torch.set_num_threads(1)
-    spent = {"s": 0.0}
     orig = shading.render_radiance
+    spent = {"s": 0.0}
 
     def timed(*a, **k):
         c = time.process_time()
@@ -139,6 +139,18 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
         return out
 
     shading.render_radiance = timed
+    try:
+        yield spent
+    finally:
+        shading.render_radiance = orig
+
+
+def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
+    import torch
+
+    import flowsynth as fs
+
+    torch.set_num_threads(1)
     sets = {"default mix": None, **{f: (f,) for f in FAMILIES}}
     streams = {}
     for name, fam in sets.items():
@@ -149,7 +161,7 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
     default = fs.datasets.BouncingThings(fs.BouncingThingsConfig(), seed=0, threads=1)
     streams["default config, whole sample"] = default
 
-    def run(name):
+    def run(name, spent):
         def go():
             spent["s"] = 0.0
             c = time.process_time()
@@ -160,9 +172,9 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
         go.sample_s, go.radiance_s = [], []
         return go
 
-    fns = {name: run(name) for name in streams}
-    time_round_robin(fns, repeat=rounds, warmup=1)
-    shading.render_radiance = orig
+    with radiance_timer() as spent:
+        fns = {name: run(name, spent) for name in streams}
+        time_round_robin(fns, repeat=rounds, warmup=1)
     solid = float(np.median(fns["solid"].radiance_s))
     rows = []
     for name, fn in fns.items():
@@ -182,29 +194,19 @@ def _tiles_vs_bvh(ds, scenes: list, rounds: int) -> tuple[float, float, bool]:
     from flowsynth import shading
     from flowsynth.render import render_plan
 
-    orig = shading.render_radiance
-    spent = {"s": 0.0}
-
-    def timed(*a, **k):
-        c = time.process_time()
-        out = orig(*a, **k)
-        spent["s"] += time.process_time() - c
-        return out
-
     per = {True: [], False: []}
     images = {}
-    shading.render_radiance = timed
-    try:
-        for r in range(rounds + 1):
-            for tiles in (True, False):
-                shading.CAMERA_RAY_TILES = tiles
-                spent["s"] = 0.0
-                images[tiles] = [render_plan(sc, ds.plan)["rgb"] for sc in scenes]
-                if r:
-                    per[tiles].append(spent["s"] / len(scenes))
-    finally:
-        shading.render_radiance = orig
-        shading.CAMERA_RAY_TILES = True
+    with radiance_timer() as spent:
+        try:
+            for r in range(rounds + 1):
+                for tiles in (True, False):
+                    shading.CAMERA_RAY_TILES = tiles
+                    spent["s"] = 0.0
+                    images[tiles] = [render_plan(sc, ds.plan)["rgb"] for sc in scenes]
+                    if r:
+                        per[tiles].append(spent["s"] / len(scenes))
+        finally:
+            shading.CAMERA_RAY_TILES = True
     same = all(torch.equal(a, b) for a, b in zip(images[True], images[False]))
     return float(np.median(per[True])), float(np.median(per[False])), same
 
