@@ -35,6 +35,12 @@ steps, so the learning curve shows what a shorter budget would have said. The tw
 each in a process of its own (``--jobs``). Reports the test EPE of zero flow, of the untrained net, of the net
 trained on each set along the curve, and the ratio flowsynth / chairs2d (< 1: flowsynth trains the better flow
 network), per seed. Writes results/learning.json.
+
+``--summarize`` trains nothing: it pools the seeds of every results/learning*.json of one loss mask (runs of
+further seeds written with ``--tag``), checks that they share one protocol (steps, batch, pool, resolution, test
+pairs and the flowsynth config), and prints per test the ratio of each seed, their geometric mean with a 95%
+confidence interval, how many seeds favour flowsynth, a one-sample t-test of the log ratios and a Wilcoxon
+signed-rank test (scipy). Writes results/learning_summary.json.
 """
 
 from __future__ import annotations
@@ -379,6 +385,62 @@ def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, thre
             "parameters": sum(p.numel() for p in net.parameters())}
 
 
+PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "flowsynth_config")
+
+
+def summarize(mask: str) -> dict:
+    """Pool the seeds of every results/learning*.json written with loss mask ``mask`` (module docstring)."""
+    import json
+
+    import numpy as np
+    from scipy import stats
+
+    from _common import RESULTS_DIR
+
+    files = sorted(f for f in RESULTS_DIR.glob("learning*.json") if f.stem != "learning_summary")
+    runs, protocol, used = {}, None, []
+    for f in files:
+        d = json.loads(f.read_text())
+        if d.get("mask", "valid") != mask:
+            continue
+        proto = {k: d.get(k) for k in PROTOCOL}
+        if protocol is None:
+            protocol = proto
+        elif proto != protocol:
+            diff = sorted(k for k in PROTOCOL if proto[k] != protocol[k])
+            raise SystemExit(f"{f.name} was run under another protocol than {used[0]} (differs in {diff}); "
+                             f"move one of them out of {RESULTS_DIR} to summarise")
+        used.append(f.name)
+        for r in d["runs"]:
+            if r["seed"] in runs:
+                raise SystemExit(f"seed {r['seed']} is in {f.name} and in an earlier file")
+            runs[r["seed"]] = {k: r["results"]["flowsynth"]["curve"][-1][k] / r["results"]["chairs2d"]["curve"][-1][k]
+                               for k in TESTS}
+    if len(runs) < 2:
+        raise SystemExit(f"need runs of at least 2 seeds with mask {mask!r} in {RESULTS_DIR}, found {len(runs)}")
+    seeds = sorted(runs)
+    rows, out = [], {}
+    for kind in TESTS:
+        r = np.array([runs[s][kind] for s in seeds])
+        logs = np.log(r)
+        n = len(logs)
+        half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n)
+        t = stats.ttest_1samp(logs, 0.0)
+        w = stats.wilcoxon(logs)
+        out[kind] = {"ratios": dict(zip(seeds, r.tolist())), "geometric_mean": float(np.exp(logs.mean())),
+                     "ci95": [float(np.exp(logs.mean() - half)), float(np.exp(logs.mean() + half))],
+                     "flowsynth_better": int((r < 1).sum()), "t": float(t.statistic), "t_p": float(t.pvalue),
+                     "wilcoxon_p": float(w.pvalue)}
+        o = out[kind]
+        rows.append({"test": kind, "seeds": n, "flowsynth better": f"{o['flowsynth_better']} of {n}",
+                     "geo. mean": o["geometric_mean"], "95% CI": f"{o['ci95'][0]:.3f}-{o['ci95'][1]:.3f}",
+                     "t": o["t"], "p (t)": o["t_p"], "p (Wilcoxon)": o["wilcoxon_p"]})
+    print(f"flowsynth / chairs2d test EPE after {protocol['steps']} steps, loss mask {mask!r}, seeds {seeds} from "
+          f"{', '.join(used)} (< 1: flowsynth trains the better net; tests of the log ratios, two-sided)")
+    print_table(rows, list(rows[0]))
+    return {"mask": mask, "files": used, "seeds": seeds, "protocol": protocol, "tests": out}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -394,7 +456,12 @@ def main() -> None:
                         "results/learning_visible.json")
     p.add_argument("--tag", default="", help="appended to the JSON's name (results/learning[_visible]_TAG.json), "
                                              "e.g. for a run of further seeds beside the main one")
+    p.add_argument("--summarize", action="store_true",
+                   help="train nothing: pool the seeds of every results/learning*.json of --mask and test the ratios")
     args = p.parse_args()
+    if args.summarize:
+        write_json("learning_summary" + ("" if args.mask == "valid" else f"_{args.mask}"), summarize(args.mask))
+        return
     import numpy as np
     import torch
     from concurrent.futures import ProcessPoolExecutor
