@@ -29,8 +29,8 @@ import time
 
 T_SCRIPT = time.time()
 
-import bpy  # noqa: E402
-from mathutils import Matrix  # noqa: E402
+import bpy
+from mathutils import Matrix
 
 SENSOR_WIDTH = 36.0  # [mm]; any value works, the focal length is set relative to it
 

@@ -13,8 +13,8 @@ would otherwise find them built (the previous version of this script did: its va
 were ~0.05-0.1 s per T=24 sample at 256x192 too cheap). Goals (issue 17): stereo <= 2x the
 mono cost, scene flow and one extra gap <= +15 % each, 256 tracks over 24 frames <= +20 %. The goal is judged
 on process CPU time: every variant renders the same scenes (T=2: 7, T=24: 3), each scene 3 times at T=24 (2 at
-T=2) in round-robin order, rotated each round; each (variant, scene) keeps its fastest repeat, since load on a shared machine only
-ever adds time, and the ratio is the total over the scenes to the base's total. Process CPU time (the work,
+T=2) in round-robin order, rotated each round; each (variant, scene) keeps its fastest repeat, since load on a shared
+machine only ever adds time, and the ratio is the total over the scenes to the base's total. Process CPU time (the work,
 all threads) rather than wall time, which on the shared 2-core machine mostly measures the other processes.
 
 Writes benchmarks/results/outputs_cost.json (or outputs_cost_quick.json) with the load average.
@@ -85,7 +85,7 @@ def main() -> None:
         res = time_round_robin(fns, repeat=scenes * reps, warmup=warmup, rotate=True)
         scene_of_round = [(k + warmup) % scenes for k in range(scenes * reps)]
 
-        def per_scene_min(times):
+        def per_scene_min(times, scene_of_round=scene_of_round, scenes=scenes):
             """Each scene's fastest repeat: on a shared machine noise only ever adds time."""
             return [min(t for t, sc in zip(times, scene_of_round) if sc == j) for j in range(scenes)]
 
@@ -102,9 +102,9 @@ def main() -> None:
                          "scene_of_round": scene_of_round})
     load = os.getloadavg()
     print(f"\nWhat each output adds to a sample at {W}x{H} (scene sampling + render; process CPU time (all threads: "
-          f"the work) and wall time: each scene's fastest of its repeats, averaged over the scenes; vs base = total over "
-          f"the same scenes / the base's total, and the range of the per-scene ratios; {os.cpu_count()} cores shared, "
-          f"load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}, so wall time is the noisier)")
+          f"the work) and wall time: each scene's fastest of its repeats, averaged over the scenes; vs base = total "
+          f"over the same scenes / the base's total, and the range of the per-scene ratios; {os.cpu_count()} cores "
+          f"shared, load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}, so wall time is the noisier)")
     print_table(rows, ["T", "variant", "cpu s", "wall s", "cpu vs base", "per-scene range", "wall vs base", "goal",
                        "met (cpu)"])
     write_json("outputs_cost_quick" if args.quick else "outputs_cost",

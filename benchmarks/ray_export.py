@@ -201,8 +201,10 @@ def main() -> None:
     per_sample = sum(total) / len(total)
     node = {"scene setup s/sample (1 thread)": sum(setup) / len(setup),
             "sample s (1 thread, setup included)": per_sample,
-            "first sample, warm kernel cache s": warm, "ray.init(num_cpus=2) s": _mean(rows, "ray.init s", engine="ray"),
-            "Warp modules compiled during the timed runs": len({e.split("/")[1] for e in new_kernels if "/" in e}), "bytes/sample": bytes_per_sample}
+            "first sample, warm kernel cache s": warm,
+            "ray.init(num_cpus=2) s": _mean(rows, "ray.init s", engine="ray"),
+            "Warp modules compiled during the timed runs": len({e.split("/")[1] for e in new_kernels if "/" in e}),
+            "bytes/sample": bytes_per_sample}
     if cold is not None:
         node.update({"first sample, empty kernel cache s": cold, "kernel compile s": cold - warm})
     print(f"Export at {W}x{H}, T=2, render_mode=direct, outputs={','.join(OUTPUTS)}; fresh process per run; "

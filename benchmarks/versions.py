@@ -50,7 +50,8 @@ ds.sample(0)
 c, t = time.process_time(), time.perf_counter()
 for i in range(1, n + 1):
     ds.sample(i)
-print(json.dumps({"file": fs.__file__, "cpu_s": (time.process_time() - c) / n, "wall_s": (time.perf_counter() - t) / n}))
+cpu, wall = (time.process_time() - c) / n, (time.perf_counter() - t) / n
+print(json.dumps({"file": fs.__file__, "cpu_s": cpu, "wall_s": wall}))
 """
 
 

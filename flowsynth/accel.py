@@ -33,7 +33,8 @@ MESH_CACHE_SIZE = 512
 # fraction of its extent: visibility rays then test that slab (exact) before its box and mesh (room walls).
 FLAT_REL = 1e-2
 # Face planes' offsets e = max of n . v over every vertex cost faces x vertices (~3 ns each): above this
-# product (built-in assets: <= 2.1e6) the bounding sphere's n . c + r stands in (an 82k-face icosphere: 9.2 s -> 0.05 s, measured once by hand).
+# product (built-in assets: <= 2.1e6) the bounding sphere's n . c + r stands in (an 82k-face icosphere:
+# 9.2 s -> 0.05 s, measured once by hand).
 FACE_PLANES_BUDGET = 2e7
 # Instance boxes are inflated by this fraction of their size (plus the same fraction of their distance
 # to the camera) so float32 rounding of the ray never culls a true hit.

@@ -14,9 +14,10 @@ primary cast), with target frame r (r = s + k forward, r = s - k backward, k a f
     motion = hit and |world_T_obj[s+1, n] p - world_T_obj[s, n] p| > MOTION_TOL
     scene_flow = cam_T_world[s] (world_T_obj[r, n] - world_T_obj[s, n]) p   [m], where hit, else 0
 
-flow, valid, oof, occ and scene flow (and stereo's disparity change and view occlusion) come from one Warp kernel thread
-per (pair, image row) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included (with exact
-culls, ``SceneAccel.culling``): no per-point gather of matrices, no compaction. ``reproject`` (numpy + kornia) serves the sparse track points.
+flow, valid, oof, occ and scene flow (and stereo's disparity change and view occlusion) come from one Warp kernel
+thread per (pair, image row) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included (with
+exact culls, ``SceneAccel.culling``): no per-point gather of matrices, no compaction. ``reproject`` (numpy +
+kornia) serves the sparse track points.
 """
 
 from __future__ import annotations
@@ -80,7 +81,8 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
             return ``scene_flow`` = scene_flow_T[t, n] @ p (where hit, valid or not).
     Returns:
         ``valid``, ``oof`` (P, 1, H, W) bool; ``flow`` (P, 2, H, W) float32, ``occ`` (P, 1, H, W) bool,
-        ``dc`` (P, 1, H, W) float64, ``scene_flow`` (P, 3, H, W) float32 when asked; 0 where not hit (flow and dc also where not valid).
+        ``dc`` (P, 1, H, W) float64, ``scene_flow`` (P, 3, H, W) float32 when asked; 0 where not hit (flow and dc
+        also where not valid).
     """
     from flowsynth.kernels.raycast import Culling, Instances, TileLists
     from flowsynth.kernels.reproject import OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
