@@ -16,8 +16,9 @@ primary cast), with target frame r (r = s + k forward, r = s - k backward, k a f
 
 flow, valid, oof, occ and scene flow (and stereo's disparity change and view occlusion) come from one Warp kernel
 thread per (pair, image row) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included (with
-exact culls, ``SceneAccel.culling``): no per-point gather of matrices, no compaction. ``reproject`` (numpy +
-kornia) serves the sparse track points.
+exact culls, ``SceneAccel.culling``): no per-point gather of matrices, no compaction. ``motion`` (and
+``fs.render``'s ``position``) come from ``world_points_kernel`` the same way. ``reproject`` (numpy + kornia) serves
+the sparse track points.
 """
 
 from __future__ import annotations
@@ -174,7 +175,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
         if "dc" in res:
             out["disparity_change"] = torch.from_numpy(res["dc"].astype(np.float32))
     if "motion" in want:
-        out["motion"] = torch.from_numpy(_motion(gb, gb.instance_index, world_T_obj))
+        out["motion"] = torch.from_numpy(world_points(gb, world_T_obj, moved=True, threads=plan.threads)[1][:, None])
     return {k: v for k, v in out.items() if k in want}
 
 
@@ -196,15 +197,24 @@ def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int |
     return blocked.numpy().astype(bool)
 
 
-def _motion(gb, idx: np.ndarray, world_T_obj: np.ndarray) -> np.ndarray:
+def world_points(gb, world_T_obj: np.ndarray, *, moved: bool, threads: int | None = None):
+    """The G-buffer's hit points in the world frame, (T, H, W, 3) float64 (0 where not hit), and with ``moved``
+    the ``motion`` flags (T-1, H, W) bool of frames 0 .. T-2 (else None): one ``world_points_kernel`` launch in
+    row bands (flowsynth/kernels/reproject.py), no per-pixel gather of matrices."""
     T, H, W = gb.dist.shape
-    out = np.zeros((T - 1, 1, H, W), bool)
-    f, i, j = np.nonzero(gb.hit[:-1])
-    n = idx[f, i, j]
-    p = gb.point[f, i, j].astype(np.float64)
-    A, B = world_T_obj[f, n], world_T_obj[f + 1, n]
-    xa = (A[:, :3, :3] @ p[:, :, None])[:, :, 0] + A[:, :3, 3]
-    xb = (B[:, :3, :3] @ p[:, :, None])[:, :, 0] + B[:, :3, 3]
-    moved = np.linalg.norm(xb - xa, axis=1) > MOTION_TOL + 1e-12 * np.linalg.norm(xa, axis=1)
-    out[f, 0, i, j] = moved
-    return out
+    if gb.num_instances == 0 or not gb.hit.any():
+        return np.zeros((T, H, W, 3)), (np.zeros((T - 1, H, W), bool) if moved else None)
+    wp = wp_runtime()
+    from flowsynth.kernels.reproject import world_points_kernel
+
+    world = wp.empty((T, H, W), dtype=wp.vec3d)  # the kernel writes every pixel
+    flags = wp.empty((T - 1, H, W) if moved and T > 1 else (1, 1, 1), dtype=wp.uint8)
+    launch_bands(world_points_kernel, (T, H, W), 1,
+                 [wp.array(np.ascontiguousarray(gb.item, np.int32), dtype=wp.int32, copy=False),
+                  wp.array(np.ascontiguousarray(gb.point, np.float32), dtype=wp.vec3, copy=False),
+                  wp.array(np.ascontiguousarray(world_T_obj, np.float64), dtype=wp.mat44d), int(moved),
+                  MOTION_TOL, BAND0],
+                 [world, flags], "cpu", threads, row_loop=True)
+    if not moved:
+        return world.numpy(), None
+    return world.numpy(), (flags.numpy().astype(bool) if T > 1 else np.zeros((0, H, W), bool))

@@ -141,7 +141,6 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
     """depth, distance, normals, position, instance, category, asset from the raw G-buffer."""
     out = {}
     want = set(plan.outputs)
-    hit = gb.hit
     idx = gb.instance_index
     if "distance" in want:
         out["distance"] = torch.from_numpy(gb.dist[:, None].copy())
@@ -151,10 +150,9 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
     if "normals" in want:
         out["normals"] = torch.from_numpy(np.ascontiguousarray(gb.normal.transpose(0, 3, 1, 2)))
     if "position" in want:
-        pos = np.zeros(gb.point.shape, np.float64)
-        f, i, j = np.nonzero(hit)
-        P = world_T_obj[f, idx[f, i, j]]
-        pos[f, i, j] = (P[:, :3, :3] @ gb.point[f, i, j].astype(np.float64)[:, :, None])[:, :, 0] + P[:, :3, 3]
+        from flowsynth.flow import world_points
+
+        pos = world_points(gb, world_T_obj, moved=False, threads=plan.threads)[0]
         out["position"] = torch.from_numpy(np.ascontiguousarray(pos.astype(np.float32).transpose(0, 3, 1, 2)))
     lut = {
         "instance": np.array([o.instance for o in scene.objects], np.int32),

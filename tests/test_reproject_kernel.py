@@ -16,7 +16,7 @@ from oracle import pose
 
 import flowsynth as fs
 from flowsynth.accel import SceneAccel
-from flowsynth.flow import DEPTH_TEST_REL_TOL, _visibility, reproject_pixels
+from flowsynth.flow import DEPTH_TEST_REL_TOL, MOTION_TOL, _visibility, reproject_pixels, world_points
 
 render_mod = importlib.import_module("flowsynth.render")
 
@@ -75,6 +75,41 @@ def setup():
     accel = SceneAccel(meshes, cam_T_world, world_T_obj)
     gb = render_mod.cast_gbuffer(accel, scene.camera, want_normals=False, want_points=True)
     return scene, accel, gb, np.matmul(cam_T_world[:, None], world_T_obj)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_world_points_and_motion_equal_numpy(setup, threads):
+    """world_points_kernel (fs.render's ``position`` and the ``motion`` flags) against the numpy gather of 4x4
+    matrices it replaced: world points to 1e-12 m, 0 where nothing is hit; motion flags equal wherever the
+    displacement is not within 1e-9 m of the threshold. The scene has a static wall, a translating sphere and
+    turning boxes, so both flag values occur."""
+    scene, _, gb, _ = setup
+    world_T_obj = render_mod.scene_arrays(scene)[2]
+    world, moved = world_points(gb, world_T_obj, moved=True, threads=threads)
+    f, i, j = np.nonzero(gb.hit)
+    p = gb.point[f, i, j].astype(np.float64)
+    n = gb.instance_index[f, i, j]
+
+    def apply(M):
+        return (M[:, :3, :3] @ p[:, :, None])[:, :, 0] + M[:, :3, 3]
+
+    expect = np.zeros((T, H, W, 3))
+    expect[f, i, j] = apply(world_T_obj[f, n])
+    assert world.shape == (T, H, W, 3) and world.dtype == np.float64
+    np.testing.assert_allclose(world, expect, rtol=0, atol=1e-12)
+    assert not world[~gb.hit].any()
+    nxt = f < T - 1
+    xa = expect[f, i, j][nxt]
+    disp = np.linalg.norm(apply(world_T_obj[np.minimum(f + 1, T - 1), n])[nxt] - xa, axis=1)
+    bound = MOTION_TOL + 1e-12 * np.linalg.norm(xa, axis=1)
+    truth = np.zeros((T - 1, H, W), bool)
+    truth[f[nxt], i[nxt], j[nxt]] = disp > bound
+    clear = np.ones((T - 1, H, W), bool)
+    clear[f[nxt], i[nxt], j[nxt]] = np.abs(disp - bound) > 1e-9
+    assert moved.shape == (T - 1, H, W) and moved.dtype == bool
+    assert (moved == truth)[clear].all() and clear.mean() > 0.99
+    assert 0.05 < truth[gb.hit[:-1]].mean() < 0.95, "both flag values must occur"
+    assert world_points(gb, world_T_obj, moved=False, threads=threads)[1] is None
 
 
 @pytest.mark.parametrize("gap", [1, 2])

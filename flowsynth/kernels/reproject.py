@@ -38,7 +38,7 @@ from flowsynth.kernels.blas import blas_any
 from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_silhouette, box_entry_inv, inverse_dir,
                                        tile_list, trace_any)
 
-__all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "pair_kernel"]
+__all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "pair_kernel", "world_points_kernel"]
 
 OCC_NONE, OCC_EXACT, OCC_DEPTH = 0, 1, 2
 
@@ -338,3 +338,52 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
 
     _PAIR[key] = pairs
     return pairs
+
+
+@wp.kernel(enable_backward=False)
+def world_points_kernel(
+    item: wp.array3d[wp.int32],
+    point: wp.array3d[wp.vec3],
+    world_T_obj: wp.array2d[wp.mat44d],
+    want_moved: wp.int32,
+    motion_tol: wp.float64,
+    band0: wp.int32,
+    # outputs
+    world: wp.array3d[wp.vec3d],
+    moved: wp.array3d[wp.uint8],
+):
+    """The primary cast's hit points in the world frame, and whether they move to the next frame (float64).
+
+    Launch dims (frames, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread walks
+    its row. Pixel (i, j) of frame f holding instance n (``item`` f N + n, -1: no hit) at object-frame point p
+    (float32, promoted) gets ``world`` x = world_T_obj[f, n] p (0 where not hit). With ``want_moved`` != 0,
+    ``moved`` (T-1, H, W) gets, for the frames 0 .. T-2, 1 where the next frame's pose moves the same point by
+    more than motion_tol + 1e-12 |x|: |world_T_obj[f + 1, n] p - x| (the ``motion`` output, flowsynth/flow.py).
+    Each coordinate is a row of the 4x4 applied as r0 p0 + r1 p1 + r2 p2 + r3, summed in that order.
+    """
+    f, i = wp.tid()
+    i += band0
+    N = world_T_obj.shape[1]
+    last = f + 1 >= world_T_obj.shape[0]  # no next frame
+    for j in range(item.shape[2]):
+        k = item[f, i, j]
+        x = wp.vec3d()
+        m = wp.uint8(0)
+        if k >= 0:
+            n = k % N
+            q = point[f, i, j]
+            p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
+            A = world_T_obj[f, n]
+            x = wp.vec3d(A[0, 0] * p[0] + A[0, 1] * p[1] + A[0, 2] * p[2] + A[0, 3],
+                         A[1, 0] * p[0] + A[1, 1] * p[1] + A[1, 2] * p[2] + A[1, 3],
+                         A[2, 0] * p[0] + A[2, 1] * p[1] + A[2, 2] * p[2] + A[2, 3])
+            if want_moved != 0 and not last:
+                B = world_T_obj[f + 1, n]
+                y = wp.vec3d(B[0, 0] * p[0] + B[0, 1] * p[1] + B[0, 2] * p[2] + B[0, 3],
+                             B[1, 0] * p[0] + B[1, 1] * p[1] + B[1, 2] * p[2] + B[1, 3],
+                             B[2, 0] * p[0] + B[2, 1] * p[1] + B[2, 2] * p[2] + B[2, 3])
+                if wp.length(y - x) > motion_tol + wp.float64(1.0e-12) * wp.length(x):
+                    m = wp.uint8(1)
+        world[f, i, j] = x
+        if want_moved != 0 and not last:
+            moved[f, i, j] = m
