@@ -340,6 +340,14 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
     return pairs
 
 
+@wp.func
+def affine_point(M: wp.mat44d, p: wp.vec3d):
+    """M p for a 4x4 affine M: each coordinate r0 p0 + r1 p1 + r2 p2 + r3 of a row r, summed in that order."""
+    return wp.vec3d(M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3],
+                    M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3],
+                    M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3])
+
+
 @wp.kernel(enable_backward=False)
 def world_points_kernel(
     item: wp.array3d[wp.int32],
@@ -359,7 +367,6 @@ def world_points_kernel(
     (float32, promoted) gets ``world`` x = world_T_obj[f, n] p (0 where not hit). With ``want_moved`` != 0,
     ``moved`` (T-1, H, W) gets, for the frames 0 .. T-2, 1 where the next frame's pose moves the same point by
     more than motion_tol + 1e-12 |x|: |world_T_obj[f + 1, n] p - x| (the ``motion`` output, flowsynth/flow.py).
-    Each coordinate is a row of the 4x4 applied as r0 p0 + r1 p1 + r2 p2 + r3, summed in that order.
     """
     f, i = wp.tid()
     i += band0
@@ -373,15 +380,9 @@ def world_points_kernel(
             n = k % N
             q = point[f, i, j]
             p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
-            A = world_T_obj[f, n]
-            x = wp.vec3d(A[0, 0] * p[0] + A[0, 1] * p[1] + A[0, 2] * p[2] + A[0, 3],
-                         A[1, 0] * p[0] + A[1, 1] * p[1] + A[1, 2] * p[2] + A[1, 3],
-                         A[2, 0] * p[0] + A[2, 1] * p[1] + A[2, 2] * p[2] + A[2, 3])
+            x = affine_point(world_T_obj[f, n], p)
             if want_moved != 0 and not last:
-                B = world_T_obj[f + 1, n]
-                y = wp.vec3d(B[0, 0] * p[0] + B[0, 1] * p[1] + B[0, 2] * p[2] + B[0, 3],
-                             B[1, 0] * p[0] + B[1, 1] * p[1] + B[1, 2] * p[2] + B[1, 3],
-                             B[2, 0] * p[0] + B[2, 1] * p[1] + B[2, 2] * p[2] + B[2, 3])
+                y = affine_point(world_T_obj[f + 1, n], p)
                 if wp.length(y - x) > motion_tol + wp.float64(1.0e-12) * wp.length(x):
                     m = wp.uint8(1)
         world[f, i, j] = x
