@@ -36,9 +36,9 @@ each in a process of its own (``--jobs``). Reports the test EPE of zero flow, of
 trained on each set along the curve, and the ratio flowsynth / chairs2d (< 1: flowsynth trains the better flow
 network), per seed. Writes results/learning.json.
 
-``--summarize`` trains nothing: it pools the seeds of every results/learning*.json of one loss mask (runs of
-further seeds written with ``--tag``), checks that they share one protocol (steps, batch, pool, resolution, test
-pairs and the flowsynth config), and prints per test the ratio of each seed, their geometric mean with a 95%
+``--summarize`` trains nothing: it pools the seeds of the results/learning*.json files (``--files``) of one loss
+mask (runs of further seeds written with ``--tag``) that share the first file's protocol (steps, batch, pool,
+resolution, test pairs and the flowsynth config; the others are named and left out), and prints per test the ratio of each seed, their geometric mean with a 95%
 confidence interval, how many seeds favour flowsynth, a one-sample t-test of the log ratios and a Wilcoxon
 signed-rank test (scipy). Writes results/learning_summary.json.
 """
@@ -160,10 +160,11 @@ def multiscale_loss(preds, flow, valid):
 
 
 # -- data ---------------------------------------------------------------------------------------------------
-def flowsynth_pairs(n: int, seed: int, workers: int):
+def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float] | None = None):
     """n flowsynth pairs: (img1, img2, flow, valid, visible) tensors (n, C, H, W), and the config used. ``valid``
     is ``valid_fw`` (occluded and out-of-frame pixels included), ``visible`` is ``valid_fw & ~occ_fw`` (as
-    ``FlowPairs(mask="visible")``); a net trains on (img1, img2, flow, one of the two)."""
+    ``FlowPairs(mask="visible")``); a net trains on (img1, img2, flow, one of the two). ``flow_px``: another
+    ``BouncingThingsConfig.flow_px`` at the 512x384 scale than the default's (to try a candidate default)."""
     import torch
     from torch.utils.data import DataLoader
 
@@ -171,7 +172,7 @@ def flowsynth_pairs(n: int, seed: int, workers: int):
 
     base = fs.BouncingThingsConfig()
     cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2,
-                                  flow_px=tuple(x / SCALE for x in base.flow_px))
+                                  flow_px=tuple(x / SCALE for x in (flow_px or base.flow_px)))
     assert cfg.texture_dir is None
     ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw", "occ_fw"], seed=seed, length=n)
     batches = list(DataLoader(ds, batch_size=16, num_workers=workers))
@@ -388,8 +389,9 @@ def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, thre
 PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "flowsynth_config")
 
 
-def summarize(mask: str) -> dict:
-    """Pool the seeds of every results/learning*.json written with loss mask ``mask`` (module docstring)."""
+def summarize(mask: str, pattern: str = "learning*.json") -> dict:
+    """Pool the seeds of the results/ files matching ``pattern`` written with loss mask ``mask`` (module
+    docstring)."""
     import json
 
     import numpy as np
@@ -397,7 +399,7 @@ def summarize(mask: str) -> dict:
 
     from _common import RESULTS_DIR
 
-    files = sorted(f for f in RESULTS_DIR.glob("learning*.json") if f.stem != "learning_summary")
+    files = sorted(f for f in RESULTS_DIR.glob(pattern) if not f.stem.startswith("learning_summary"))
     runs, protocol, used = {}, None, []
     for f in files:
         d = json.loads(f.read_text())
@@ -408,8 +410,8 @@ def summarize(mask: str) -> dict:
             protocol = proto
         elif proto != protocol:
             diff = sorted(k for k in PROTOCOL if proto[k] != protocol[k])
-            raise SystemExit(f"{f.name} was run under another protocol than {used[0]} (differs in {diff}); "
-                             f"move one of them out of {RESULTS_DIR} to summarise")
+            print(f"not pooled: {f.name}, run under another protocol than {used[0]} (differs in {diff})")
+            continue
         used.append(f.name)
         for r in d["runs"]:
             if r["seed"] in runs:
@@ -456,11 +458,17 @@ def main() -> None:
                         "results/learning_visible.json")
     p.add_argument("--tag", default="", help="appended to the JSON's name (results/learning[_visible]_TAG.json), "
                                              "e.g. for a run of further seeds beside the main one")
+    p.add_argument("--flow-px", type=lambda v: tuple(float(x) for x in v.split(",")), default=None,
+                   metavar="LO,HI", help="train flowsynth on this flow_px (at 512x384, as the config field) instead "
+                                         "of the default's: a candidate default; use with --tag")
+    p.add_argument("--files", default="learning*.json",
+                   help="--summarize: the results/ files to pool (a glob; default every learning JSON)")
     p.add_argument("--summarize", action="store_true",
                    help="train nothing: pool the seeds of every results/learning*.json of --mask and test the ratios")
     args = p.parse_args()
     if args.summarize:
-        write_json("learning_summary" + ("" if args.mask == "valid" else f"_{args.mask}"), summarize(args.mask))
+        name = "learning_summary" + ("" if args.mask == "valid" else f"_{args.mask}")
+        write_json(name + (f"_{args.tag}" if args.tag else ""), summarize(args.mask, args.files))
         return
     import numpy as np
     import torch
@@ -478,7 +486,7 @@ def main() -> None:
     ctx = tmp.get_context("spawn")
     for seed in (int(s) for s in args.seeds.split(",")):
         t = time.perf_counter()
-        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers)
+        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px)
         gen_s = time.perf_counter() - t
         fs_valid = tuple(x[:pool] for x in synth[:4])
         fs_train = fs_valid if args.mask == "valid" else tuple(x[:pool] for x in synth[:3] + synth[4:])
