@@ -38,9 +38,10 @@ network), per seed. Writes results/learning.json.
 
 ``--summarize`` trains nothing: it pools the seeds of the results/learning*.json files (``--files``) of one loss
 mask (runs of further seeds written with ``--tag``) that share the first file's protocol (steps, batch, pool,
-resolution, test pairs and the flowsynth config; the others are named and left out), and prints per test the ratio of each seed, their geometric mean with a 95%
-confidence interval, how many seeds favour flowsynth, a one-sample t-test of the log ratios and a Wilcoxon
-signed-rank test (scipy). Writes results/learning_summary.json.
+resolution, test pairs and the flowsynth config; the others are named and left out), and prints per test the
+ratio of each seed, their geometric mean with a 95% confidence interval, how many seeds favour flowsynth, a
+one-sample t-test of the log ratios and a Wilcoxon signed-rank test (scipy). Writes
+results/learning_summary[_visible][_TAG].json.
 """
 
 from __future__ import annotations
