@@ -7,9 +7,12 @@ cd "$(dirname "$0")/.."
 ROOT=$PWD
 mkdir -p "$ROOT/.cache"
 RUN=$(mktemp -d "$ROOT/.cache/run.XXXXXX")
-trap 'rm -rf "$RUN"' EXIT
-mkdir -p "$RUN/tmp" "$RUN/home"
-export TMPDIR="$RUN/tmp" HOME="$RUN/home"
+# Ray's socket paths live under RAY_TMPDIR and may not exceed 107 bytes (AF_UNIX): a fresh folder of a short name
+# in /tmp, not under the checkout, whose path may be long (a CI runner's). Falls back to the run folder.
+RAY_RUN=$(mktemp -d /tmp/fsray.XXXXXX 2>/dev/null || echo "$RUN/ray")
+trap 'rm -rf "$RUN" "$RAY_RUN"' EXIT
+mkdir -p "$RUN/tmp" "$RUN/home" "$RAY_RUN"
+export TMPDIR="$RUN/tmp" HOME="$RUN/home" RAY_TMPDIR="$RAY_RUN"
 export XDG_CACHE_HOME="$ROOT/.cache/xdg" WARP_CACHE_PATH="$ROOT/.cache/warp" MPLCONFIGDIR="$ROOT/.cache/mpl"
 export FLOWSYNTH_HERMETIC=1
 .venv/bin/python -m pytest "$@"
