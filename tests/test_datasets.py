@@ -17,6 +17,10 @@ from flowsynth.datasets.bouncing import BouncingThings
 CFG = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 4),
                               max_objects=4)
 ROOT = Path(__file__).resolve().parents[1]
+# Longest wait for one batch from worker processes [s]: a worker's first sample may compile kernels (a cold Warp
+# cache: Newton's take about a minute), so generous; it turns a stuck worker into an error instead of a stalled
+# run (a fork-context run hung once in a fresh clone, 2026-11-25, and could not be reproduced).
+LOADER_TIMEOUT = 600
 OUTS = ["depth", "flow_fw", "valid_fw", "occ_fw", "instance", "box2d_visible", "object_valid"]
 
 
@@ -46,7 +50,8 @@ def first_items(loader, n):
 @pytest.mark.parametrize("ctx", ["fork", "spawn"])
 def test_workers_match_sample_and_single_process(ctx):
     ds = BouncingThings(CFG, outputs=OUTS, seed=5, length=6)
-    multi = first_items(DataLoader(ds, batch_size=2, num_workers=2, multiprocessing_context=ctx), 6)
+    multi = first_items(DataLoader(ds, batch_size=2, num_workers=2, multiprocessing_context=ctx,
+                                   timeout=LOADER_TIMEOUT), 6)
     single = first_items(DataLoader(ds, batch_size=2, num_workers=0), 6)
     assert sorted(int(s["index"]) for s in multi) == list(range(6))
     by_index = {int(s["index"]): s for s in single}
@@ -97,7 +102,7 @@ def test_unknown_output_and_bad_arguments():
 
 def test_resume_with_stateful_dataloader():
     ds = BouncingThings(CFG, outputs=["depth", "instance"], seed=2)
-    kw = dict(batch_size=2, num_workers=2)
+    kw = dict(batch_size=2, num_workers=2, timeout=LOADER_TIMEOUT)
     full = StatefulDataLoader(ds, **kw)
     it = iter(full)
     reference = [next(it) for _ in range(5)]
@@ -129,7 +134,7 @@ def test_endless_stream_does_not_repeat_across_epochs():
     finite = BouncingThings(CFG, outputs=["depth"], seed=0, length=3)
     epochs = [[int(s["index"]) for s in finite] for _ in range(2)]
     assert epochs == [[0, 1, 2], [3, 4, 5]]
-    loader = DataLoader(finite, batch_size=None, num_workers=2, persistent_workers=True)
+    loader = DataLoader(finite, batch_size=None, num_workers=2, persistent_workers=True, timeout=LOADER_TIMEOUT)
     finite.set_epoch(0)
     e0 = sorted(int(s["index"]) for s in loader)
     e1 = sorted(int(s["index"]) for s in loader)

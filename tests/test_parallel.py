@@ -107,7 +107,7 @@ class _DefaultThreads(torch.utils.data.IterableDataset):
 
 
 def test_default_threads_is_one_in_dataloader_workers():
-    loader = torch.utils.data.DataLoader(_DefaultThreads(), num_workers=1, batch_size=None)
+    loader = torch.utils.data.DataLoader(_DefaultThreads(), num_workers=1, batch_size=None, timeout=600)
     assert [int(x) for x in loader] == [1]
 
 
