@@ -6,10 +6,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 mkdir -p "$ROOT/.cache"
-RUN=$(mktemp -d "$ROOT/.cache/run.XXXXXX")
-# Ray's socket paths live under RAY_TMPDIR and may not exceed 107 bytes (AF_UNIX): a fresh folder of a short name
-# in /tmp, not under the checkout, whose path may be long (a CI runner's). Falls back to the run folder.
-RAY_RUN=$(mktemp -d /tmp/fsray.XXXXXX 2>/dev/null || echo "$RUN/ray")
+# A fresh, empty run folder (TMPDIR and HOME) of a short name in /tmp, not under the checkout: sockets live under
+# TMPDIR (multiprocessing's resource sharer, which DataLoader workers use to send tensors; Ray under RAY_TMPDIR), and
+# an AF_UNIX path may not exceed 107 bytes, while a checkout's path may be long (a CI runner's). Under a long
+# checkout path the sockets failed: Ray at startup, DataLoader workers by hanging. Falls back to .cache/run.*.
+RUN=$(mktemp -d /tmp/fs.XXXXXX 2>/dev/null || mktemp -d "$ROOT/.cache/run.XXXXXX")
+RAY_RUN=$(mktemp -d /tmp/fr.XXXXXX 2>/dev/null || echo "$RUN/ray")
 trap 'rm -rf "$RUN" "$RAY_RUN"' EXIT
 mkdir -p "$RUN/tmp" "$RUN/home" "$RAY_RUN"
 export TMPDIR="$RUN/tmp" HOME="$RUN/home" RAY_TMPDIR="$RAY_RUN"
