@@ -168,6 +168,14 @@ def list_blocks(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
     return False
 
 
+@wp.func
+def affine_point(M: wp.mat44d, p: wp.vec3d):
+    """M p for a 4x4 affine M: each coordinate r0 p0 + r1 p1 + r2 p2 + r3 of a row r, summed in that order."""
+    return wp.vec3d(M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3],
+                    M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3],
+                    M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3])
+
+
 def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False):
     """The pair kernel, specialised so unrequested outputs are compiled out.
 
@@ -238,14 +246,15 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
             q = point[s, i, j]
             p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
             if wp.static(want_sf):
-                S = sfM[t, n]
-                sf[t, 0, i, j] = wp.float32(S[0, 0] * p[0] + S[0, 1] * p[1] + S[0, 2] * p[2] + S[0, 3])
-                sf[t, 1, i, j] = wp.float32(S[1, 0] * p[0] + S[1, 1] * p[1] + S[1, 2] * p[2] + S[1, 3])
-                sf[t, 2, i, j] = wp.float32(S[2, 0] * p[0] + S[2, 1] * p[1] + S[2, 2] * p[2] + S[2, 3])
+                Y = affine_point(sfM[t, n], p)
+                sf[t, 0, i, j] = wp.float32(Y[0])
+                sf[t, 1, i, j] = wp.float32(Y[1])
+                sf[t, 2, i, j] = wp.float32(Y[2])
             M = cam_T_obj[r, n]
-            x = M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3]
-            y = M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3]
-            z = M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3]
+            X = affine_point(M, p)
+            x = X[0]
+            y = X[1]
+            z = X[2]
             if z <= wp.float64(0.0):
                 valid[t, i, j] = wp.uint8(0)
                 oof[t, i, j] = wp.uint8(1)
@@ -340,14 +349,6 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
     return pairs
 
 
-@wp.func
-def affine_point(M: wp.mat44d, p: wp.vec3d):
-    """M p for a 4x4 affine M: each coordinate r0 p0 + r1 p1 + r2 p2 + r3 of a row r, summed in that order."""
-    return wp.vec3d(M[0, 0] * p[0] + M[0, 1] * p[1] + M[0, 2] * p[2] + M[0, 3],
-                    M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3],
-                    M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3])
-
-
 @wp.kernel(enable_backward=False)
 def world_points_kernel(
     item: wp.array3d[wp.int32],
@@ -377,7 +378,7 @@ def world_points_kernel(
         x = wp.vec3d()
         m = wp.uint8(0)
         if k >= 0:
-            n = k % N
+            n = k - f * N  # item index f * N + n (no integer division)
             q = point[f, i, j]
             p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
             x = affine_point(world_T_obj[f, n], p)
