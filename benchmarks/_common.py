@@ -147,7 +147,9 @@ def write_json(name: str, data: dict) -> Path:
     """Write ``data`` to ``benchmarks/results/<name>.json`` (indented) and return the path."""
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.json"
-    path.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    tmp = path.with_suffix(".json.tmp")  # written whole, then renamed: a crash never leaves half a file
+    tmp.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    os.replace(tmp, path)
     return path
 
 

@@ -485,6 +485,19 @@ def main() -> None:
     rows, runs = [], []
     names = ("flowsynth", "chairs2d")
     ctx = tmp.get_context("spawn")
+    cfg = None
+
+    def save(end_load: str | None) -> None:
+        """Write the seeds done so far (after every seed, so a crash or a stop loses at most the one running)."""
+        ratios = {kind: [r["results"]["flowsynth"]["curve"][-1][kind] / r["results"]["chairs2d"]["curve"][-1][kind]
+                         for r in runs] for kind in TESTS}
+        write_json("learning" + ("" if args.mask == "valid" else f"_{args.mask}") + (f"_{args.tag}" if args.tag
+                                                                                    else ""), {
+            "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
+            "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
+            "photos": list(PHOTOS), "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
+            "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
+
     for seed in (int(s) for s in args.seeds.split(",")):
         t = time.perf_counter()
         synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px)
@@ -509,6 +522,7 @@ def main() -> None:
         runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "mean_flow_px": mags,
                      "trained_pixel_fraction": trained,
                      "chairs2d_motion_scale": motion_scale, "flowsynth_generation_s": gen_s})
+        save(None)
         for kind in TESTS:
             row = {"seed": seed, "test": kind, "zero-flow": zero[kind],
                    "untrained": res["flowsynth"]["curve"][0][kind]}
@@ -535,11 +549,7 @@ def main() -> None:
                                                                    runs[0]["mean_flow_px"].items()))
     print(f"loss mask {args.mask!r}; share of pixels trained on (seed {runs[0]['seed']}): " + ", ".join(
         f"{k} {v:.3f}" for k, v in runs[0]["trained_pixel_fraction"].items()))
-    write_json("learning" + ("" if args.mask == "valid" else f"_{args.mask}") + (f"_{args.tag}" if args.tag else ""), {
-        "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
-        "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test, "photos": list(PHOTOS),
-        "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
-        "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
+    save(end_load)
 
 
 if __name__ == "__main__":
