@@ -76,6 +76,7 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
     wp = wp_runtime()
     from flowsynth.kernels.raycast import TileLists
     from flowsynth.kernels.shade import ShadeScene, shade_kernel
+    from flowsynth.kernels.texture import layer_trig_kernel
 
     T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
     hits = gb.dist[0][gb.item[0] >= 0]
@@ -103,6 +104,7 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
     sc.tiles = accel.tile_lists(scene.camera) if sc.use_tiles else TileLists()
     mat_f, mat_i, img_data, img_info = pack_materials(scene)
     sc.mat_f = wp.array(mat_f, dtype=wp.float32, device=device)
+    wp.launch(layer_trig_kernel, len(mat_f), [sc.mat_f], device=device)
     sc.mat_i = wp.array(mat_i, dtype=wp.int32, device=device)
     sc.img_data = wp.array(img_data, dtype=wp.vec3, device=device)
     sc.img_info = wp.array(img_info, dtype=wp.int32, device=device)
@@ -225,7 +227,7 @@ def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
             cf, ci = li * LAYER_F, li * LAYER_I
             mat_f[n, cf:cf + 6] = srgb_to_linear(np.asarray(layer["colors"])).reshape(-1)
             mat_f[n, cf + 6:cf + 11] = (layer["scale"], layer["angle"], layer["gain"], layer["grain"],
-                                        layer["grain_scale"])
+                                        layer["grain_scale"])  # cos, sin: layer_trig_kernel on the device
             mat_i[n, ci:ci + 3] = FAMILIES[layer["texture"]], layer["octaves"], _seed32(layer["seed"])
             if layer["image"] is not None:
                 if layer["image"] not in images:

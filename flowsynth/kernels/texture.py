@@ -27,7 +27,7 @@ from __future__ import annotations
 import warp as wp
 
 __all__ = [
-    "FAMILIES", "FAMILY_NONE", "LAYER_F", "LAYER_I", "MAT_F", "MAT_I", "base_color",
+    "FAMILIES", "FAMILY_NONE", "LAYER_F", "LAYER_I", "MAT_F", "MAT_I", "base_color", "layer_trig_kernel",
 ]
 
 # Texture families, by kernel code. "blend" is not a code: it is a material with two layers.
@@ -42,10 +42,14 @@ F_CHECKS = wp.constant(5)
 F_IMAGE = wp.constant(6)
 
 # Packed layout. Per layer, floats: colour a (3, linear RGB), colour b (3), scale [1/m], angle [rad],
-# gain (amplitude ratio of successive octaves), grain (relative amplitude), grain scale [1/m]; ints: family,
-# octaves, seed, image row. Per material after the two layers, floats: mask scale [1/m], roughness, specular;
-# ints: mask seed.
-LAYER_F = 11
+# gain (amplitude ratio of successive octaves), grain (relative amplitude), grain scale [1/m], cos and sin of
+# the angle (filled by ``layer_trig_kernel`` from the angle column, once per table instead of once per lookup);
+# ints: family, octaves, seed, image row. Per material after the two layers, floats: mask scale [1/m],
+# roughness, specular; ints: mask seed.
+LAYER_F = 13
+COL_ANGLE = wp.constant(7)
+COL_COS = wp.constant(11)
+COL_SIN = wp.constant(12)
 LAYER_I = 4
 MAT_F = 2 * LAYER_F + 3
 MAT_I = 2 * LAYER_I + 1
@@ -222,9 +226,8 @@ def layer_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_
         return ca
     cb = wp.vec3(mat_f[m, cf + 3], mat_f[m, cf + 4], mat_f[m, cf + 5])
     s = mat_f[m, cf + 6]
-    ang = mat_f[m, cf + 7]
-    c = wp.cos(ang)
-    sn = wp.sin(ang)
+    c = mat_f[m, cf + COL_COS]
+    sn = mat_f[m, cf + COL_SIN]
     r = wp.vec2(c * q[0] - sn * q[1], sn * q[0] + c * q[1]) * s
     fc = fw * s  # footprint [cycles]
     seed = mat_i[m, ci + 2]
@@ -286,3 +289,16 @@ def base_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_d
         col += w[2] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[0], p[1]), fw)
         total += w[2]
     return col / wp.max(total, 1.0e-30)
+
+
+@wp.kernel(enable_backward=False)
+def layer_trig_kernel(mat_f: wp.array2d[wp.float32]):
+    """Fill each layer's cos and sin columns from its angle column (one thread per material row): the same
+    ``wp.cos`` / ``wp.sin`` of the same float32 angle that ``layer_color`` evaluated per lookup before, so the
+    texture bits do not change (benchmarks/results/SUMMARY.md, shading_cost)."""
+    m = wp.tid()
+    for layer in range(2):
+        cf = layer * LAYER_F
+        ang = mat_f[m, cf + COL_ANGLE]
+        mat_f[m, cf + COL_COS] = wp.cos(ang)
+        mat_f[m, cf + COL_SIN] = wp.sin(ang)
