@@ -59,7 +59,7 @@ def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float 
     """``tonemap_srgb`` of (T, H, W, 3) float32 radiance into (T, 3, H, W) float32, the same float64 steps in one
     Warp kernel pass over rows (``flowsynth.kernels.shade.tonemap_kernel``); the numpy form took 0.81 s of CPU
     per T=24 view at 512x384 (benchmarks/results/SUMMARY.md, outputs_cost)."""
-    from flowsynth.kernels.shade import tonemap_kernel
+    from flowsynth.kernels.shade import srgb_pow_tables, tonemap_kernel
 
     _check_tonemap(method, exposure)
     wp = wp_runtime()
@@ -67,7 +67,7 @@ def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float 
     rgb = wp.empty((T, 3, H, W), dtype=wp.float32, device="cpu")
     src = wp.array(np.ascontiguousarray(radiance, np.float32), dtype=wp.vec3, device="cpu", copy=False)
     launch_bands(tonemap_kernel, (T, H, W), 1, [src, float(exposure), int(method == "reinhard"), REINHARD_WHITE**2,
-                                                BAND0], [rgb], "cpu", threads, row_loop=True)
+                                                srgb_pow_tables(), BAND0], [rgb], "cpu", threads, row_loop=True)
     return rgb.numpy()
 
 
