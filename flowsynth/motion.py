@@ -55,6 +55,12 @@ MARGIN_FRACTION = 0.0025
 kept twice this far apart (and this far from walls), so residual solver penetration stays in the gap."""
 XPBD_ITERATIONS = 4
 """XPBD constraint iterations per substep [count]."""
+CONTACTS_PER_SHAPE = 4
+"""Rigid-contact slots per shape (objects and the six walls) in the collision pipeline's buffers [count]. The
+most contacts at once seen in 60 default scenes (4-12 objects, 24 frames each) was 14, and 36 with 40 objects:
+about one per shape. Newton's own estimate (1000 and up) makes every contact kernel of every substep walk
+thousands of empty slots. When some substep fills the buffer (contacts may then have been dropped), the clip is
+simulated again with Newton's estimate (:func:`simulate_physics`), so the capacity never changes a trajectory."""
 DENSITY = 1000.0
 """Density of every object [kg/m^3]; mass and inertia come from the collider's convex hull."""
 EPS_SPEED = 1e-6
@@ -200,15 +206,24 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     sizes = [a.size for a in assets]
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
     n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
-    sim = _NewtonScene(cfg, assets, initial, n_sub)
-    poses = np.empty((num_frames, N, 4, 4))
-    vel = np.empty((num_frames, N, 3))
-    ang = np.empty((num_frames, N, 3))
-    for k in range(num_frames):
-        if k > 0:
-            sim.advance_frame()
-        poses[k], vel[k], ang[k] = sim.read()
+    for contact_max in (_contact_capacity(N), None):  # None: Newton's estimate, after an overflow
+        sim = _NewtonScene(cfg, assets, initial, n_sub, contact_max)
+        poses = np.empty((num_frames, N, 4, 4))
+        vel = np.empty((num_frames, N, 3))
+        ang = np.empty((num_frames, N, 3))
+        for k in range(num_frames):
+            if k > 0:
+                sim.advance_frame()
+            poses[k], vel[k], ang[k] = sim.read()
+        if contact_max is None or not sim.overflowed():
+            break
     return Trajectory(poses, vel, ang, n_sub)
+
+
+def _contact_capacity(num_objects: int) -> int | None:
+    """Rigid-contact slots of the first simulation of a clip with ``num_objects`` objects (see CONTACTS_PER_SHAPE;
+    None would be Newton's estimate)."""
+    return CONTACTS_PER_SHAPE * (num_objects + 6)  # the objects and the six wall boxes (wall_boxes)
 
 
 def wall_boxes(cfg: BouncingThingsConfig, s_max: float) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -232,7 +247,7 @@ class _NewtonScene:
     """A Newton model of the objects and walls, stepped one frame at a time."""
 
     def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
-                 substeps: int) -> None:
+                 substeps: int, contact_max: int | None = None) -> None:
         wp_runtime()  # quiet Warp initialisation before Newton's import initialises it loudly
         import newton
         import warp as wp
@@ -273,7 +288,10 @@ class _NewtonScene:
         qd[:, :3] = initial.velocity
         qd[:, 3:] = initial.angular_velocity
         self.state0.body_qd.assign(qd)
-        self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap")
+        # rigid-contact capacity: contact_max slots (None: Newton's estimate); self.peak holds the most contacts
+        # any substep counted, so that overflowed() can tell when some may have been dropped
+        self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap", rigid_contact_max=contact_max)
+        self.peak = wp.zeros(1, dtype=wp.int32, device="cpu")
         self.contacts = self.pipeline.contacts()
         self.solver = newton.solvers.SolverXPBD(self.model, iterations=XPBD_ITERATIONS,
                                                 enable_restitution=True)
@@ -307,8 +325,13 @@ class _NewtonScene:
         cfg = self.cfg
         wp.launch(_clamp_kernel(), dim=self.model.body_count, device="cpu",
                   inputs=[cfg.min_speed, cfg.max_speed, cfg.angular_speed[0], cfg.angular_speed[1],
-                          self.state1.body_q, self.state1.body_qd],
-                  outputs=[self.state0.body_q, self.state0.body_qd, self.last_dir, self.last_axis])
+                          self.state1.body_q, self.state1.body_qd, self.contacts.rigid_contact_count],
+                  outputs=[self.state0.body_q, self.state0.body_qd, self.last_dir, self.last_axis, self.peak])
+
+    def overflowed(self) -> bool:
+        """Did some substep fill the rigid-contact buffer? Then contacts may have been dropped: Newton's narrow
+        phase skips a pair once the count reaches the capacity (the count then stays there) or counts past it."""
+        return int(self.peak.numpy()[0]) >= self.pipeline.rigid_contact_max
 
     def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = self.state0.body_q.numpy().astype(np.float64)  # (N, 7): px py pz qx qy qz qw
@@ -320,7 +343,8 @@ class _NewtonScene:
 @functools.cache
 def _clamp_kernel():
     """Warp kernel that copies each body's pose and clamps its linear and angular speed into a band,
-    keeping directions (from the solver's output state into its input state).
+    keeping directions (from the solver's output state into its input state); thread 0 also keeps the most
+    rigid contacts any substep has found (``peak``).
 
     Built on first use so that importing this module never imports Warp.
     """
@@ -348,13 +372,17 @@ def _clamp_kernel():
         w_hi: float,
         body_q_in: wp.array(dtype=wp.transform),
         body_qd_in: wp.array(dtype=wp.spatial_vector),
+        contact_count: wp.array(dtype=wp.int32),
         # outputs
         body_q: wp.array(dtype=wp.transform),
         body_qd: wp.array(dtype=wp.spatial_vector),
         last_dir: wp.array(dtype=wp.vec3),
         last_axis: wp.array(dtype=wp.vec3),
+        peak: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
+        if i == 0:
+            peak[0] = wp.max(peak[0], contact_count[0])
         qd = body_qd_in[i]
         v, dv = clamp_norm(wp.spatial_top(qd), last_dir[i], v_lo, v_hi)
         w, dw = clamp_norm(wp.spatial_bottom(qd), last_axis[i], w_lo, w_hi)

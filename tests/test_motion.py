@@ -142,6 +142,39 @@ def test_bodies_without_joints_move_as_with_free_joints(monkeypatch, name, cfg, 
     np.testing.assert_allclose(got.angular_velocity, ref.angular_velocity, rtol=0, atol=1e-4)
 
 
+@pytest.mark.parametrize("name, cfg, index", [("slow", SLOW, 0), ("fast", FAST, 1), ("falling", FALLING, 0)])
+def test_contact_capacity_never_changes_a_trajectory(monkeypatch, name, cfg, index):
+    """The collision pipeline holds a few contact slots per shape instead of Newton's estimate (its own
+    default, the reference here): colliding clips come out bit for bit the same. With room for one contact
+    only, the full buffer is noticed and the clip simulated again with Newton's estimate: the same again."""
+    from flowsynth import motion
+
+    cfg = replace(cfg, num_frames=6)
+    layout = sample_layout(cfg, 0, index)
+    sims = []  # every simulation's Newton scene
+
+    class Spy(motion._NewtonScene):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            sims.append(self)
+
+    monkeypatch.setattr(motion, "_NewtonScene", Spy)
+    got = simulate(cfg, layout.assets, layout.initial)
+    monkeypatch.setattr(motion, "_contact_capacity", lambda n: None)
+    ref = simulate(cfg, layout.assets, layout.initial)
+    monkeypatch.setattr(motion, "_contact_capacity", lambda n: 1)
+    retried = simulate(cfg, layout.assets, layout.initial)
+    n = len(layout.assets)
+    (cap, peak), (cap_ref, peak_ref), (one, peak_one), (cap_again, _) = [
+        (sim.pipeline.rigid_contact_max, int(sim.peak.numpy()[0])) for sim in sims]  # most contacts at once
+    print(f"{name}: {n} objects, capacity {cap} (Newton's estimate {cap_ref}), most contacts at once {peak}")
+    assert cap == motion.CONTACTS_PER_SHAPE * (n + 6) < cap_ref and 1 < peak == peak_ref < cap
+    assert one == 1 and peak_one >= 1 and cap_again == cap_ref
+    for a, b in ((got, ref), (retried, ref)):
+        for k in ("poses", "velocity", "angular_velocity"):
+            np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+
+
 def test_substep_rule():
     sizes = [0.3, 0.6]
     slow = choose_substeps(BouncingThingsConfig(min_speed=0.1, max_speed=0.2, angular_speed=(0, 0.1)), sizes)
