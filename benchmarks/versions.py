@@ -12,7 +12,9 @@ Two settings per revision:
 - ``fixed``: issue 13's profile settings, given explicitly so both revisions render the same kind of scene:
   512x384, T=2, direct RGB, 20 objects, static camera; outputs rgb, depth, normals, instance, flow, valid and
   occlusion both ways;
-- ``default``: that revision's own default config at 512x384, T=2 (what a user gets), same outputs.
+- ``default``: that revision's own default config at 512x384, T=2, same outputs;
+- ``stream``: what ``BouncingThings()`` streams with no arguments in that revision: its default config as it
+  is (320x240, 24 frames at the time of writing) and its default outputs (rgb and forward flow).
 
 Writes benchmarks/results/versions.json.
 """
@@ -33,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_info, print_table, write_json
 
 REPO = Path(__file__).resolve().parents[1]
+MODES = ("fixed", "default", "stream")
 
 CHILD = r"""
 import inspect, json, sys, time
@@ -40,12 +43,14 @@ import torch
 torch.set_num_threads(1)
 import flowsynth as fs
 n, mode = int(sys.argv[1]), sys.argv[2]
-kw = dict(width=512, height=384, num_frames=2)
+kw = dict(width=512, height=384, num_frames=2) if mode != "stream" else {}
 if mode == "fixed":
     kw.update(render_mode="direct", num_objects=(20, 20), camera_motion="static")
 outs = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw"]
 extra = {"threads": 1} if "threads" in inspect.signature(fs.datasets.BouncingThings).parameters else {}
-ds = fs.datasets.BouncingThings(fs.BouncingThingsConfig(**kw), outputs=outs, seed=0, **extra)
+if mode != "stream":
+    extra["outputs"] = outs
+ds = fs.datasets.BouncingThings(fs.BouncingThingsConfig(**kw), seed=0, **extra)
 ds.sample(0)
 c, t = time.process_time(), time.perf_counter()
 for i in range(1, n + 1):
@@ -75,7 +80,7 @@ def main() -> None:
     revs = {name: subprocess.run(["git", "rev-parse", "--short", rev], cwd=REPO, capture_output=True, text=True,
                                  check=True).stdout.strip() for name, rev in (("base", args.base), ("head", args.head))}
     load0 = os.getloadavg()
-    times: dict = {(name, mode): [] for name in revs for mode in ("fixed", "default")}
+    times: dict = {(name, mode): [] for name in revs for mode in MODES}
     with tempfile.TemporaryDirectory() as tmp:
         trees = {name: Path(tmp) / name for name in revs}
         for name, rev in revs.items():
@@ -83,13 +88,13 @@ def main() -> None:
         try:
             for _ in range(args.rounds):
                 for name in revs:
-                    for mode in ("fixed", "default"):
+                    for mode in MODES:
                         times[(name, mode)].append(run_child(trees[name], args.num, mode))
         finally:
             for tree in trees.values():
                 subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, check=False)
     rows = []
-    for mode in ("fixed", "default"):
+    for mode in MODES:
         med = {name: statistics.median(r["cpu_s"] for r in times[(name, mode)]) for name in revs}
         wall = {name: statistics.median(r["wall_s"] for r in times[(name, mode)]) for name in revs}
         rows.append({"settings": mode, f"base {revs['base']} cpu s": med["base"],
