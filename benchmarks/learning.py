@@ -488,17 +488,20 @@ def main() -> None:
     cfg = None
 
     def save(end_load: str | None) -> None:
-        """Write the seeds done so far (after every seed, so a crash or a stop loses at most the one running)."""
+        """Write the seeds done so far (after every seed, so a crash or a stop loses at most the one running);
+        ``complete`` is false until the last planned seed is in."""
         ratios = {kind: [r["results"]["flowsynth"]["curve"][-1][kind] / r["results"]["chairs2d"]["curve"][-1][kind]
                          for r in runs] for kind in TESTS}
         write_json("learning" + ("" if args.mask == "valid" else f"_{args.mask}") + (f"_{args.tag}" if args.tag
                                                                                     else ""), {
+            "complete": end_load is not None, "seeds_planned": seeds,
             "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
             "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
             "photos": list(PHOTOS), "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
             "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
-    for seed in (int(s) for s in args.seeds.split(",")):
+    seeds = [int(s) for s in args.seeds.split(",")]
+    for seed in seeds:
         t = time.perf_counter()
         synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px)
         gen_s = time.perf_counter() - t

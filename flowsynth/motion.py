@@ -56,11 +56,12 @@ kept twice this far apart (and this far from walls), so residual solver penetrat
 XPBD_ITERATIONS = 4
 """XPBD constraint iterations per substep [count]."""
 CONTACTS_PER_SHAPE = 4
-"""Rigid-contact slots per shape (objects and the six walls) in the collision pipeline's buffers [count]. The
-most contacts at once seen in 60 default scenes (4-12 objects, 24 frames each) was 14, and 36 with 40 objects:
-about one per shape. Newton's own estimate (1000 and up) makes every contact kernel of every substep walk
-thousands of empty slots. When some substep fills the buffer (contacts may then have been dropped), the clip is
-simulated again with Newton's estimate (:func:`simulate_physics`), so the capacity never changes a trajectory."""
+"""Rigid-contact slots per shape (objects and the six walls) in the collision pipeline's buffers [count], at least
+(see :func:`_contact_capacity`). The most contacts at once seen in 60 default scenes (4-12 objects, 24 frames
+each) was 14, and 36 with 40 objects: about one per shape. Newton's own estimate (1000 and up) makes every
+contact kernel of every substep walk thousands of empty slots. When some substep fills the buffer (contacts may
+then have been dropped), the clip is simulated again with Newton's estimate (:func:`simulate_physics`), so the
+capacity never changes a trajectory."""
 DENSITY = 1000.0
 """Density of every object [kg/m^3]; mass and inertia come from the collider's convex hull."""
 EPS_SPEED = 1e-6
@@ -221,9 +222,13 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
 
 
 def _contact_capacity(num_objects: int) -> int | None:
-    """Rigid-contact slots of the first simulation of a clip with ``num_objects`` objects (see CONTACTS_PER_SHAPE;
-    None would be Newton's estimate)."""
-    return CONTACTS_PER_SHAPE * (num_objects + 6)  # the objects and the six wall boxes (wall_boxes)
+    """Rigid-contact slots of the first simulation of a clip with ``num_objects`` objects: CONTACTS_PER_SHAPE per
+    shape (the objects and the six wall boxes of ``wall_boxes``), and at least (N + 1)^2. The second bound keeps
+    the trajectory that of Newton's estimate bit for bit: XPBD's restitution pass hashes each body pair to slot
+    key mod capacity (key = (lo + 1)(N + 1) + hi + 1 < (N + 1)^2) and sums the pairs' corrections in slot order,
+    so slot must equal key as it does under Newton's estimate (1000 and up). None (Newton's estimate) where that
+    is no larger (:class:`_NewtonScene`)."""
+    return max(CONTACTS_PER_SHAPE * (num_objects + 6), (num_objects + 1) ** 2)
 
 
 def wall_boxes(cfg: BouncingThingsConfig, s_max: float) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -290,6 +295,8 @@ class _NewtonScene:
         self.state0.body_qd.assign(qd)
         # rigid-contact capacity: contact_max slots (None: Newton's estimate); self.peak holds the most contacts
         # any substep counted, so that overflowed() can tell when some may have been dropped
+        if contact_max is not None and contact_max >= _newton_contact_estimate(self.model):
+            contact_max = None
         self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap", rigid_contact_max=contact_max)
         self.peak = wp.zeros(1, dtype=wp.int32, device="cpu")
         self.contacts = self.pipeline.contacts()
@@ -419,6 +426,14 @@ def _memoise_newton_kernel_factories() -> None:
             fn = getattr(module, name, None)
             if callable(fn) and not hasattr(fn, "cache_info"):
                 setattr(module, name, wrap(fn))
+
+
+def _newton_contact_estimate(model) -> int:
+    """The rigid-contact capacity Newton's CollisionPipeline picks for ``model`` when given none. Private Newton
+    API: tests/test_newton_internals.py fails, naming this function, when it moves or stops being the default."""
+    from newton._src.sim.collide import _estimate_rigid_contact_max
+
+    return int(_estimate_rigid_contact_max(model))
 
 
 def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:

@@ -208,7 +208,8 @@ def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
 
     Returns mat_f (N, MAT_F) float32, mat_i (N, MAT_I) int32, img_data (P, 3) float32 linear RGB atlas of mip
     pyramids, img_info (rows, 4) int32 (offset, width, height, levels), one row per level; a dummy one-entry
-    atlas when no object uses an image.
+    atlas when no object uses an image. mat_f's cos and sin columns are 0 here: ``layer_trig_kernel`` fills them
+    on the device from the angle column (numpy's cos would not give Warp's bits).
     """
     from flowsynth.kernels.texture import FAMILIES, FAMILY_NONE, LAYER_F, LAYER_I, MAT_F, MAT_I
 

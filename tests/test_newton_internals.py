@@ -1,4 +1,4 @@
-"""flowsynth.motion patches one private corner of Newton; this test fails loudly, naming the cause, when it moves.
+"""flowsynth.motion uses private corners of Newton; these tests fail loudly, naming the cause, when they move.
 
 ``motion._memoise_newton_kernel_factories`` wraps Newton's narrow-phase kernel factories
 (``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every CollisionPipeline of a process
@@ -54,3 +54,17 @@ def test_pipelines_share_memoised_kernels():
         ka, kb = getattr(a, attr, None), getattr(b, attr, None)
         assert ka is not None and ka is kb, CAUSE.format(names=list(motion._NEWTON_KERNEL_FACTORIES)) + \
             f" (NarrowPhase.{attr} differs between two pipelines)"
+
+
+def test_contact_estimate_is_the_pipelines_default():
+    """``motion._newton_contact_estimate`` (Newton's private estimate) is the capacity a CollisionPipeline picks when
+    given none: flowsynth falls back to it, and compares its own capacity against it."""
+    import newton
+
+    cfg = fs.BouncingThingsConfig(num_objects=(5, 5), num_frames=2, assets=("box", "rock"))
+    layout = sample_layout(cfg, 0, 0)
+    scene = motion._NewtonScene(cfg, layout.assets, layout.initial, 2, None)
+    default = newton.CollisionPipeline(scene.model, broad_phase="sap").rigid_contact_max
+    assert motion._newton_contact_estimate(scene.model) == default == scene.pipeline.rigid_contact_max, (
+        "Newton's private newton._src.sim.collide._estimate_rigid_contact_max moved or no longer gives "
+        "CollisionPipeline's default capacity: update flowsynth.motion._newton_contact_estimate")
