@@ -11,6 +11,10 @@ this process may use:
 - the issue-13 full sample: ``BouncingThings`` 512x384, T=2, 20 objects, physics, direct RGB, with depth,
   normals, instance, flow and occlusion both ways (scene sampling and physics included): samples/s.
 
+Part 1b, processes against threads: the same full sample streamed from fresh indices (as a training loop reads
+it) by one process at 1 thread, by one process at all cores (threads), and by as many DataLoader worker processes
+(1 thread each): samples/s and the CPU seconds each sample cost.
+
 Part 2, curves: hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid
 motion) rendered with depth + flow_fw + occ_fw + instance, at threads 1 and all; each curve fitted
 with cost ~ x^k.
@@ -163,6 +167,49 @@ def curves(quick: bool, counts: list[int], repeat: int) -> tuple[dict, list]:
     return results, fits
 
 
+def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int) -> tuple[float, float]:
+    """(samples/s wall, process CPU s a sample of this process and its workers) of n samples of the full output set
+    streamed from index ``start`` (fresh scenes), in one process with ``threads`` or in ``workers`` DataLoader
+    worker processes (1 thread each, the library's default there); the first sample (start-up) is not timed."""
+    import resource
+    import time
+
+    from torch.utils.data import DataLoader
+
+    import flowsynth as fs
+
+    ds = fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, start=start, threads=threads)
+    it = iter(DataLoader(ds, batch_size=None, num_workers=workers))
+    next(it)
+    ru = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+    t = time.perf_counter()
+    for _ in range(n):
+        next(it)
+    dt = time.perf_counter() - t
+    del it  # workers exit: their CPU time reaches RUSAGE_CHILDREN
+    cpu = sum(r.ru_utime + r.ru_stime - (r0.ru_utime + r0.ru_stime)
+              for r, r0 in zip((resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)),
+                               ru))
+    return n / dt, cpu / n
+
+
+def processes_vs_threads(cpus: int, n: int) -> list[dict]:
+    """The full sample streamed (fresh scenes, as in training) with 1 thread, with all cores as threads of one
+    process, and with all cores as DataLoader worker processes; each setting streams the same indices."""
+    import flowsynth as fs
+
+    cfg = fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
+                                  camera_motion="static")
+    rows = []
+    for name, threads, workers in (("1 process, 1 thread", 1, 0), (f"1 process, {cpus} threads", cpus, 0),
+                                   (f"{cpus} worker processes, 1 thread each", None, cpus)):
+        rate, cpu = stream_rate(cfg, n, 5000, threads, workers)
+        rows.append({"setting": name, "samples_s": rate, "cpu_s_per_sample": cpu})
+    for r in rows:
+        r["speedup"] = r["samples_s"] / rows[0]["samples_s"]
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -179,6 +226,12 @@ def main() -> None:
     print_table(threads, ["threads", "cast_ms", "cast_Mrays_s", "cast_speedup", "cast_cores_got", "sample_s",
                           "samples_s", "sample_speedup", "sample_cores_got"])
     print(load())
+    procs = processes_vs_threads(cpus, 8 if args.quick else 24) if cpus > 1 else []
+    if procs:
+        print("\nThe same full sample streamed (fresh scenes from index 5000, as in training): threads of one process "
+              "against DataLoader worker processes; wall-clock samples/s, CPU s a sample (process and workers)")
+        print_table(procs, ["setting", "samples_s", "speedup", "cpu_s_per_sample"])
+        print(load())
     print("\nSamples/s (wall) at threads " + ", ".join(map(str, counts)) + "; others at 256x192, 20 objects, "
           "1280 faces, T=2")
     results, fits = curves(args.quick, counts, 2 if args.quick else 3)
@@ -187,7 +240,7 @@ def main() -> None:
     after = load()
     print(after)
     write_json("scaling", {"machine": machine_info(), "load_before": before, "load_after": after,
-                           "threads": threads, "curves": results, "exponents": fits,
+                           "threads": threads, "processes_vs_threads": procs, "curves": results, "exponents": fits,
                            "base": dict(W=256, H=192, n_obj=20, faces=1280, T=2)})
 
 
