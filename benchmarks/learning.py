@@ -387,6 +387,12 @@ def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, thre
             "parameters": sum(p.numel() for p in net.parameters())}
 
 
+def final_ratios(runs: list) -> dict:
+    """Per test, each seed's flowsynth / chairs2d test EPE at the end of training."""
+    return {kind: [r["results"]["flowsynth"]["curve"][-1][kind] / r["results"]["chairs2d"]["curve"][-1][kind]
+                   for r in runs] for kind in TESTS}
+
+
 PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "flowsynth_config")
 
 
@@ -490,8 +496,7 @@ def main() -> None:
     def save(end_load: str | None) -> None:
         """Write the seeds done so far (after every seed, so a crash or a stop loses at most the one running);
         ``complete`` is false until the last planned seed is in."""
-        ratios = {kind: [r["results"]["flowsynth"]["curve"][-1][kind] / r["results"]["chairs2d"]["curve"][-1][kind]
-                         for r in runs] for kind in TESTS}
+        ratios = final_ratios(runs)
         write_json("learning" + ("" if args.mask == "valid" else f"_{args.mask}") + (f"_{args.tag}" if args.tag
                                                                                     else ""), {
             "complete": end_load is not None, "seeds_planned": seeds,
@@ -540,8 +545,7 @@ def main() -> None:
           f"{runs[0]['results']['flowsynth']['parameters']} parameters. Load at the start: {load}; at the end: "
           f"{end_load}")
     print_table(rows, list(rows[0]))
-    ratios = {kind: [r["results"]["flowsynth"]["curve"][-1][kind] / r["results"]["chairs2d"]["curve"][-1][kind]
-                     for r in runs] for kind in TESTS}
+    ratios = final_ratios(runs)
     for kind, rs in ratios.items():
         m = float(np.mean(rs))
         verdict = ("flowsynth better in every seed" if max(rs) < 1 else

@@ -216,18 +216,18 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
             if k > 0:
                 sim.advance_frame()
             poses[k], vel[k], ang[k] = sim.read()
-        if contact_max is None or not sim.overflowed():
+        if sim.contact_max is None or not sim.overflowed():  # Newton's estimate already, or nothing dropped
             break
     return Trajectory(poses, vel, ang, n_sub)
 
 
-def _contact_capacity(num_objects: int) -> int | None:
+def _contact_capacity(num_objects: int) -> int:
     """Rigid-contact slots of the first simulation of a clip with ``num_objects`` objects: CONTACTS_PER_SHAPE per
     shape (the objects and the six wall boxes of ``wall_boxes``), and at least (N + 1)^2. The second bound keeps
     the trajectory that of Newton's estimate bit for bit: XPBD's restitution pass hashes each body pair to slot
     key mod capacity (key = (lo + 1)(N + 1) + hi + 1 < (N + 1)^2) and sums the pairs' corrections in slot order,
-    so slot must equal key as it does under Newton's estimate (1000 and up). None (Newton's estimate) where that
-    is no larger (:class:`_NewtonScene`)."""
+    so slot must equal key as it does under Newton's estimate (1000 and up). :class:`_NewtonScene` uses Newton's
+    estimate instead where that is no larger."""
     return max(CONTACTS_PER_SHAPE * (num_objects + 6), (num_objects + 1) ** 2)
 
 
@@ -297,6 +297,7 @@ class _NewtonScene:
         # any substep counted, so that overflowed() can tell when some may have been dropped
         if contact_max is not None and contact_max >= _newton_contact_estimate(self.model):
             contact_max = None
+        self.contact_max = contact_max
         self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap", rigid_contact_max=contact_max)
         self.peak = wp.zeros(1, dtype=wp.int32, device="cpu")
         self.contacts = self.pipeline.contacts()
