@@ -468,6 +468,9 @@ def main() -> None:
     p.add_argument("--flow-px", type=lambda v: tuple(float(x) for x in v.split(",")), default=None,
                    metavar="LO,HI", help="train flowsynth on this flow_px (at 512x384, as the config field) instead "
                                          "of the default's: a candidate default; use with --tag")
+    p.add_argument("--pool", type=int, default=None,
+                   help="training pairs per set (default 768; --quick 128): a larger pool repeats each pair less "
+                        "often within the same steps (flowsynth then renders 1.5x this many pairs); use with --tag")
     p.add_argument("--files", default="learning*.json",
                    help="--summarize: the results/ files to pool (a glob; default every learning JSON)")
     p.add_argument("--summarize", action="store_true",
@@ -486,6 +489,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     pool, steps, batch, n_test = (128, 100, 4, 40) if args.quick else (768, 1800, 8, 100)
     steps = args.steps or steps
+    pool = args.pool or pool
     every = min(args.every, steps)
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     rows, runs = [], []
