@@ -69,6 +69,12 @@ PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "immunohistochemistry", "c
 
 
 # -- network ----------------------------------------------------------------------------------------------
+NET = "ncc-v2"  # the network's design (JSON field "net"; files written before it have none and hold "random-v1")
+R = 3  # correlation radius at every level [px of that level]
+PATCH = 9  # side of the grey-level patches the fixed matcher compares (NCC) [px of the level]
+LEVELS = (2, 1, 0)  # pyramid levels whose stride (2 ** (level + 1): 8, 4, 2) estimates flow, coarse to fine
+
+
 def build_net():
     import torch
     from torch import nn
@@ -76,8 +82,6 @@ def build_net():
 
     def conv(cin, cout, stride=1):
         return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1), nn.LeakyReLU(0.1))
-
-    R = 3  # correlation radius at every level [px of that level]
 
     def correlate(f1, f2):
         """(B, (2R+1)^2, h, w) channel sums of products of f1 with f2 shifted by (dx, dy) in [-R, R]^2."""
@@ -94,10 +98,18 @@ def build_net():
         gy = (ys + flow[:, 1]) / max(h - 1, 1) * 2 - 1
         return F.grid_sample(x, torch.stack([gx, gy], -1), align_corners=True, padding_mode="zeros")
 
+    def patches(img, stride):
+        """(B, PATCH^2, h, w) zero-mean PATCH x PATCH patches (edges replicated) of the grey image average-pooled
+        by ``stride``: the cosine of two is their normalised cross-correlation (NCC), a block matcher's cost."""
+        g = F.avg_pool2d(img.mean(1, keepdim=True), stride)
+        p = F.unfold(F.pad(g, (PATCH // 2,) * 4, mode="replicate"), PATCH).view(g.shape[0], PATCH * PATCH,
+                                                                                 *g.shape[-2:])
+        return F.normalize(p - p.mean(1, keepdim=True), dim=1)
+
     class FlowNet(nn.Module):
         def __init__(self):
             super().__init__()
-            chans = (16, 32, 48, 64)  # features at strides 2, 4, 8, 16; flow estimated at 16, 8, 4
+            chans = (16, 32, 48)  # features at strides 2, 4, 8; flow estimated at 8, 4, 2 (LEVELS)
             self.pyramid = nn.ModuleList()
             cin = 3
             for c in chans:
@@ -106,14 +118,16 @@ def build_net():
             d = torch.arange(-R, R + 1, dtype=torch.float32)
             dy, dx = torch.meshgrid(d, d, indexing="ij")
             self.register_buffer("offsets", torch.stack([dx.flatten(), dy.flatten()], 1))  # ((2R+1)^2, 2)
-            self.sharpness = nn.Parameter(torch.full((len(chans) - 1,), 20.0))
+            self.sharpness = nn.Parameter(torch.full((len(LEVELS),), 40.0))
+            self.learned = nn.Parameter(torch.zeros(len(LEVELS)))  # weight of the learned features' cost
             self.estimators = nn.ModuleList()
-            for c in chans[1:]:
-                head = nn.Conv2d(32, 2, 3, 1, 1)
+            for k in LEVELS:
+                w = 64 if k > 0 else 32  # the stride-2 estimator is half as wide: it sees 4x the pixels
+                head = nn.Conv2d(w // 2, 2, 3, 1, 1)
                 nn.init.zeros_(head.weight)
-                nn.init.zeros_(head.bias)  # starts as zero flow
-                self.estimators.append(nn.Sequential(conv((2 * R + 1) ** 2 + c + 2, 64), conv(64, 32),
-                                                     conv(32, 32), head))
+                nn.init.zeros_(head.bias)  # starts as the block matcher's flow
+                self.estimators.append(nn.Sequential(conv((2 * R + 1) ** 2 + chans[k] + 2, w), conv(w, w // 2),
+                                                     conv(w // 2, w // 2), head))
 
         def forward(self, img1, img2):
             """img (B, 3, H, W) in [0, 1] -> list of flows (B, 2, h, w) [full-res px], coarse to fine."""
@@ -123,18 +137,21 @@ def build_net():
                 a, b = level(a), level(b)
                 feats.append((a, b))
             flow, out = None, []
-            for k in reversed(range(1, len(feats))):
+            for n, k in enumerate(LEVELS):
                 f1, f2 = feats[k]
                 s = 2 ** (k + 1)  # this level's stride
                 if flow is None:
                     flow = torch.zeros(f1.shape[0], 2, *f1.shape[-2:], dtype=f1.dtype)
                 else:
                     flow = F.interpolate(flow, size=f1.shape[-2:], mode="bilinear", align_corners=False)
-                cost = correlate(F.normalize(f1, dim=1), F.normalize(warp(f2, flow / s), dim=1))
-                # block matching: soft-argmax of the cosine cost volume over the (2R+1)^2 offsets
-                prob = torch.softmax(cost * self.sharpness[k - 1], 1)
+                with torch.no_grad():  # the fixed matcher: NCC of image patches, no parameters, flow taken as given
+                    ncc = correlate(patches(img1, s), warp(patches(img2, s), flow / s))
+                cost = ncc + self.learned[n] * correlate(F.normalize(f1, dim=1),
+                                                         F.normalize(warp(f2, flow / s), dim=1))
+                # block matching: soft-argmax of the cost volume over the (2R+1)^2 offsets
+                prob = torch.softmax(cost * self.sharpness[n], 1)
                 match = torch.einsum("bkhw,kc->bchw", prob, self.offsets)
-                flow = flow + (match + self.estimators[k - 1](torch.cat([cost, f1, flow / s], 1))) * s
+                flow = flow + (match + self.estimators[n](torch.cat([cost, f1, flow / s], 1))) * s
                 out.append(flow)
             out.append(F.interpolate(flow, size=img1.shape[-2:], mode="bilinear", align_corners=False))
             return out
@@ -393,7 +410,7 @@ def final_ratios(runs: list) -> dict:
                    for r in runs] for kind in TESTS}
 
 
-PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "flowsynth_config")
+PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "net", "flowsynth_config")
 
 
 def summarize(mask: str, pattern: str = "learning*.json") -> dict:
@@ -412,7 +429,7 @@ def summarize(mask: str, pattern: str = "learning*.json") -> dict:
         d = json.loads(f.read_text())
         if d.get("mask", "valid") != mask:
             continue
-        proto = {k: d.get(k) for k in PROTOCOL}
+        proto = {k: d.get(k, "random-v1" if k == "net" else None) for k in PROTOCOL}
         if protocol is None:
             protocol = proto
         elif proto != protocol:
@@ -454,8 +471,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--seeds", default="0,1,2")
-    p.add_argument("--steps", type=int, default=None, help="training steps per net (default 1800; --quick 100)")
-    p.add_argument("--every", type=int, default=600, help="test every this many steps (the learning curve)")
+    p.add_argument("--steps", type=int, default=None, help="training steps per net (default 1200; --quick 100)")
+    p.add_argument("--every", type=int, default=400, help="test every this many steps (the learning curve)")
     p.add_argument("--workers", type=int, default=2, help="DataLoader workers generating flowsynth pairs")
     p.add_argument("--threads", type=int, default=2, help="torch threads in all (split between --jobs)")
     p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of its own")
@@ -487,7 +504,7 @@ def main() -> None:
     import torch.multiprocessing as tmp
 
     torch.set_num_threads(args.threads)
-    pool, steps, batch, n_test = (128, 100, 4, 40) if args.quick else (768, 1800, 8, 100)
+    pool, steps, batch, n_test = (128, 100, 4, 40) if args.quick else (768, 1200, 8, 100)
     steps = args.steps or steps
     pool = args.pool or pool
     every = min(args.every, steps)
@@ -506,7 +523,7 @@ def main() -> None:
             "complete": end_load is not None, "seeds_planned": seeds,
             "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
             "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
-            "photos": list(PHOTOS), "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
+            "photos": list(PHOTOS), "net": NET, "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
             "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
     seeds = [int(s) for s in args.seeds.split(",")]
