@@ -52,6 +52,8 @@ results/learning_summary[_visible][_TAG].json.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 import subprocess
 import sys
 import time
@@ -183,19 +185,21 @@ def multiscale_loss(preds, flow, valid):
 
 
 # -- data ---------------------------------------------------------------------------------------------------
-def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float] | None = None):
+def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float] | None = None,
+                    overrides: dict | None = None):
     """n flowsynth pairs: (img1, img2, flow, valid, visible) tensors (n, C, H, W), and the config used. ``valid``
     is ``valid_fw`` (occluded and out-of-frame pixels included), ``visible`` is ``valid_fw & ~occ_fw`` (as
     ``FlowPairs(mask="visible")``); a net trains on (img1, img2, flow, one of the two). ``flow_px``: another
-    ``BouncingThingsConfig.flow_px`` at the 512x384 scale than the default's (to try a candidate default)."""
+    ``BouncingThingsConfig.flow_px`` at the 512x384 scale than the default's (to try a candidate default);
+    ``overrides``: other config fields of a candidate default (``--set``), resolution-free ones only."""
     import torch
     from torch.utils.data import DataLoader
 
     import flowsynth as fs
 
-    base = fs.BouncingThingsConfig()
-    cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2,
-                                  flow_px=tuple(x / SCALE for x in (flow_px or base.flow_px)))
+    base = fs.BouncingThingsConfig.from_dict(overrides or {})
+    cfg = dataclasses.replace(base, width=W, height=H, num_frames=2,
+                              flow_px=tuple(x / SCALE for x in (flow_px or base.flow_px)))
     assert cfg.texture_dir is None
     ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw", "occ_fw"], seed=seed, length=n)
     batches = list(DataLoader(ds, batch_size=16, num_workers=workers))
@@ -421,8 +425,6 @@ PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "net
 def summarize(mask: str, pattern: str = "learning*.json") -> dict:
     """Pool the seeds of the results/ files matching ``pattern`` written with loss mask ``mask`` (module
     docstring)."""
-    import json
-
     import numpy as np
     from scipy import stats
 
@@ -490,6 +492,10 @@ def main() -> None:
     p.add_argument("--flow-px", type=lambda v: tuple(float(x) for x in v.split(",")), default=None,
                    metavar="LO,HI", help="train flowsynth on this flow_px (at 512x384, as the config field) instead "
                                          "of the default's: a candidate default; use with --tag")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
+                   help="train flowsynth on the default config with this field changed (a JSON value, e.g. "
+                        "num_objects=[2,8]); repeatable; a candidate default: use with --tag. Not width, height, "
+                        "num_frames or flow_px (set by the benchmark; --flow-px)")
     p.add_argument("--pool", type=int, default=None,
                    help="training pairs per set (default 768; --quick 128): a larger pool repeats each pair less "
                         "often within the same steps (flowsynth then renders 1.5x this many pairs); use with --tag")
@@ -532,9 +538,15 @@ def main() -> None:
             "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
     seeds = [int(s) for s in args.seeds.split(",")]
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key in ("width", "height", "num_frames", "flow_px") or not value:
+            p.error(f"--set {item!r}: give FIELD=JSON for a field other than width, height, num_frames, flow_px")
+        overrides[key] = json.loads(value)
     for seed in seeds:
         t = time.perf_counter()
-        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px)
+        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px, overrides)
         gen_s = time.perf_counter() - t
         fs_valid = tuple(x[:pool] for x in synth[:4])
         fs_train = fs_valid if args.mask == "valid" else tuple(x[:pool] for x in synth[:3] + synth[4:])
