@@ -13,18 +13,18 @@ Training sets (each a pool of pre-generated pairs at 128x96, the same size for b
   Its motion ranges are scaled so that its mean |flow| equals the flowsynth pool's: the two sets differ in
   what the motion looks like, not in how large it is.
 
-Network (``NET`` = "ncc-v2"): a small coarse-to-fine cost-volume flow net (PWC-Net-like: a 3-level feature
-pyramid at strides 2, 4 and 8; at strides 8, 4 and 2 a local cost volume of radius 3 after warping; output
-upsampled from stride 2; ~0.24 M parameters). As issue 12 asks, the untrained net is a *working* coarse-to-fine
-block matcher: each level's cost volume is the normalised cross-correlation (NCC) of 9x9 grey-level patches, a
-fixed part without parameters, plus the cosine cost volume of the learned features times a weight that starts at
-0; the level's flow update is the soft-argmax of the cost volume over the 7x7 offsets (learned sharpness) plus a
-residual flow estimator whose output layer starts at zero. Untrained, it is at 2.3 px on the homography test and
-2.0 px on the stereo test (zero flow: 4.8 and 9.8 px), so training can make it better or worse, and the learning
-curve shows which. (The first version, "random-v1", until 2026-11-25: the same matcher on random learned
-features at strides 16, 8 and 4, 0.37 M parameters; untrained it was at 25 px, far worse than zero flow, so
-training mostly repaired the initialisation; its results are in benchmarks/results/SUMMARY.md.) Trained with Adam
-on a multi-scale EPE loss over valid pixels.
+Network (``NET`` = "ncc-v2"): a small coarse-to-fine cost-volume flow net (PWC-Net-like: a 3-level feature pyramid
+at strides 2, 4 and 8; at strides 8, 4 and 2 a local cost volume of radius 3 after warping; output upsampled from
+stride 2; ~0.24 M parameters). As issue 12 asks, the untrained net is a *working* coarse-to-fine block matcher:
+each level's cost volume is the normalised cross-correlation (NCC) of 9x9 grey-level patches, a fixed part without
+parameters, plus the cosine cost volume of the learned features times a weight that starts at 0; the level's flow
+update is the soft-argmax of the cost volume over the 7x7 offsets (learned sharpness) plus a residual flow
+estimator whose output layer starts at zero. Untrained, it is at 2.1-2.6 px on the resampled homography test and
+2.0-2.1 px on the stereo test (zero flow: 4.7-5.0 and 9.4-10.5 px; seeds 0-5), so training can make it better or
+worse, and the learning curve shows which. (The first version, "random-v1", until 2026-11-25: the same matcher on
+random learned features at strides 16, 8 and 4, 0.37 M parameters; untrained it was at 25 px, far worse than zero
+flow, so training mostly repaired the initialisation; its results are in benchmarks/results/SUMMARY.md.) Trained
+with Adam on a multi-scale EPE loss over valid pixels.
 
 Test sets (every net is tested on all three; images that ship with scikit-image, none of them a texture of
 either training set), EPE over pixels whose flow lands inside the image:
