@@ -178,19 +178,20 @@ def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int) -> t
 
     import flowsynth as fs
 
+    def cpu_s() -> float:  # this process and its exited children (the DataLoader workers)
+        return sum(r.ru_utime + r.ru_stime for r in map(resource.getrusage, (resource.RUSAGE_SELF,
+                                                                             resource.RUSAGE_CHILDREN)))
+
     ds = fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, start=start, threads=threads)
     it = iter(DataLoader(ds, batch_size=None, num_workers=workers))
     next(it)
-    ru = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+    cpu0 = cpu_s()
     t = time.perf_counter()
     for _ in range(n):
         next(it)
     dt = time.perf_counter() - t
     del it  # workers exit: their CPU time reaches RUSAGE_CHILDREN
-    cpu = sum(r.ru_utime + r.ru_stime - (r0.ru_utime + r0.ru_stime)
-              for r, r0 in zip((resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)),
-                               ru))
-    return n / dt, cpu / n
+    return n / dt, (cpu_s() - cpu0) / n
 
 
 def processes_vs_threads(cpus: int, n: int) -> list[dict]:
