@@ -12,8 +12,10 @@ this process may use:
   normals, instance, flow and occlusion both ways (scene sampling and physics included): samples/s.
 
 Part 1b, processes against threads: the same full sample streamed from fresh indices (as a training loop reads
-it) by one process at 1 thread, by one process at all cores (threads), and by as many DataLoader worker processes
-(1 thread each): samples/s and the CPU seconds each sample cost.
+it) by one process at 1 thread, by one process at all cores (threads: the stream renders that many samples side
+by side, flowsynth/datasets/bouncing.py; and, for comparison, a loop over ``sample(i)``, which cuts each launch
+into bands instead), and by as many DataLoader worker processes (1 thread each): samples/s and the CPU seconds
+each sample cost. ``--streams`` runs only this part.
 
 Part 2, curves: hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid
 motion) rendered with depth + flow_fw + occ_fw + instance, at threads 1 and all; each curve fitted
@@ -167,10 +169,13 @@ def curves(quick: bool, counts: list[int], repeat: int) -> tuple[dict, list]:
     return results, fits
 
 
-def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int) -> tuple[float, float]:
+def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int, loop: bool = False,
+                outputs=None) -> tuple[float, float]:
     """(samples/s wall, process CPU s a sample of this process and its workers) of n samples of the full output set
     streamed from index ``start`` (fresh scenes), in one process with ``threads`` or in ``workers`` DataLoader
-    worker processes (1 thread each, the library's default there); the first sample (start-up) is not timed."""
+    worker processes (1 thread each, the library's default there); the first sample (start-up) is not timed.
+    ``loop``: call ``sample(i)`` index by index instead of iterating (each launch cut into bands). ``outputs``:
+    another output list than the full one."""
     import resource
     import time
 
@@ -182,8 +187,9 @@ def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int) -> t
         return sum(r.ru_utime + r.ru_stime for r in map(resource.getrusage, (resource.RUSAGE_SELF,
                                                                              resource.RUSAGE_CHILDREN)))
 
-    ds = fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, start=start, threads=threads)
-    it = iter(DataLoader(ds, batch_size=None, num_workers=workers))
+    ds = fs.datasets.BouncingThings(cfg, outputs=outputs or FULL_OUTPUTS, seed=0, start=start, threads=threads)
+    it = (map(ds.sample, range(start, start + n + 1)) if loop else
+          iter(DataLoader(ds, batch_size=None, num_workers=workers)))
     next(it)
     cpu0 = cpu_s()
     t = time.perf_counter()
@@ -194,28 +200,69 @@ def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int) -> t
     return n / dt, (cpu_s() - cpu0) / n
 
 
-def processes_vs_threads(cpus: int, n: int) -> list[dict]:
+def processes_vs_threads(cpus: int, n: int, default: bool = False) -> list[dict]:
     """The full sample streamed (fresh scenes, as in training) with 1 thread, with all cores as threads of one
-    process, and with all cores as DataLoader worker processes; each setting streams the same indices."""
+    process, and with all cores as DataLoader worker processes; each setting streams the same indices.
+    ``default``: the default config (320x240, T=24) with rgb, flow_fw, valid_fw and occ_fw instead."""
     import flowsynth as fs
 
     cfg = fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
                                   camera_motion="static")
+    outputs = None
+    if default:
+        cfg, outputs = fs.BouncingThingsConfig(), ["rgb", "flow_fw", "valid_fw", "occ_fw"]
     rows = []
-    for name, threads, workers in (("1 process, 1 thread", 1, 0), (f"1 process, {cpus} threads", cpus, 0),
-                                   (f"{cpus} worker processes, 1 thread each", None, cpus)):
-        rate, cpu = stream_rate(cfg, n, 5000, threads, workers)
+    for name, threads, workers, loop in (
+            ("1 process, 1 thread", 1, 0, False),
+            (f"1 process, {cpus} threads: sample(i) loop, bands", cpus, 0, True),
+            (f"1 process, {cpus} threads: stream, samples side by side", cpus, 0, False),
+            (f"{cpus} worker processes, 1 thread each", None, cpus, False)):
+        rate, cpu = stream_rate(cfg, n, 5000, threads, workers, loop, outputs)
         rows.append({"setting": name, "samples_s": rate, "cpu_s_per_sample": cpu})
     for r in rows:
         r["speedup"] = r["samples_s"] / rows[0]["samples_s"]
     return rows
 
 
+def streams_only(cpus: int, rounds: int, n: int, default: bool = False) -> None:
+    """Part 1b alone, ``rounds`` times in a row (the settings' order within a round is fixed, so load from
+    elsewhere is shared out over rounds); prints each round and the medians; writes
+    results/scaling_streams[_default].json."""
+    import statistics
+
+    before = load()
+    print(f"{cpus} CPUs allowed; {before}")
+    runs = []
+    for r in range(rounds):
+        rows = processes_vs_threads(cpus, n, default)
+        runs.append(rows)
+        print(f"\nround {r + 1}:")
+        print_table(rows, ["setting", "samples_s", "speedup", "cpu_s_per_sample"])
+    medians = [{"setting": rows[0]["setting"]} | {k: statistics.median(run[i][k] for run in runs)
+                                                  for k in ("samples_s", "speedup", "cpu_s_per_sample")}
+               for i, rows in enumerate(zip(*runs))]
+    print(f"\nmedians of {rounds} rounds, {n} samples a setting:")
+    print_table(medians, ["setting", "samples_s", "speedup", "cpu_s_per_sample"])
+    after = load()
+    print(after)
+    write_json("scaling_streams" + ("_default" if default else ""), {
+        "machine": machine_info(), "load_before": before, "load_after": after, "samples": n,
+        "config": "default (rgb, flow_fw, valid_fw, occ_fw)" if default else "issue 13 full sample (512x384, T=2)",
+        "rounds": runs, "medians": medians})
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--streams", action="store_true", help="only part 1b (processes against threads), --rounds times")
+    p.add_argument("--rounds", type=int, default=3, help="--streams: rounds of the four settings, one after another")
+    p.add_argument("--default-config", action="store_true",
+                   help="--streams: stream the default config (rgb + flow) instead of issue 13's full sample")
     args = p.parse_args()
     cpus = len(os.sched_getaffinity(0))
+    if args.streams:
+        streams_only(cpus, args.rounds, 8 if args.quick else 24, args.default_config)
+        return
     counts = sorted({1, 2, cpus} & set(range(1, cpus + 1)))
     before = load()
     print(f"{cpus} CPUs allowed; {before}")

@@ -229,3 +229,76 @@ def test_flow_pairs_masks_valid_includes_occluded_and_visible_excludes_it():
     np.testing.assert_array_equal(visible, valid & ~occ)
     with pytest.raises(fs.ConfigError):
         fs.datasets.FlowPairs(cfg, mask="noc")
+
+
+# -- several samples at once (threads > 1 in one process: bouncing.BouncingThings._side_by_side) ---------------
+PHYS = fs.BouncingThingsConfig(width=40, height=30, num_frames=2, num_objects=(3, 5), max_objects=5)  # Newton
+
+
+@pytest.fixture
+def small_chunks(monkeypatch):
+    """Two samples per thread and chunk, so short streams cross several chunks and end inside one."""
+    from flowsynth.datasets import bouncing
+
+    monkeypatch.setattr(bouncing, "STREAM_CHUNK_PER_THREAD", 2)
+
+
+def test_threaded_stream_matches_sample_and_renders_on_sample_threads(small_chunks, monkeypatch):
+    import threading
+
+    outs = OUTS + ["rgb"]
+    single = BouncingThings(PHYS, outputs=outs, seed=4, length=7, threads=1)
+    reference = list(single)  # one thread: the plain loop, every launch on this thread
+    seen = []
+    render = BouncingThings._render
+
+    def spy(self, scene, i, plan):
+        seen.append((int(i), threading.current_thread().name, plan.threads))
+        return render(self, scene, i, plan)
+
+    monkeypatch.setattr(BouncingThings, "_render", spy)
+    threaded = list(BouncingThings(PHYS, outputs=outs, seed=4, length=7, threads=2))
+    # 7 samples = chunks of 4, 3 (2 threads x 2); every one rendered on a pool thread, one thread per launch
+    assert sorted(i for i, _, _ in seen) == list(range(7))
+    assert all(name.startswith("flowsynth-sample") and t == 1 for _, name, t in seen)
+    assert len({name for _, name, _ in seen}) == 2
+    assert [int(x["index"]) for x in threaded] == list(range(7))
+    for a, b in zip(threaded, reference):
+        assert_sample_equal(a, b)
+    seen.clear()
+    assert_sample_equal(BouncingThings(PHYS, outputs=outs, seed=4, threads=2).sample(5), reference[5])
+    assert seen and seen[0][1] == threading.current_thread().name  # sample(i): bands from this thread
+
+
+def test_threaded_stream_resumes_after_a_stop_inside_a_chunk(small_chunks):
+    reference = list(BouncingThings(CFG, outputs=["depth"], seed=6, length=9, threads=1))
+    ds = BouncingThings(CFG, outputs=["depth"], seed=6, length=9, threads=2)
+    it = iter(ds)
+    head = [next(it) for _ in range(3)]  # stops inside the first chunk of 4
+    state = ds.state_dict()
+    it.close()  # the chunk's remaining render is cancelled or awaited, not yielded
+    assert state["pos"] == 3
+    resumed = BouncingThings(CFG, outputs=["depth"], seed=6, length=9, threads=2)
+    resumed.load_state_dict(state)
+    got = head + list(resumed)
+    assert [int(x["index"]) for x in got] == list(range(9))
+    for a, b in zip(got, reference):
+        assert_sample_equal(a, b)
+
+
+def test_threaded_stream_raises_a_failed_render_in_order(small_chunks, monkeypatch):
+    render = BouncingThings._render
+
+    def fail_at_5(self, scene, i, plan):
+        if i == 5:
+            raise RuntimeError("render of sample 5 failed")
+        return render(self, scene, i, plan)
+
+    monkeypatch.setattr(BouncingThings, "_render", fail_at_5)
+    ds = BouncingThings(CFG, outputs=["depth"], seed=1, length=8, threads=2)
+    got = []
+    with pytest.raises(RuntimeError, match="sample 5"):
+        for x in ds:
+            got.append(int(x["index"]))
+    assert got == [0, 1, 2, 3, 4]  # everything before the failure, in order; nothing after it
+    assert ds.state_dict()["pos"] == 5
