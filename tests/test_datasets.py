@@ -286,15 +286,17 @@ def test_threaded_stream_resumes_after_a_stop_inside_a_chunk(small_chunks):
         assert_sample_equal(a, b)
 
 
-def test_threaded_stream_raises_a_failed_render_in_order(small_chunks, monkeypatch):
-    render = BouncingThings._render
+@pytest.mark.parametrize("stage", ["scene", "_render"])
+def test_threaded_stream_raises_a_failure_in_order(small_chunks, monkeypatch, stage):
+    original = getattr(BouncingThings, stage)
 
-    def fail_at_5(self, scene, i, plan):
+    def fail_at_5(self, *args):
+        i = args[0] if stage == "scene" else args[1]
         if i == 5:
-            raise RuntimeError("render of sample 5 failed")
-        return render(self, scene, i, plan)
+            raise RuntimeError(f"{stage} of sample 5 failed")
+        return original(self, *args)
 
-    monkeypatch.setattr(BouncingThings, "_render", fail_at_5)
+    monkeypatch.setattr(BouncingThings, stage, fail_at_5)
     ds = BouncingThings(CFG, outputs=["depth"], seed=1, length=8, threads=2)
     got = []
     with pytest.raises(RuntimeError, match="sample 5"):

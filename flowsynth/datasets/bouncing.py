@@ -171,16 +171,25 @@ class BouncingThings(IterableDataset):
     def _side_by_side(self, indices: Iterator[tuple[int, int]], threads: int
                       ) -> Iterator[tuple[dict[str, torch.Tensor], int]]:
         """(item, position after it) for ``indices``: chunks of scenes simulated on this thread, then rendered
-        ``threads`` at a time, one thread each (module docstring). Leaving early cancels the chunk's renders
-        not yet started and waits for those running."""
+        ``threads`` at a time, one thread each (module docstring). A failure in a scene or a render is raised
+        after the items before it, as the one-thread loop would. Leaving early cancels the chunk's renders not
+        yet started and waits for those running."""
         plan = dataclasses.replace(self.plan, threads=1)
         with ThreadPoolExecutor(threads, thread_name_prefix="flowsynth-sample") as pool:
             try:
                 while chunk := list(itertools.islice(indices, threads * STREAM_CHUNK_PER_THREAD)):
-                    scenes = [self.scene(i) for i, _ in chunk]
+                    scenes, failed = [], None
+                    for i, _ in chunk:  # a scene that fails ends the chunk: the ones before it are still yielded
+                        try:
+                            scenes.append(self.scene(i))
+                        except Exception as e:
+                            failed = e
+                            break
                     futures = [pool.submit(self._render, scene, i, plan) for scene, (i, _) in zip(scenes, chunk)]
                     for future, (_, next_pos) in zip(futures, chunk):
                         yield future.result(), next_pos
+                    if failed is not None:
+                        raise failed
             finally:
                 pool.shutdown(wait=True, cancel_futures=True)
 
