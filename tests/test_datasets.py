@@ -237,7 +237,8 @@ PHYS = fs.BouncingThingsConfig(width=40, height=30, num_frames=2, num_objects=(3
 
 @pytest.fixture
 def small_chunks(monkeypatch):
-    """Two samples per thread and chunk, so short streams cross several chunks and end inside one."""
+    """Two samples per thread and chunk, pinned (the tests count on chunks of 4): short streams cross several
+    chunks and end inside one."""
     from flowsynth.datasets import bouncing
 
     monkeypatch.setattr(bouncing, "STREAM_CHUNK_PER_THREAD", 2)

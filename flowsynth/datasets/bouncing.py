@@ -45,9 +45,12 @@ from flowsynth.scene import Scene, provenance_json
 
 __all__ = ["STREAM_CHUNK_PER_THREAD", "BouncingThings", "sample_seed"]
 
-STREAM_CHUNK_PER_THREAD = 4
-"""Samples per thread simulated before a multi-threaded stream renders them side by side (module docstring):
-more balances uneven samples across the threads, fewer keeps fewer samples in memory (benchmarks/scaling.py)."""
+STREAM_CHUNK_PER_THREAD = 2
+"""Samples per thread simulated before a multi-threaded stream renders them side by side (module docstring), so
+up to this many times ``threads`` samples are in memory at once: more balances uneven samples across the threads,
+fewer keeps fewer in memory. 2 and 4 streamed the default config equally fast within this VM's spread (1.64 and
+1.63 samples/s, medians of 3 rounds, against 1.60 for a sample(i) loop with bands; benchmarks/results/SUMMARY.md,
+scaling)."""
 
 
 def _shard() -> tuple[int, int]:
