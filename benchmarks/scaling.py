@@ -12,10 +12,9 @@ this process may use:
   normals, instance, flow and occlusion both ways (scene sampling and physics included): samples/s.
 
 Part 1b, processes against threads: the same full sample streamed from fresh indices (as a training loop reads
-it) by one process at 1 thread, by one process at all cores (threads: the stream renders that many samples side
-by side, flowsynth/datasets/bouncing.py; and, for comparison, a loop over ``sample(i)``, which cuts each launch
-into bands instead), and by as many DataLoader worker processes (1 thread each): samples/s and the CPU seconds
-each sample cost. ``--streams`` runs only this part.
+it) by one process at 1 thread, by one process at all cores (threads), and by as many DataLoader worker processes
+(1 thread each): samples/s and the CPU seconds each sample cost. ``--streams`` runs only this part, ``--rounds``
+times, and prints the medians (``--default-config``: the default config with rgb and flow instead).
 
 Part 2, curves: hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid
 motion) rendered with depth + flow_fw + occ_fw + instance, at threads 1 and all; each curve fitted
@@ -169,13 +168,11 @@ def curves(quick: bool, counts: list[int], repeat: int) -> tuple[dict, list]:
     return results, fits
 
 
-def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int, loop: bool = False,
-                outputs=None) -> tuple[float, float]:
+def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int, outputs=None) -> tuple[float, float]:
     """(samples/s wall, process CPU s a sample of this process and its workers) of n samples of the full output set
     streamed from index ``start`` (fresh scenes), in one process with ``threads`` or in ``workers`` DataLoader
     worker processes (1 thread each, the library's default there); the first sample (start-up) is not timed.
-    ``loop``: call ``sample(i)`` index by index instead of iterating (each launch cut into bands). ``outputs``:
-    another output list than the full one."""
+    ``outputs``: another output list than the full one."""
     import resource
     import time
 
@@ -188,8 +185,7 @@ def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int, loop
                                                                              resource.RUSAGE_CHILDREN)))
 
     ds = fs.datasets.BouncingThings(cfg, outputs=outputs or FULL_OUTPUTS, seed=0, start=start, threads=threads)
-    it = (map(ds.sample, range(start, start + n + 1)) if loop else
-          iter(DataLoader(ds, batch_size=None, num_workers=workers)))
+    it = iter(DataLoader(ds, batch_size=None, num_workers=workers))
     next(it)
     cpu0 = cpu_s()
     t = time.perf_counter()
@@ -212,12 +208,9 @@ def processes_vs_threads(cpus: int, n: int, default: bool = False) -> list[dict]
     if default:
         cfg, outputs = fs.BouncingThingsConfig(), ["rgb", "flow_fw", "valid_fw", "occ_fw"]
     rows = []
-    for name, threads, workers, loop in (
-            ("1 process, 1 thread", 1, 0, False),
-            (f"1 process, {cpus} threads: sample(i) loop, bands", cpus, 0, True),
-            (f"1 process, {cpus} threads: stream, samples side by side", cpus, 0, False),
-            (f"{cpus} worker processes, 1 thread each", None, cpus, False)):
-        rate, cpu = stream_rate(cfg, n, 5000, threads, workers, loop, outputs)
+    for name, threads, workers in (("1 process, 1 thread", 1, 0), (f"1 process, {cpus} threads", cpus, 0),
+                                   (f"{cpus} worker processes, 1 thread each", None, cpus)):
+        rate, cpu = stream_rate(cfg, n, 5000, threads, workers, outputs)
         rows.append({"setting": name, "samples_s": rate, "cpu_s_per_sample": cpu})
     for r in rows:
         r["speedup"] = r["samples_s"] / rows[0]["samples_s"]
@@ -255,7 +248,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--streams", action="store_true", help="only part 1b (processes against threads), --rounds times")
-    p.add_argument("--rounds", type=int, default=3, help="--streams: rounds of the four settings, one after another")
+    p.add_argument("--rounds", type=int, default=3, help="--streams: rounds of the three settings, one after another")
     p.add_argument("--default-config", action="store_true",
                    help="--streams: stream the default config (rgb + flow) instead of issue 13's full sample")
     args = p.parse_args()

@@ -15,42 +15,22 @@ every epoch) call ``set_epoch(e)`` before each epoch, as with ``DistributedSampl
 Resuming. ``state_dict()`` / ``load_state_dict()`` follow torchdata's ``StatefulDataLoader``
 protocol: each worker's copy reports its own position, and a restored loader continues with exactly
 the samples an uninterrupted run would have produced.
-
-Several samples at once. With more than one thread (``threads``; by default every core, except inside a
-DataLoader worker, where it is 1), iterating renders whole samples side by side instead of cutting each ray
-launch into bands: the stream takes ``STREAM_CHUNK_PER_THREAD`` x threads indices at a time, simulates their
-scenes one after another on the calling thread (Newton's CPU graph capture is process-wide state in Warp: no
-other Warp work may run while a substep is captured), then renders them on that many threads, each sample on
-one thread (Warp launches release the GIL), and yields them in index order. Each sample is bit-identical to
-``sample(i)`` (results do not depend on the thread count), and ``state_dict`` counts only samples yielded.
-``sample(i)`` itself still cuts its launches into bands. benchmarks/scaling.py (part 1b) measures both ways.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
-from flowsynth.parallel import resolve_threads
-from flowsynth.plan import Plan, make_plan
+from flowsynth.plan import make_plan
 from flowsynth.sampling import sample_seed
 from flowsynth.scene import Scene, provenance_json
 
-__all__ = ["STREAM_CHUNK_PER_THREAD", "BouncingThings", "sample_seed"]
-
-STREAM_CHUNK_PER_THREAD = 2
-"""Samples per thread simulated before a multi-threaded stream renders them side by side (module docstring), so
-up to this many times ``threads`` samples are in memory at once: more balances uneven samples across the threads,
-fewer keeps fewer in memory. 2 and 4 streamed the default config equally fast within this VM's spread (1.64 and
-1.63 samples/s, medians of 3 rounds, against 1.60 for a sample(i) loop with bands; benchmarks/results/SUMMARY.md,
-scaling)."""
+__all__ = ["BouncingThings", "sample_seed"]
 
 
 def _shard() -> tuple[int, int]:
@@ -124,15 +104,12 @@ class BouncingThings(IterableDataset):
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
         """Sample ``i``: exactly the item the stream yields for index ``i``."""
-        if not isinstance(i, (int, np.integer)) or i < 0:
-            raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
-        return self._render(self.scene(i), i, self.plan)
-
-    def _render(self, scene: Scene, i: int, plan: Plan) -> dict[str, torch.Tensor]:
-        """The item of index ``i`` from its simulated ``scene``, rendered by ``plan``."""
         from flowsynth.render import render_plan
 
-        out = render_plan(scene, plan, device=self.device)
+        if not isinstance(i, (int, np.integer)) or i < 0:
+            raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
+        scene = self.scene(i)
+        out = render_plan(scene, self.plan, device=self.device)
         out["index"] = torch.tensor(int(i), dtype=torch.int64)
         out["seed"] = torch.tensor(self.seed, dtype=torch.int64)
         out["provenance"] = provenance_json(scene)
@@ -158,43 +135,12 @@ class BouncingThings(IterableDataset):
             torch.set_num_threads(1)
         g, G = _shard()
         epoch = self._epoch
-        indices = self._indices(g, G, epoch, self._pos)
-        threads = resolve_threads(self.plan.threads)
-        items = (self._side_by_side(indices, threads) if threads > 1 and self.device == "cpu" else
-                 ((self.sample(i), next_pos) for i, next_pos in indices))
-        try:
-            for item, next_pos in items:
-                self._pos = next_pos
-                yield item
-        finally:
-            items.close()  # a stream left early stops its renders now, not when collected
+        for i, next_pos in self._indices(g, G, epoch, self._pos):
+            item = self.sample(i)
+            self._pos = next_pos
+            yield item
         # finite epoch exhausted: the next iter() starts the next epoch
         self._epoch, self._pos = epoch + 1, 0
-
-    def _side_by_side(self, indices: Iterator[tuple[int, int]], threads: int
-                      ) -> Iterator[tuple[dict[str, torch.Tensor], int]]:
-        """(item, position after it) for ``indices``: chunks of scenes simulated on this thread, then rendered
-        ``threads`` at a time, one thread each (module docstring). A failure in a scene or a render is raised
-        after the items before it, as the one-thread loop would. Leaving early cancels the chunk's renders not
-        yet started and waits for those running."""
-        plan = dataclasses.replace(self.plan, threads=1)
-        with ThreadPoolExecutor(threads, thread_name_prefix="flowsynth-sample") as pool:
-            try:
-                while chunk := list(itertools.islice(indices, threads * STREAM_CHUNK_PER_THREAD)):
-                    scenes, failed = [], None
-                    for i, _ in chunk:  # a scene that fails ends the chunk: the ones before it are still yielded
-                        try:
-                            scenes.append(self.scene(i))
-                        except Exception as e:
-                            failed = e
-                            break
-                    futures = [pool.submit(self._render, scene, i, plan) for scene, (i, _) in zip(scenes, chunk)]
-                    for future, (_, next_pos) in zip(futures, chunk):
-                        yield future.result(), next_pos
-                    if failed is not None:
-                        raise failed
-            finally:
-                pool.shutdown(wait=True, cancel_futures=True)
 
     def state_dict(self) -> dict:
         """This copy's position (per worker under StatefulDataLoader)."""
