@@ -254,6 +254,10 @@ def main() -> None:
     args = p.parse_args()
     cpus = len(os.sched_getaffinity(0))
     if args.streams:
+        if args.rounds < 1:
+            p.error(f"--rounds must be >= 1, got {args.rounds}")
+        if cpus < 2:
+            p.error("--streams compares one thread with all cores: this process may use only one CPU")
         streams_only(cpus, args.rounds, 8 if args.quick else 24, args.default_config)
         return
     counts = sorted({1, 2, cpus} & set(range(1, cpus + 1)))
