@@ -79,7 +79,27 @@ def machine_info(extra_packages: Sequence[str] = ()) -> dict:
     }
     for dist in ("torch", "warp-lang", "newton", "numpy", "trimesh", *extra_packages):
         info[dist] = _version(dist)
+    info.update(_library_commit())
     return info
+
+
+def _library_commit() -> dict:
+    """``flowsynth_commit``: the git commit of the checkout the imported flowsynth package comes from, and
+    ``flowsynth_modified``: whether its ``flowsynth/`` differs from that commit (uncommitted library changes); both
+    None outside a git checkout. Two results files of one commit and no modification ran the same library code."""
+    import subprocess
+    from importlib.util import find_spec
+
+    spec = find_spec("flowsynth")
+    root = Path(spec.origin).resolve().parent.parent if spec and spec.origin else None
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10, check=True).stdout.strip()
+        changed = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "flowsynth"],
+                                 capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError, TypeError):
+        return {"flowsynth_commit": None, "flowsynth_modified": None}
+    return {"flowsynth_commit": commit, "flowsynth_modified": bool(changed)}
 
 
 def time_calls(fn: Callable[[], object], repeat: int = 5, warmup: int = 1) -> dict:
