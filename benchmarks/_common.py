@@ -91,13 +91,15 @@ def _library_commit() -> dict:
     from importlib.util import find_spec
 
     spec = find_spec("flowsynth")
-    root = Path(spec.origin).resolve().parent.parent if spec and spec.origin else None
+    if spec is None or spec.origin is None:
+        return {"flowsynth_commit": None, "flowsynth_modified": None}
+    root = Path(spec.origin).resolve().parent.parent
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                                 timeout=10, check=True).stdout.strip()
         changed = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "flowsynth"],
                                  capture_output=True, text=True, timeout=10, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError, TypeError):
+    except (OSError, subprocess.SubprocessError):
         return {"flowsynth_commit": None, "flowsynth_modified": None}
     return {"flowsynth_commit": commit, "flowsynth_modified": bool(changed)}
 

@@ -231,9 +231,9 @@ def streams_only(cpus: int, rounds: int, n: int, default: bool = False) -> None:
         runs.append(rows)
         print(f"\nround {r + 1}:")
         print_table(rows, ["setting", "samples_s", "speedup", "cpu_s_per_sample"])
-    medians = [{"setting": rows[0]["setting"]} | {k: statistics.median(run[i][k] for run in runs)
-                                                  for k in ("samples_s", "speedup", "cpu_s_per_sample")}
-               for i, rows in enumerate(zip(*runs))]
+    medians = [{"setting": row["setting"]} | {k: statistics.median(run[i][k] for run in runs)
+                                              for k in ("samples_s", "speedup", "cpu_s_per_sample")}
+               for i, row in enumerate(runs[0])]
     print(f"\nmedians of {rounds} rounds, {n} samples a setting:")
     print_table(medians, ["setting", "samples_s", "speedup", "cpu_s_per_sample"])
     after = load()
