@@ -38,7 +38,9 @@ either training set), EPE over pixels whose flow lands inside the image:
 Budget: 1200 steps of batch 8 per net (about 12 epochs of a 768-pair pool), tested every 400 steps, so the
 learning curve shows what a shorter budget would have said (random-v1: 1800 steps, every 600; a step of ncc-v2
 costs about 2.3x one of random-v1, mostly its stride-2 level). The two nets of a seed train at once, each in a
-process of its own (``--jobs``). Reports the test EPE of zero flow, of the untrained net, of the net
+process of its own (``--jobs``). ``--pool`` of at least steps x batch pairs (9600) turns each pool into a stream:
+every pair is trained on once, in a random order, as a net fed by ``fs.datasets.BouncingThings`` would see it.
+Reports the test EPE of zero flow, of the untrained net, of the net
 trained on each set along the curve, and the ratio flowsynth / chairs2d (< 1: flowsynth trains the better flow
 network), per seed. Writes results/learning.json.
 
@@ -399,10 +401,14 @@ def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, thre
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=LR, total_steps=steps, pct_start=0.1)
     g = torch.Generator().manual_seed(seed)
     img1, img2, flow, valid = data
+    # a pool of at least steps x batch pairs is a stream: each pair is drawn once, in a random order; a smaller
+    # pool is drawn from with replacement (the default protocol)
+    order = torch.randperm(len(img1), generator=g) if len(img1) >= steps * batch else None
     t = time.perf_counter()
     curve = [{"step": 0, "train_loss": None, **{k: evaluate(net, v) for k, v in tests.items()}}]  # untrained
     for step in range(1, steps + 1):
-        idx = torch.randint(len(img1), (batch,), generator=g)
+        idx = (torch.randint(len(img1), (batch,), generator=g) if order is None
+               else order[(step - 1) * batch:step * batch])
         loss = multiscale_loss(net(img1[idx], img2[idx]), flow[idx], valid[idx])
         opt.zero_grad()
         loss.backward()
@@ -499,7 +505,8 @@ def main() -> None:
                         "num_frames or flow_px (set by the benchmark; --flow-px)")
     p.add_argument("--pool", type=int, default=None,
                    help="training pairs per set (default 768; --quick 128): a larger pool repeats each pair less "
-                        "often within the same steps (flowsynth then renders 1.5x this many pairs); use with --tag")
+                        "often within the same steps (flowsynth then renders 1.5x this many pairs); a pool of at "
+                        "least steps x batch pairs is a stream, each pair trained on once; use with --tag")
     p.add_argument("--files", default="learning*.json",
                    help="--summarize: the results/ files to pool (a glob; default every learning JSON)")
     p.add_argument("--summarize", action="store_true",
