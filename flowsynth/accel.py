@@ -14,7 +14,8 @@ from collections import OrderedDict
 
 import numpy as np
 import trimesh
-from scipy.spatial import QhullError
+from scipy.spatial import ConvexHull, QhullError
+from trimesh.convex import QHULL_DEFAULT
 
 from flowsynth.blas import atlas
 from flowsynth.kernels import wp_runtime
@@ -156,7 +157,7 @@ class SceneAccel:
         inst.blas_tris, inst.blas_face, inst.blas_slot = self.blas["tris"], self.blas["face"], self.blas["slot"]
         return inst
 
-    def culling(self):
+    def culling(self, threads: int | None = None):
         """The visibility rays' exact culling data: a ``Culling`` struct (flowsynth.kernels.raycast).
 
         Per face of every asset, its plane (unit normal n, e = max over the asset's vertices of n . v): the
@@ -164,13 +165,14 @@ class SceneAccel:
         of a flat instance the slab lo <= n . x <= hi holding it, in the frame's camera frame; per (frame, item)
         the ``SIL_K`` planes through the camera centre that bound its convex hull (``_silhouette_planes``). All float64,
         from the float32 vertices the mesh queries use. Visibility rays test the flat instances of their
-        frame first, then walk ``tile_lists(camera, flat=False)``.
+        frame first, then walk ``tile_lists(camera, flat=False)``. ``threads``: those of the face planes'
+        kernel on a mesh not yet cached (``_face_planes``; the result does not depend on it).
         """
         if self._cull is None:
             from flowsynth.kernels.raycast import Culling
 
             wp = wp_runtime()
-            bounds = [_face_planes(m) for m in self._meshes]
+            bounds = [_face_planes(m, threads) for m in self._meshes]
             planes, slabs = [b["planes"] for b in bounds], [b["slab"] for b in bounds]
             offsets = np.cumsum([0] + [len(p) for p in planes])[:-1]
             flat = np.array([s is not None for s in slabs])
@@ -204,11 +206,12 @@ class SceneAccel:
             self._cull, self._flat = c, flat
         return self._cull
 
-    def tile_lists(self, camera, flat: bool = True):
+    def tile_lists(self, camera, flat: bool = True, threads: int | None = None):
         """The primary cast's per-(frame, screen tile) candidate lists: a ``TileLists`` struct
         (flowsynth.kernels.raycast) holding the instances whose hull, clipped to z >= ``CLIP_Z``, projects within
         a pixel of each tile (``_screen_bounds``), near to far;
-        ``flat=False``: without the flat instances of ``culling()`` (visibility rays test those apart)."""
+        ``flat=False``: without the flat instances of ``culling()`` (visibility rays test those apart; ``threads``:
+        those of ``culling``)."""
         from flowsynth.kernels.raycast import TileLists
 
         wp = wp_runtime()
@@ -221,7 +224,7 @@ class SceneAccel:
             else:
                 order = self._order_np
                 if not flat:
-                    self.culling()
+                    self.culling(threads)
                     local = order - (np.arange(self.F) * self.N)[:, None]
                     keep = ~self._flat[local]  # (F, N): the same instances are flat in every frame
                     order = order[keep].reshape(self.F, -1)
@@ -242,11 +245,18 @@ _HULLS: OrderedDict = OrderedDict()
 
 
 def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
-    """Vertices of the convex hull of a mesh (cached per process): its posed box is the tight box."""
+    """Vertices of the convex hull of a mesh (cached per process): its posed box is the tight box.
+
+    Qhull's hull vertices (with trimesh's options ``QHULL_DEFAULT``) in the order of the mesh's vertices: the
+    vertices of ``mesh.convex_hull`` without building that mesh (its normal repair costs as much as Qhull), so the
+    same rows on the built-in assets (tests/test_raycast.py). Any set of the mesh's vertices holding every
+    extreme point bounds the mesh exactly."""
     def hull():
         V = np.asarray(mesh.vertices, np.float64)
+        if len(V) <= 64:
+            return V
         try:
-            return np.asarray(mesh.convex_hull.vertices, np.float64) if len(V) > 64 else V
+            return V[np.sort(ConvexHull(V, qhull_options=str(QHULL_DEFAULT)).vertices)]
         except (ValueError, IndexError, QhullError):  # flat/degenerate point sets: all vertices are exact too
             return V
 
@@ -292,7 +302,7 @@ def _silhouette_planes(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray) -> 
 _PLANES: OrderedDict = OrderedDict()
 
 
-def _face_planes(mesh: trimesh.Trimesh) -> dict:
+def _face_planes(mesh: trimesh.Trimesh, threads: int | None = None) -> dict:
     """Exact bounds of a mesh for culling visibility rays, float64 from the float32 vertices the mesh
     queries use; cached per process like the asset BVHs. Keys:
 
@@ -306,12 +316,14 @@ def _face_planes(mesh: trimesh.Trimesh) -> dict:
       solid is then the intersection of the face half-spaces, and the ball the largest one in it, less
       the vertices' worst excess over their face planes).
     """
-    return _cached(_PLANES, _mesh_key(mesh), lambda: _face_planes_of(mesh))
+    return _cached(_PLANES, _mesh_key(mesh), lambda: _face_planes_of(mesh, threads))
 
 
-def _face_planes_of(mesh: trimesh.Trimesh) -> dict:
-    """``_face_planes``, computed (not cached)."""
+def _face_planes_of(mesh: trimesh.Trimesh, threads: int | None = None) -> dict:
+    """``_face_planes``, computed (not cached); the face planes' kernel runs in bands over ``threads`` threads
+    (bit-identical for any count, ``flowsynth.parallel``)."""
     from flowsynth.kernels.raycast import face_planes_kernel
+    from flowsynth.parallel import BAND0, launch_bands
 
     wp = wp_runtime()
     V = np.asarray(mesh.vertices, np.float32)
@@ -324,8 +336,9 @@ def _face_planes_of(mesh: trimesh.Trimesh) -> dict:
     if len(fc) * len(V) <= FACE_PLANES_BUDGET:
         out = wp.empty(len(fc), dtype=wp.vec4d, device="cpu")
         if len(fc):
-            wp.launch(face_planes_kernel, dim=len(fc), inputs=[wp.array(V, dtype=wp.vec3, device="cpu"),
-                      wp.array(fc.reshape(-1), dtype=wp.int32, device="cpu")], outputs=[out], device="cpu")
+            launch_bands(face_planes_kernel, (len(fc),), 0, [wp.array(V, dtype=wp.vec3, device="cpu"),
+                         wp.array(fc.reshape(-1), dtype=wp.int32, device="cpu"), BAND0], [out], "cpu", threads,
+                         cost=len(V))
         planes = out.numpy()
     else:  # the sphere's bound n . c + r >= n . v for every vertex: looser (fewer culls), as exact
         n = nrm / np.where(area > 0, area, 1.0)[:, None]

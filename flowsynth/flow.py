@@ -113,7 +113,8 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     M = wp.array(np.ascontiguousarray(cam_T_obj, np.float64), dtype=wp.mat44d, device=dev)
     inst, tiles, cull = Instances(), TileLists(), Culling()
     if occ_mode == OCC_EXACT:
-        inst, tiles, cull = accel.instances(), accel.tile_lists(camera, flat=False), accel.culling()
+        cull = accel.culling(threads)
+        inst, tiles = accel.instances(), accel.tile_lists(camera, flat=False, threads=threads)
     one = (1, 1, 1)
     dist = wp.array(gb.dist, dtype=wp.float32, device=dev) if occ_mode == OCC_DEPTH else wp.empty(one, wp.float32, dev)
     dz = wp.array(np.ascontiguousarray(camera.pixel_rays_numpy()[..., 2]) if occ_mode == OCC_DEPTH

@@ -99,7 +99,7 @@ if hasattr(os, "register_at_fork"):
 
 
 def launch_bands(kernel, dim: tuple[int, ...], axis: int, inputs: list, outputs: list, device: str,
-                 threads: int | None, row_loop: bool = False) -> None:
+                 threads: int | None, row_loop: bool = False, cost: int = 1) -> None:
     """``wp.launch(kernel, dim, inputs, outputs, device)`` cut along ``axis`` into bands run in parallel.
 
     Args:
@@ -112,6 +112,8 @@ def launch_bands(kernel, dim: tuple[int, ...], axis: int, inputs: list, outputs:
         threads: threads to use (None: ``default_threads()``).
         row_loop: the kernel loops over the last axis of ``dim`` itself: it is launched without it (``dim``
             still counts the work items, and ``axis`` must be another axis).
+        cost: work of one item in units of a cheap one (a pixel's ray): items x cost, not items, is held
+            against ``MIN_BAND_ITEMS`` (a kernel whose item loops over a mesh's vertices is cut sooner).
     """
     import warp as wp
 
@@ -122,6 +124,7 @@ def launch_bands(kernel, dim: tuple[int, ...], axis: int, inputs: list, outputs:
     items = 1
     for x in dim:
         items *= int(x)
+    items *= max(int(cost), 1)
     bands = min(threads * BANDS_PER_THREAD, n, max(items // MIN_BAND_ITEMS, 1)) if threads > 1 else 1
     if row_loop:
         dim = tuple(dim)[:-1]

@@ -126,3 +126,16 @@ def test_default_threads_is_one_in_export_workers(tmp_path):
     with ProcessPoolExecutor(1, mp_context=mp.get_context("fork"), initializer=export._init_pool_worker,
                              initargs=(cfg, ("depth",), 0, "exact", layouts.get("native"))) as pool:
         assert list(pool.map(_worker_default, [0])) == [1]
+
+
+def test_face_planes_bit_identical_for_any_thread_count(fine_bands):
+    """The visibility rays' face planes (a kernel whose item loops over the mesh's vertices) cut into bands."""
+    from flowsynth.accel import _face_planes_of
+
+    mesh = trimesh.creation.icosphere(3, radius=0.7)
+    ref = _face_planes_of(mesh, threads=1)
+    assert (ref["planes"][:, 3] < 1e29).all()
+    for threads in (2, 3):
+        got = _face_planes_of(mesh, threads=threads)
+        assert np.array_equal(got["planes"], ref["planes"]), threads
+        assert got["inner"] == ref["inner"] and np.array_equal(got["sphere"], ref["sphere"])

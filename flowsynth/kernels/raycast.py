@@ -409,11 +409,12 @@ def group_roots_kernel(bvh: wp.uint64, roots: wp.array[wp.int32]):
 
 
 @wp.kernel(enable_backward=False)
-def face_planes_kernel(points: wp.array[wp.vec3], indices: wp.array[wp.int32], planes: wp.array[wp.vec4d]):
+def face_planes_kernel(points: wp.array[wp.vec3], indices: wp.array[wp.int32], band0: wp.int32,
+                       planes: wp.array[wp.vec4d]):
     """planes[f] = (n, e) for face f of a mesh: n its unit normal (float64 from the float32 vertices),
     e = max over every vertex v of n . v (float64), so the whole mesh lies in n . x <= e; a degenerate face
-    gets n = 0, e = 1e30."""
-    f = wp.tid()
+    gets n = 0, e = 1e30. Faces band0 + thread index (row bands, ``flowsynth.parallel``)."""
+    f = wp.tid() + band0
     a = wp.vec3d(points[indices[3 * f + 0]])
     b = wp.vec3d(points[indices[3 * f + 1]])
     c = wp.vec3d(points[indices[3 * f + 2]])
