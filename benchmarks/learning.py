@@ -580,6 +580,8 @@ def main() -> None:
                      "trained_pixel_fraction": trained,
                      "chairs2d_motion_scale": motion_scale, "flowsynth_generation_s": gen_s})
         save(None)
+        # the next seed's pools are made while these would still be held: a --pool 9600 seed holds ~10 GB
+        del synth, fs_valid, fs_train, sources, chairs
         for kind in TESTS:
             row = {"seed": seed, "test": kind, "zero-flow": zero[kind],
                    "untrained": res["flowsynth"]["curve"][0][kind]}
