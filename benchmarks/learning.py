@@ -388,6 +388,17 @@ def evaluate(net, test) -> float:
     return err / float(valid.sum())
 
 
+def batches(n: int, steps: int, batch: int, g):
+    """The pool indices of each training step's batch (a generator of ``steps`` int64 tensors), drawn with torch
+    generator ``g``: from a pool of at least ``steps`` x ``batch`` pairs, a stream (one random permutation, each
+    pair once); from a smaller pool, with replacement (the default protocol)."""
+    import torch
+
+    order = torch.randperm(n, generator=g) if n >= steps * batch else None
+    for step in range(steps):
+        yield torch.randint(n, (batch,), generator=g) if order is None else order[step * batch:(step + 1) * batch]
+
+
 def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, threads: int = 0) -> dict:
     """Train a fresh net (seed) on ``data``; test EPE on every set of ``tests`` at step 0, every ``every`` steps
     and at the end. ``threads`` > 0 sets torch's thread count (for a training process of its own)."""
@@ -399,16 +410,11 @@ def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, thre
     net = build_net()
     opt = torch.optim.Adam(net.parameters(), lr=LR)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=LR, total_steps=steps, pct_start=0.1)
-    g = torch.Generator().manual_seed(seed)
     img1, img2, flow, valid = data
-    # a pool of at least steps x batch pairs is a stream: each pair is drawn once, in a random order; a smaller
-    # pool is drawn from with replacement (the default protocol)
-    order = torch.randperm(len(img1), generator=g) if len(img1) >= steps * batch else None
+    draws = batches(len(img1), steps, batch, torch.Generator().manual_seed(seed))
     t = time.perf_counter()
     curve = [{"step": 0, "train_loss": None, **{k: evaluate(net, v) for k, v in tests.items()}}]  # untrained
-    for step in range(1, steps + 1):
-        idx = (torch.randint(len(img1), (batch,), generator=g) if order is None
-               else order[(step - 1) * batch:step * batch])
+    for step, idx in enumerate(draws, 1):
         loss = multiscale_loss(net(img1[idx], img2[idx]), flow[idx], valid[idx])
         opt.zero_grad()
         loss.backward()
@@ -525,6 +531,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     pool, steps, batch, n_test = (128, 100, 4, 40) if args.quick else (768, 1200, 8, 100)
     steps = args.steps or steps
+    if steps < 20:  # the one-cycle schedule's warm-up (10% of the steps) must span at least 2 steps
+        p.error(f"--steps {steps}: give at least 20 steps")
     pool = args.pool or pool
     every = min(args.every, steps)
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()

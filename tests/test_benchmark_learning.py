@@ -37,3 +37,24 @@ def test_untrained_net_recovers_a_translation(dx, dy, tol):
     err = (inner - torch.tensor([dx, dy], dtype=inner.dtype).view(2, 1, 1)).norm(dim=0)
     assert float(err.mean()) < tol
     assert torch.isfinite(flow).all()
+
+
+def test_batches_stream_each_pair_once_and_pool_draws_with_replacement():
+    """A pool of steps x batch pairs or more is a stream: the batches are one permutation's consecutive slices.
+    A smaller pool is drawn from with replacement, the same draws as ``torch.randint`` on the same generator."""
+    stream = list(learning.batches(12, 3, 4, torch.Generator().manual_seed(5)))
+    assert [len(b) for b in stream] == [4, 4, 4]
+    assert sorted(torch.cat(stream).tolist()) == list(range(12))
+    assert torch.equal(torch.cat(stream), torch.randperm(12, generator=torch.Generator().manual_seed(5)))
+    pool = list(learning.batches(11, 3, 4, torch.Generator().manual_seed(5)))
+    g = torch.Generator().manual_seed(5)
+    for b in pool:
+        assert torch.equal(b, torch.randint(11, (4,), generator=g))
+
+
+def test_too_few_steps_is_a_usage_error():
+    import subprocess
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "learning.py"
+    r = subprocess.run([sys.executable, str(script), "--steps", "10"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "at least 20 steps" in r.stderr
