@@ -248,9 +248,9 @@ def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
     """Vertices of the convex hull of a mesh (cached per process): its posed box is the tight box.
 
     Qhull's hull vertices (with trimesh's options ``QHULL_DEFAULT``) in the order of the mesh's vertices: the
-    vertices of ``mesh.convex_hull`` without building that mesh (its normal repair costs as much as Qhull), so the
-    same rows on the built-in assets (tests/test_raycast.py). Any set of the mesh's vertices holding every
-    extreme point bounds the mesh exactly."""
+    rows of ``mesh.convex_hull.vertices`` on the built-in assets (tests/test_raycast.py), without building and
+    repairing that hull mesh. Any set of the mesh's vertices holding every extreme point bounds the mesh
+    exactly."""
     def hull():
         V = np.asarray(mesh.vertices, np.float64)
         if len(V) <= 64:
