@@ -444,7 +444,7 @@ def summarize(mask: str, pattern: str = "learning*.json") -> dict:
     from _common import RESULTS_DIR
 
     files = sorted(f for f in RESULTS_DIR.glob(pattern) if not f.stem.startswith("learning_summary"))
-    runs, protocol, used = {}, None, []
+    runs, protocol, used, library = {}, None, [], {}
     for f in files:
         d = json.loads(f.read_text())
         if d.get("mask", "valid") != mask:
@@ -457,6 +457,8 @@ def summarize(mask: str, pattern: str = "learning*.json") -> dict:
             print(f"not pooled: {f.name}, run under another protocol than {used[0]} (differs in {diff})")
             continue
         used.append(f.name)
+        m = d.get("machine", {})  # the library the run imported (recorded since 583a881)
+        library[f.name] = {k: m.get(k) for k in ("flowsynth_commit", "flowsynth_modified")}
         for r in d["runs"]:
             if r["seed"] in runs:
                 raise SystemExit(f"seed {r['seed']} is in {f.name} and in an earlier file")
@@ -484,7 +486,10 @@ def summarize(mask: str, pattern: str = "learning*.json") -> dict:
     print(f"flowsynth / chairs2d test EPE after {protocol['steps']} steps, loss mask {mask!r}, seeds {seeds} from "
           f"{', '.join(used)} (< 1: flowsynth trains the better net; tests of the log ratios, two-sided)")
     print_table(rows, list(rows[0]))
-    return {"mask": mask, "files": used, "seeds": seeds, "protocol": protocol, "tests": out}
+    for name, lib in library.items():
+        commit = (lib["flowsynth_commit"] or "not recorded")[:12]
+        print(f"{name}: flowsynth {commit}" + (" with uncommitted changes" if lib["flowsynth_modified"] else ""))
+    return {"mask": mask, "files": used, "library": library, "seeds": seeds, "protocol": protocol, "tests": out}
 
 
 def main() -> None:
