@@ -35,14 +35,16 @@ either training set), EPE over pixels whose flow lands inside the image:
 - "stereo" (``stereo_pairs``): a real 3D scene, the Middlebury 2014 Motorcycle stereo pair with its measured
   disparity, downsampled crops: depth edges, occlusions and real lighting, which a homography has none of.
 
-Budget: 1200 steps of batch 8 per net (about 12 epochs of a 768-pair pool), tested every 400 steps, so the
-learning curve shows what a shorter budget would have said (random-v1: 1800 steps, every 600; a step of ncc-v2
-costs about 2.3x one of random-v1, mostly its stride-2 level). The two nets of a seed train at once, each in a
-process of its own (``--jobs``). ``--pool`` of at least steps x batch pairs (9600) turns each pool into a stream:
-every pair is trained on once, in a random order, as a net fed by ``fs.datasets.BouncingThings`` would see it.
-Reports the test EPE of zero flow, of the untrained net, of the net
-trained on each set along the curve, and the ratio flowsynth / chairs2d (< 1: flowsynth trains the better flow
-network), per seed. Writes results/learning.json.
+Budget: 1200 steps of batch 8 per net, tested every 400 steps, so the learning curve shows what a shorter budget
+would have said (random-v1: 1800 steps, every 600; a step of ncc-v2 costs about 2.3x one of random-v1, mostly its
+stride-2 level). Each set is a stream: its pool holds steps x batch = 9600 pairs and every pair is trained on
+once, in a random order (``batches``), as a net fed by ``fs.datasets.BouncingThings`` would see them. Until
+2026-11-25 (results/learning_ncc*.json) the pools held 768 pairs drawn with replacement (~12.5 epochs); a
+pre-registered 5-seed comparison made the stream the default (benchmarks/results/SUMMARY.md, learning); ``--pool
+768`` still runs that protocol. A stream seed renders 14,400 flowsynth pairs (7-10 min on 2 cores) and holds ~10 GB
+while it trains. The two nets of a seed train at once, each in a process of its own (``--jobs``). Reports the
+test EPE of zero flow, of the untrained net, of the net trained on each set along the curve, and the ratio
+flowsynth / chairs2d (< 1: flowsynth trains the better flow network), per seed. Writes results/learning.json.
 
 ``--summarize`` trains nothing: it pools the seeds of the results/learning*.json files (``--files``) of one loss
 mask (runs of further seeds written with ``--tag``) that share the first file's protocol (steps, batch, pool,
@@ -515,9 +517,9 @@ def main() -> None:
                         "num_objects=[2,8]); repeatable; a candidate default: use with --tag. Not width, height, "
                         "num_frames or flow_px (set by the benchmark; --flow-px)")
     p.add_argument("--pool", type=int, default=None,
-                   help="training pairs per set (default 768; --quick 128): a larger pool repeats each pair less "
-                        "often within the same steps (flowsynth then renders 1.5x this many pairs); a pool of at "
-                        "least steps x batch pairs is a stream, each pair trained on once; use with --tag")
+                   help="training pairs per set (default steps x batch, a stream: each pair trained on once; "
+                        "--quick 128): a smaller pool is drawn from with replacement (768: the protocol until "
+                        "2026-11-25); flowsynth renders 1.5x this many pairs; use with --tag")
     p.add_argument("--files", default="learning*.json",
                    help="--summarize: the results/ files to pool (a glob; default every learning JSON)")
     p.add_argument("--summarize", action="store_true",
@@ -534,11 +536,11 @@ def main() -> None:
     import torch.multiprocessing as tmp
 
     torch.set_num_threads(args.threads)
-    pool, steps, batch, n_test = (128, 100, 4, 40) if args.quick else (768, 1200, 8, 100)
+    pool, steps, batch, n_test = (128, 100, 4, 40) if args.quick else (None, 1200, 8, 100)
     steps = args.steps or steps
     if steps < 20:  # the one-cycle schedule's warm-up (10% of the steps) must span at least 2 steps
         p.error(f"--steps {steps}: give at least 20 steps")
-    pool = args.pool or pool
+    pool = args.pool or pool or steps * batch  # full runs: a stream
     every = min(args.every, steps)
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     rows, runs = [], []
