@@ -393,7 +393,7 @@ def evaluate(net, test) -> float:
 def batches(n: int, steps: int, batch: int, g):
     """The pool indices of each training step's batch (a generator of ``steps`` int64 tensors), drawn with torch
     generator ``g``: from a pool of at least ``steps`` x ``batch`` pairs, a stream (one random permutation, each
-    pair once); from a smaller pool, with replacement (the default protocol)."""
+    pair once, the default protocol); from a smaller pool, with replacement (the protocol until 2026-11-25)."""
     import torch
 
     order = torch.randperm(n, generator=g) if n >= steps * batch else None
@@ -595,7 +595,7 @@ def main() -> None:
                      "trained_pixel_fraction": trained,
                      "chairs2d_motion_scale": motion_scale, "flowsynth_generation_s": gen_s})
         save(None)
-        # the next seed's pools are made while these would still be held: a --pool 9600 seed holds ~10 GB
+        # the next seed's pools are made while these would still be held: a stream seed (9600 pairs) holds ~10 GB
         del synth, fs_valid, fs_train, sources, chairs
         for kind in TESTS:
             row = {"seed": seed, "test": kind, "zero-flow": zero[kind],
