@@ -16,6 +16,11 @@ it) by one process at 1 thread, by one process at all cores (threads), and by as
 (1 thread each): samples/s and the CPU seconds each sample cost. ``--streams`` runs only this part, ``--rounds``
 times, and prints the medians (``--default-config``: the default config with rgb and flow instead).
 
+``--stages`` runs only a breakdown of that full sample at 1 thread and all cores (``--rounds`` alternated rounds of
+12 fresh samples): wall and CPU ms a sample of the scene (layout, materials, physics) and of each render stage, each
+stage's speed-up, and how much of the sample's wall at all cores exceeds a perfect split of its one-thread wall.
+Writes benchmarks/results/scaling_stages.json.
+
 Part 2, curves: hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid
 motion) rendered with depth + flow_fw + occ_fw + instance, at threads 1 and all; each curve fitted
 with cost ~ x^k.
@@ -244,6 +249,87 @@ def streams_only(cpus: int, rounds: int, n: int, default: bool = False) -> None:
         "rounds": runs, "medians": medians})
 
 
+# The stages of a full sample, timed by ``--stages``: (module, function) wrapped for the run (render_plan looks them
+# up in their modules at call time), and the scene itself (``BouncingThings.scene``: layout, materials, physics).
+STAGES = (("flowsynth.render", "SceneAccel", "accel"), ("flowsynth.render", "cast_gbuffer", "cast"),
+          ("flowsynth.render", "gbuffer_outputs", "gbuffer outputs"), ("flowsynth.flow", "flow_outputs", "flow"),
+          ("flowsynth.annotations", "object_tables", "object tables"), ("flowsynth.shading", "render_rgb", "rgb"))
+
+
+def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:
+    """Wall and CPU ms a sample of each stage of the issue-13 full sample (512x384, T=2, 20 objects, direct RGB)
+    streamed from fresh indices, at each thread count; the counts alternate round by round on the same indices."""
+    import importlib
+    import time
+    from collections import defaultdict
+
+    import flowsynth as fs
+    from flowsynth.render import render_plan
+
+    wall: dict = defaultdict(float)
+    cpu: dict = defaultdict(float)
+    current = {"k": None}
+
+    def timed(fn, label):
+        def run(*a, **kw):
+            t, c = time.perf_counter(), time.process_time()
+            try:
+                return fn(*a, **kw)
+            finally:
+                wall[current["k"], label] += time.perf_counter() - t
+                cpu[current["k"], label] += time.process_time() - c
+        return run
+
+    saved = []
+    for mod_name, attr, label in STAGES:
+        mod = importlib.import_module(mod_name)
+        saved.append((mod, attr, getattr(mod, attr)))
+        setattr(mod, attr, timed(getattr(mod, attr), label))
+    try:
+        cfg = fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
+                                      camera_motion="static")
+        sets = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in counts}
+        for k in counts:  # caches of a long stream filled, kernels loaded
+            current["k"] = k
+            for i in range(15):
+                sets[k].sample(9000 + 15 * counts.index(k) + i)
+        wall.clear()
+        cpu.clear()
+        for r in range(rounds):
+            for k in (counts if r % 2 == 0 else counts[::-1]):
+                current["k"] = k
+                for i in range(5000 + r * n, 5000 + (r + 1) * n):
+                    t, c = time.perf_counter(), time.process_time()
+                    scene = sets[k].scene(i)
+                    wall[k, "scene"] += time.perf_counter() - t
+                    cpu[k, "scene"] += time.process_time() - c
+                    render_plan(scene, sets[k].plan)
+                    wall[k, "sample"] += time.perf_counter() - t
+                    cpu[k, "sample"] += time.process_time() - c
+    finally:
+        for mod, attr, fn in saved:
+            setattr(mod, attr, fn)
+    total = n * rounds
+    labels = ["scene"] + [label for _, _, label in STAGES]
+    for k in counts:
+        wall[k, "rest"] = wall[k, "sample"] - sum(wall[k, x] for x in labels)
+        cpu[k, "rest"] = cpu[k, "sample"] - sum(cpu[k, x] for x in labels)
+    rows = []
+    top = counts[-1]
+    for label in labels + ["rest", "sample"]:
+        if label in labels and not any(wall[k, label] for k in counts):
+            continue  # a stage the full sample's outputs do not run
+        row = {"stage": label}
+        for k in counts:
+            row[f"wall_ms_t{k}"] = 1e3 * wall[k, label] / total
+            row[f"cpu_ms_t{k}"] = 1e3 * cpu[k, label] / total
+        row["speedup"] = wall[1, label] / wall[top, label] if wall[top, label] > 0 else None
+        # wall at all threads above a perfect split of the one-thread wall: what keeps the sample from top x
+        row["excess_ms"] = row[f"wall_ms_t{top}"] - row["wall_ms_t1"] / top
+        rows.append(row)
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -251,8 +337,31 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3, help="--streams: rounds of the three settings, one after another")
     p.add_argument("--default-config", action="store_true",
                    help="--streams: stream the default config (rgb + flow) instead of issue 13's full sample")
+    p.add_argument("--stages", action="store_true",
+                   help="only the full sample's stages timed at 1 thread and all cores (--rounds rounds)")
     args = p.parse_args()
     cpus = len(os.sched_getaffinity(0))
+    if args.stages:
+        if args.rounds < 1:
+            p.error(f"--rounds must be >= 1, got {args.rounds}")
+        if cpus < 2:
+            p.error("--stages compares one thread with all cores: this process may use only one CPU")
+        import torch
+
+        torch.set_num_threads(1)
+        before = load()
+        n = 4 if args.quick else 12
+        rows = stage_times([1, cpus], n, args.rounds)
+        print(f"Stages of the full sample (512x384, T=2, 20 objects, direct RGB, every core output), {n} fresh "
+              f"samples x {args.rounds} rounds at threads 1 and {cpus}, alternated; ms a sample; speedup: wall at 1 "
+              f"/ wall at {cpus}; excess_ms: wall at {cpus} minus wall at 1 / {cpus}; {before}")
+        print_table(rows, ["stage", "wall_ms_t1", "cpu_ms_t1", f"wall_ms_t{cpus}", f"cpu_ms_t{cpus}", "speedup",
+                           "excess_ms"])
+        after = load()
+        print(after)
+        write_json("scaling_stages", {"machine": machine_info(), "load_before": before, "load_after": after,
+                                      "samples": n, "rounds": args.rounds, "threads": [1, cpus], "stages": rows})
+        return
     if args.streams:
         if args.rounds < 1:
             p.error(f"--rounds must be >= 1, got {args.rounds}")
