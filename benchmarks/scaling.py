@@ -353,8 +353,9 @@ def main() -> None:
         n = 4 if args.quick else 12
         rows = stage_times([1, cpus], n, args.rounds)
         print(f"Stages of the full sample (512x384, T=2, 20 objects, direct RGB, depth/normals/instance/flow+occ "
-              f"both ways), {n} fresh samples x {args.rounds} rounds at threads 1 and {cpus}, alternated; ms a sample; speedup: wall at 1 "
-              f"/ wall at {cpus}; excess_ms: wall at {cpus} minus wall at 1 / {cpus}; {before}")
+              f"both ways), {n} fresh samples x {args.rounds} rounds at threads 1 and {cpus}, alternated; ms a "
+              f"sample; speedup: wall at 1 / wall at {cpus}; excess_ms: wall at {cpus} minus wall at 1 / {cpus}; "
+              f"{before}")
         print_table(rows, ["stage", "wall_ms_t1", "cpu_ms_t1", f"wall_ms_t{cpus}", f"cpu_ms_t{cpus}", "speedup",
                            "excess_ms"])
         after = load()
