@@ -1,18 +1,25 @@
-"""Run every benchmark and write benchmarks/results/SUMMARY.md.
+"""Run every benchmark and write benchmarks/results/SUMMARY.md, a generated file.
 
     python benchmarks/run.py [--quick] [--only raycast,scaling]
+    python benchmarks/run.py --summary-only          # rebuild SUMMARY.md from the recorded outputs, run nothing
 
 Each benchmark is a script in this folder that prints its tables and writes results/<name>.json (and PNG
 plots for curves). This runner calls them one after the other (each in its own process, so kernel
-caches and memory don't leak between them), keeps their printed tables, and writes SUMMARY.md with the
-machine, versions, load average and date (with ``--only``, the other benchmarks' sections are kept from the
-previous SUMMARY.md). ``--quick`` is passed on to every script (all of them within ~10 min on 2 cores).
+caches and memory don't leak between them), keeps each one's printed tables in results/<name>.txt and how it
+ran (command, exit status, seconds, date) in results/<name>.run.json, and then builds SUMMARY.md from those
+files alone: the machine, versions, load average and date, a status table, and every benchmark's last recorded
+output. ``--quick`` is passed on to every script (all of them within ~10 min on 2 cores).
+
+What this runner owns: exactly the files under ``RESULTS_DIR`` named by ``OWNED``. Everything it writes goes
+through ``_write``, which refuses any other path. SUMMARY.md holds no hand-written text: the readings of a run
+and the decisions taken on them live in docs/decisions/ (one file per decision), where no runner writes.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import subprocess
 import sys
@@ -30,75 +37,103 @@ BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "
 # Benchmarks that need an optional outside program print a line starting with this and exit 0 without it
 # (cycles: Blender); their row then reads "skipped".
 SKIP_MARK = "SKIPPED"
+# The only files this runner may write, as patterns relative to the results folder.
+OWNED = ("SUMMARY.md", "{name}.txt", "{name}.run.json")
 
 
-def main() -> int:
+def _owned(results: Path, path: Path) -> bool:
+    """Whether ``path`` is one of ``OWNED`` directly inside ``results`` for a name in ``BENCHMARKS``."""
+    if path.resolve().parent != results.resolve():
+        return False
+    allowed = {"SUMMARY.md"} | {p.format(name=n) for p in OWNED[1:] for n in BENCHMARKS}
+    return path.name in allowed
+
+
+def _write(results: Path, path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` if this runner owns it (``_owned``); raise PermissionError otherwise."""
+    if not _owned(results, path):
+        raise PermissionError(f"benchmarks/run.py does not write {path}: it owns only {OWNED} in {results}")
+    results.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def run_one(name: str, quick: bool, results: Path = RESULTS_DIR) -> dict:
+    """Run ``benchmarks/<name>.py`` in a fresh process; record its output and status. Returns the status dict."""
+    cmd = [sys.executable, str(HERE / f"{name}.py")] + (["--quick"] if quick else [])
+    print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
+    t = time.time()
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent)
+    text = "\n".join(line for line in r.stdout.splitlines() if "CUDA" not in line)
+    print(text, flush=True)
+    status = {"command": f"python benchmarks/{name}.py" + (" --quick" if quick else ""), "returncode": r.returncode,
+              "seconds": round(time.time() - t, 1),
+              "skipped": r.returncode == 0 and any(line.startswith(SKIP_MARK) for line in r.stdout.splitlines()),
+              "date": datetime.datetime.now().isoformat(timespec="seconds"), "stderr_tail": r.stderr[-2000:]}
+    _write(results, results / f"{name}.txt", text + ("" if r.returncode == 0 else "\n" + r.stderr[-4000:]))
+    _write(results, results / f"{name}.run.json", json.dumps(status, indent=2) + "\n")
+    return status
+
+
+def _status(results: Path, name: str) -> dict | None:
+    path = results / f"{name}.run.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def summary_text(results: Path, names: list[str], mode: str) -> str:
+    """SUMMARY.md built from ``results/<name>.txt`` and ``results/<name>.run.json`` of every benchmark."""
+    m = machine_info()
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    head = ["# Benchmark summary (generated)", "",
+            "Written by `python benchmarks/run.py`; every edit here is lost at its next run. The readings of these "
+            "tables and the decisions taken on them are in [docs/decisions/](../../docs/decisions/README.md).", "",
+            f"Written: {datetime.datetime.now().isoformat(timespec='seconds')} ({mode})  ",
+            f"Machine writing this file (each table names its own): {m.get('cpu_model')} — {m.get('cpu_count')} "
+            f"CPUs, {m.get('platform')}; load average {load} (the machine is shared)  ",
+            f"Python {m.get('python')}; " + ", ".join(f"{k} {m.get(k)}" for k in ("torch", "warp-lang", "newton",
+                                                                               "numpy", "trimesh")), "",
+            "| benchmark | status | seconds | run |", "|---|---|---|---|"]
+    body = []
+    for name in names:
+        st, txt = _status(results, name), results / f"{name}.txt"
+        if st is None:
+            verdict, secs, when = "no run record", "", "(output recorded before run.py kept one)"
+        else:
+            ok = st["returncode"] == 0
+            verdict = ("skipped" if st.get("skipped") else "ok") if ok else f"FAILED (exit {st['returncode']})"
+            secs, when = f"{st['seconds']:.0f}", f"`{st['command']}` {st['date']}"
+        head.append(f"| {name} | {verdict} | {secs} | {when} |")
+        section = [f"## {name}", "", f"JSON: [results/{name}.json]({name}.json)" if (results / f"{name}.json").exists()
+                   else "No JSON recorded."]
+        section += ["", "```", txt.read_text().strip() if txt.exists() else "(no output recorded)", "```"]
+        section += [f"\n![{pl.name}]({pl.name})" for pl in sorted(results.glob(f"{name}*.png"))]
+        body.append("\n".join(section) + "\n")
+    return "\n".join(head) + "\n\n" + "\n".join(body)
+
+
+def write_summary(results: Path, names: list[str], mode: str) -> Path:
+    """Write ``results/SUMMARY.md`` (``summary_text``) and return its path."""
+    path = results / "SUMMARY.md"
+    _write(results, path, summary_text(results, names, mode))
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--only", default=None, help="comma-separated subset of " + ",".join(BENCHMARKS))
-    args = p.parse_args()
+    p.add_argument("--summary-only", action="store_true", help="run nothing; rebuild SUMMARY.md from results/")
+    p.add_argument("--results", type=Path, default=RESULTS_DIR, help=argparse.SUPPRESS)  # tests: a copy
+    args = p.parse_args(argv)
     names = args.only.split(",") if args.only else BENCHMARKS
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    sections, status = [], []
-    for name in names:
-        script = HERE / f"{name}.py"
-        cmd = [sys.executable, str(script)] + (["--quick"] if args.quick else [])
-        print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
-        t = time.time()
-        r = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent)
-        dt = time.time() - t
-        text = "\n".join(line for line in r.stdout.splitlines() if "CUDA" not in line)
-        print(text, flush=True)
-        ok = r.returncode == 0
-        skipped = ok and any(line.startswith(SKIP_MARK) for line in r.stdout.splitlines())
-        status.append((name, ok, dt, skipped))
-        (RESULTS_DIR / f"{name}.txt").write_text(text + ("" if ok else "\n" + r.stderr[-4000:]))
-        plots = sorted(x.name for x in RESULTS_DIR.glob(f"{name}*.png"))
-        verdict = ("skipped" if skipped else "ok") if ok else f"FAILED (exit {r.returncode})"
-        body = f"## {name}\n\n`python benchmarks/{name}.py{' --quick' if args.quick else ''}` — " \
-               f"{verdict} in {dt:.0f} s; JSON: " \
-               f"[results/{name}.json]({name}.json)\n\n```\n{text.strip()}\n```\n"
-        body += "".join(f"\n![{pl}]({pl})\n" for pl in plots)
-        if not ok:
-            body += f"\n```\n{r.stderr.strip()[-2000:]}\n```\n"
-        sections.append(body)
-    m = machine_info()
-    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-    kept_rows, kept_sections = _kept(names) if args.only else ({}, {})
-    head = ["# Benchmark summary", "",
-            f"Date: {datetime.datetime.now().isoformat(timespec='seconds')}" +
-            (f" (sections {', '.join(names)}; the others are kept from the previous run)" if args.only else "") +
-            "  ",
-            f"Machine: {m.get('cpu_model')} — {m.get('cpu_count')} CPUs, {m.get('platform')}; load average at the "
-            f"end {load} (the machine is shared)  ",
-            f"Python {m.get('python')}; " + ", ".join(f"{k} {m.get(k)}" for k in ("torch", "warp-lang", "newton",
-                                                                               "numpy", "trimesh")) + "  ",
-            f"Mode: {'--quick' if args.quick else 'full'}", "",
-            "| benchmark | status | seconds |", "|---|---|---|"]
-    rows = {n: f"| {n} | {('skipped' if sk else 'ok') if ok else 'FAILED'} | {dt:.0f} |" for n, ok, dt, sk in status}
-    done = dict(zip(names, sections))
-    order = [n for n in BENCHMARKS if n in rows or n in kept_rows]
-    order += [n for n in [*kept_rows, *names] if n not in order]
-    head += [rows.get(n) or kept_rows[n] for n in order]
-    body = [done.get(n) or kept_sections.get(n, "") for n in order]
-    (RESULTS_DIR / "SUMMARY.md").write_text("\n".join(head) + "\n\n" + "\n".join(b for b in body if b))
-    print(f"wrote {RESULTS_DIR / 'SUMMARY.md'}")
-    return 0 if all(ok for _, ok, _, _ in status) else 1
-
-
-def _kept(names: list[str]) -> tuple[dict, dict]:
-    """Status rows and sections of the previous SUMMARY.md for the benchmarks not run now (``--only``)."""
-    path = RESULTS_DIR / "SUMMARY.md"
-    if not path.exists():
-        return {}, {}
-    text = path.read_text()
-    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")
-            and not line.startswith("| benchmark")}
-    sections = {}
-    for part in text.split("\n## ")[1:]:
-        name = part.split("\n", 1)[0].strip()
-        sections[name] = "## " + part.rstrip("\n") + "\n"
-    return ({k: v for k, v in rows.items() if k not in names}, {k: v for k, v in sections.items() if k not in names})
+    unknown = [n for n in names if n not in BENCHMARKS]
+    if unknown:
+        p.error(f"unknown benchmark(s) {unknown}; choose from {BENCHMARKS}")
+    status = [] if args.summary_only else [run_one(name, args.quick, args.results) for name in names]
+    mode = "rebuilt from recorded outputs" if args.summary_only else (
+        f"ran {', '.join(names)}{' --quick' if args.quick else ''}")
+    path = write_summary(args.results, BENCHMARKS, mode)
+    print(f"wrote {path}")
+    return 0 if all(s["returncode"] == 0 for s in status) else 1
 
 
 if __name__ == "__main__":

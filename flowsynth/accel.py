@@ -23,7 +23,7 @@ from flowsynth.kernels import wp_runtime
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH.
 ORDERED_MAX = 64
 # Primary rays take their candidate list from their TILE x TILE pixel screen tile (benchmarks/tiles.py:
-# 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits).
+# 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits; docs/decisions/0002-screen-tiles-16px.md).
 TILE = 16  # a power of two: the kernels find a pixel's tile by a shift
 
 __all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "pinhole"]

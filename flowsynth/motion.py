@@ -45,7 +45,8 @@ __all__ = [
 
 SUBSTEP_FRACTION = 0.05
 """Largest approach of two object surfaces within one substep, as a fraction of the smallest object size.
-benchmarks/physics.py: the first mesh penetration above 1% of a size appears at 0.17, none at <= 0.05."""
+benchmarks/physics.py: the first mesh penetration above 1% of a size appears at 0.17, none at <= 0.05
+(docs/decisions/0005-physics-substep-rule.md)."""
 MIN_SUBSTEPS = 2
 """Fewest physics substeps per frame [count]."""
 MAX_SUBSTEPS = 256
@@ -71,7 +72,7 @@ _FREE_JOINTS = False
 nothing, but XPBD still runs a joint pass per iteration for it (a zero correction plus a pose renormalisation:
 trajectories differ by float32 round-off, tests/test_motion.py), and joints slow the model build and every
 substep (with the one-substep capture: Newton 0.099 -> 0.059 s per 2-frame 256x192 sample,
-benchmarks/results/SUMMARY.md, throughput). True only in tests comparing the two."""
+docs/decisions/0006-newton-graph-replay.md). True only in tests comparing the two."""
 
 
 @dataclass(frozen=True)
@@ -313,7 +314,7 @@ class _NewtonScene:
         """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
         times: replay skips Python launch overhead (~30 launches per substep; benchmarks/physics_graph.py
         measures plain against replayed stepping); one substep instead of two halves the capture, a fixed
-        cost per scene (~0.02 s, a third of a 2-frame clip's physics; benchmarks/results/SUMMARY.md, throughput)."""
+        cost per scene (~0.02 s, a third of a 2-frame clip's physics; docs/decisions/0006-newton-graph-replay.md)."""
         import warp as wp
 
         if self.graph is None:
@@ -404,8 +405,9 @@ def _clamp_kernel():
 
 # Newton's narrow phase builds fresh Warp kernels from factory functions for every CollisionPipeline;
 # Warp then re-generates and re-hashes their code on first launch (0.3-3 s per scene, measured in
-# benchmarks/physics.py), although every scene asks for the same few variants. These factories are
-# pure functions of their (hashable) arguments, so one kernel per argument tuple serves all pipelines.
+# benchmarks/physics.py; docs/decisions/0007-newton-memoisation.md), although every scene asks for the same few
+# variants. These factories are pure functions of their (hashable) arguments, so one kernel per argument tuple
+# serves all pipelines.
 _NEWTON_KERNEL_FACTORIES = ("create_narrow_phase_primitive_kernel", "create_narrow_phase_kernel_gjk_mpr")
 # ModelBuilder.finalize recomputes the edge adjacency of every convex hull for every model (numpy, ~10-30 ms
 # a hull), a pure function of the hull; the hulls are the per-process newton.Mesh objects of

@@ -34,7 +34,8 @@ MAX_TIME_SLICES = 64
 # Rays end at this distance [m] (beyond any scene).
 MAX_RAY_DIST = 1.0e9
 # Camera rays of the shading kernel walk the G-buffer cast's tile lists when there is no motion blur (False: the
-# top-level BVH, as with motion blur; the same hits, tests/test_rgb.py). benchmarks/shading_cost.py measures both.
+# top-level BVH, as with motion blur; the same hits, tests/test_rgb.py):
+# docs/decisions/0015-shading-camera-rays-tiles.md.
 CAMERA_RAY_TILES = True
 
 
@@ -58,7 +59,7 @@ def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float 
                    threads: int | None = None) -> np.ndarray:
     """``tonemap_srgb`` of (T, H, W, 3) float32 radiance into (T, 3, H, W) float32, the same float64 steps in one
     Warp kernel pass over rows (``flowsynth.kernels.shade.tonemap_kernel``); the numpy form took 0.81 s of CPU
-    per T=24 view at 512x384 (benchmarks/results/SUMMARY.md, outputs_cost)."""
+    per T=24 view at 512x384 (docs/decisions/0013-tonemap-kernel.md)."""
     from flowsynth.kernels.shade import srgb_pow_tables, tonemap_kernel
 
     _check_tonemap(method, exposure)

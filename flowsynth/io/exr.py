@@ -62,7 +62,7 @@ COMPRESSIONS: dict[str, Any] = {
 """Lossless compressions by name (float32 channels round-trip bit-exactly with each). ZIP is the default:
 on a default sample's depth and flow (benchmarks/export.py) PIZ is 1.5 % smaller but takes 3.7x the
 write time, ZIPS and RLE are larger. Flow barely compresses with any of them (0.99x raw): its float32
-mantissas are noise."""
+mantissas are noise (docs/decisions/0011-exr-zip-default.md)."""
 
 _NATIVE = (np.float32, np.float16, np.uint32)  # pixel types EXR stores as-is
 

@@ -1,7 +1,7 @@
 """Per-pixel reprojection of the primary cast's hit points into another frame or view (float64), with the
 validity, out-of-frame and occlusion tests fused in: one thread per (pair, row) looping over the row's
 pixels (a Warp CPU thread per pixel spends more on unravelling its 3-D index than on the reprojection:
-benchmarks/results/SUMMARY.md, outputs_cost), no gather.
+docs/decisions/0004-pair-kernel-rows-and-culls.md), no gather.
 
 Definitions are those of flowsynth/flow.py's module docstring. For pair t the source frame is
 s = src0 + t and the target frame r = s + step; the pixel (i, j) of frame s holding instance n at
@@ -27,7 +27,7 @@ planes with a margin of 1e-6 |X| + 1e-9 m (float32 rounding of the ray the mesh 
   bounding sphere, then the planes through the camera centre that bound the item's projected convex hull
   (``beyond_silhouette``: near misses of convex items need no mesh query).
 The cheapest tests run first: the flat groups without the own item, and only when a test needs them the
-own face plane and the ray's inverse direction (benchmarks/outputs_cost.py).
+own face plane and the ray's inverse direction (docs/decisions/0004-pair-kernel-rows-and-culls.md).
 """
 
 from __future__ import annotations

@@ -295,7 +295,7 @@ def base_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_d
 def layer_trig_kernel(mat_f: wp.array2d[wp.float32]):
     """Fill each layer's cos and sin columns from its angle column (one thread per material row): the same
     ``wp.cos`` / ``wp.sin`` of the same float32 angle that ``layer_color`` evaluated per lookup before, so the
-    texture bits do not change (benchmarks/results/SUMMARY.md, versions)."""
+    texture bits do not change (docs/decisions/0014-texture-lookups.md)."""
     m = wp.tid()
     for layer in range(2):
         cf = layer * LAYER_F
