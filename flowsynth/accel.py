@@ -215,7 +215,7 @@ class SceneAccel:
         from flowsynth.kernels.raycast import TileLists
 
         wp = wp_runtime()
-        key = (camera.width, camera.height, camera.K.tobytes(), flat)
+        key = (camera.width, camera.height, camera.K.tobytes(), flat, camera.model, camera.dist)
         if key not in self._tiles:
             if TILE <= 0 or TILE & (TILE - 1):
                 raise ValueError(f"flowsynth.accel.TILE must be a power of two, got {TILE}")
@@ -228,9 +228,11 @@ class SceneAccel:
                     local = order - (np.arange(self.F) * self.N)[:, None]
                     keep = ~self._flat[local]  # (F, N): the same instances are flat in every frame
                     order = order[keep].reshape(self.F, -1)
-                kb = key[:3]
+                kb = key[:3] + key[4:]
                 if kb not in self._bounds:
-                    self._bounds[kb] = _screen_bounds(self._meshes, self._cam_T_obj, camera.K)
+                    # a lens model's rays are not the pinhole's: every instance in every tile
+                    self._bounds[kb] = (_screen_bounds(self._meshes, self._cam_T_obj, camera.K) if camera.is_pinhole
+                                        else np.tile([-np.inf, np.inf, -np.inf, np.inf], (self.F, self.N, 1)))
                 bounds = self._bounds[kb]
                 start, items, tx, ty = _tile_lists(bounds, order, camera.width, camera.height, TILE)
             t = TileLists()
@@ -492,8 +494,8 @@ def _group_roots(bvh, F: int, device: str):
     return roots
 
 
-def pinhole(camera):
-    """The kernels' ``Pinhole`` struct of a camera's K."""
+def pinhole(camera, device: str = "cpu"):
+    """The kernels' ``Pinhole`` struct of a camera's K (and a lens model's per-pixel rays, on ``device``)."""
     from flowsynth.kernels.raycast import Pinhole
 
     wp = wp_runtime()
@@ -501,4 +503,8 @@ def pinhole(camera):
     p = Pinhole()
     p.intr = wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     p.skew = float(K[0, 1])
+    if not camera.is_pinhole:  # a lens model's rays; uncovered pixels get (0, 0, -1): no hit
+        rays = camera.pixel_rays_numpy().astype(np.float32)
+        rays[rays[..., 2] <= 0] = (0.0, 0.0, -1.0)
+        p.rays = wp.array(rays, dtype=wp.vec3, device=device)
     return p

@@ -65,7 +65,7 @@ def reproject(points: np.ndarray, M: np.ndarray, K: np.ndarray) -> tuple[np.ndar
 
 def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: int, P: int, *, accel=None,
                      camera=None, flow: bool = False, occlusion: str | None = None, fB: float | None = None,
-                     scene_flow_T: np.ndarray | None = None,
+                     scene_flow_T: np.ndarray | None = None, lens=None,
                      threads: int | None = None) -> dict[str, np.ndarray]:
     """Every hit pixel of G-buffer ``gb`` reprojected into a target frame, per pair: one Warp kernel thread per
     (pair, row) (flowsynth/kernels/reproject.py), launched in row bands (bit-identical for any ``threads``).
@@ -80,13 +80,15 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         flow: also return ``flow``; occlusion: None, "exact" or "depth" (``occ``); fB: also return the
             disparity change ``dc`` = fB / z_target - fB / z_source; scene_flow_T: (P, N, 4, 4) float64, also
             return ``scene_flow`` = scene_flow_T[t, n] @ p (where hit, valid or not).
+        lens: the target view's ``fs.Camera`` when it has a lens model (flowsynth/camera.py): projection through
+            the model, valid only in its domain; None or a pinhole camera: K alone.
     Returns:
         ``valid``, ``oof`` (P, 1, H, W) bool; ``flow`` (P, 2, H, W) float32, ``occ`` (P, 1, H, W) bool,
         ``dc`` (P, 1, H, W) float64, ``scene_flow`` (P, 3, H, W) float32 when asked; 0 where not hit (flow and dc
         also where not valid).
     """
     from flowsynth.kernels.raycast import Culling, Instances, TileLists
-    from flowsynth.kernels.reproject import OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
+    from flowsynth.kernels.reproject import LENS_CODES, OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
 
     F, H, W = gb.item.shape
     want_dc = fB is not None
@@ -128,10 +130,16 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     sf = wp.empty((P, 3, H, W) if want_sf else (1, 1, 1, 1), wp.float32, dev)
     sfM = wp.array(np.ascontiguousarray(scene_flow_T, np.float64) if want_sf else np.zeros((1, 1, 4, 4)),
                    dtype=wp.mat44d, device=dev)
-    launch_bands(pair_kernel(flow, occ_mode, want_dc, want_sf), shape, 1,
+    model = 0 if lens is None else LENS_CODES[lens.model]
+    coef = np.zeros(8)
+    if model:
+        coef[:len(lens.dist)] = lens.dist
+    lens_k = wp.array(coef, dtype=wp.float64, device=dev)
+    lens_lim = min(float(lens.lens_limit), 1e300) if model else 0.0
+    launch_bands(pair_kernel(flow, occ_mode, want_dc, want_sf, model), shape, 1,
                  [item, point, face, M, N, int(src0), int(step), wp.mat33d(*np.asarray(K, np.float64).ravel()),
                   inst, tiles, cull, VISIBILITY_REL_TOL, dist, dz, DEPTH_TEST_REL_TOL, float(fB or 0.0), sfM,
-                  BAND0],
+                  lens_k, lens_lim, BAND0],
                  [valid, oof, occ, fl, dc, sf], dev, threads, row_loop=True)
     res = {"valid": valid.numpy().view(bool)[:, None], "oof": oof.numpy().view(bool)[:, None]}
     if flow:
@@ -169,7 +177,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
               if (name, k) == ("fw", 1) and "disparity_change" in want else None)
         res = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,
                                flow=key["flow"] in want, occlusion=plan.occlusion if key["occ"] in want else None,
-                               fB=fB, scene_flow_T=sfT, threads=plan.threads)
+                               fB=fB, scene_flow_T=sfT, lens=scene.camera, threads=plan.threads)
         for kind in ("flow", "valid", "oof", "occ", "scene_flow"):
             if kind in res:
                 out[key[kind]] = torch.from_numpy(res[kind])

@@ -65,8 +65,8 @@ def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: 
     point = wp.empty(shape3, dtype=wp.vec3, device=dev)
     normal = wp.empty((F, H, W) if want_normals else (1, 1, 1), dtype=wp.vec3, device=dev)
     launch_bands(
-        primary_kernel(want_normals, want_points), (F, H, W), 1,
-        [accel.instances(), accel.tile_lists(camera), pinhole(camera), float(max_dist), BAND0],
+        primary_kernel(want_normals, want_points, not camera.is_pinhole), (F, H, W), 1,
+        [accel.instances(), accel.tile_lists(camera), pinhole(camera, dev), float(max_dist), BAND0],
         [dist, item, face, point, normal], dev, threads, row_loop=True,
     )
     return GBuffer(dist.numpy(), item.numpy(), face.numpy(), point.numpy() if want_points else None,

@@ -119,10 +119,13 @@ def beyond_silhouette(sil: wp.array[wp.vec4d], sil_z: wp.array[wp.float64], item
 
 @wp.struct
 class Pinhole:
-    """Pinhole intrinsics: intr = (fx, fy, cx, cy) [px], skew = K[0, 1]."""
+    """Pinhole intrinsics: intr = (fx, fy, cx, cy) [px], skew = K[0, 1]; for a lens model (flowsynth.camera)
+    ``rays`` (H, W) holds each pixel centre's unit ray (z < 0: uncovered pixel), read by ``primary_kernel``'s
+    lens variant only."""
 
     intr: wp.vec4
     skew: wp.float32
+    rays: wp.array2d[wp.vec3]
 
 
 @wp.func
@@ -316,8 +319,11 @@ def pixel_ray(i: wp.int32, j: wp.int32, cam: Pinhole):
 _PRIMARY: dict = {}
 
 
-def primary_kernel(want_normals: bool, want_points: bool):
+def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
+
+    ``lens``: the pixel rays come from ``cam.rays`` (H, W) (a lens model's unprojected pixel centres,
+    flowsynth.camera; a ray with z < 0 marks an uncovered pixel: no hit) instead of the pinhole ``cam``.
 
     Launch dims (F, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread casts
     the W pixels of its row (a Warp CPU thread per pixel spends ~35 ns unravelling its 3-D index: the pair
@@ -326,7 +332,7 @@ def primary_kernel(want_normals: bool, want_points: bool):
     (object-frame hit point [m], 0 = no hit) and ``normal`` (unit, reference/camera frame, facing the camera;
     0 = no hit).
     """
-    key = (bool(want_normals), bool(want_points))
+    key = (bool(want_normals), bool(want_points), bool(lens))
     if key in _PRIMARY:
         return _PRIMARY[key]
 
@@ -348,8 +354,13 @@ def primary_kernel(want_normals: bool, want_points: bool):
         i += band0
         for j in range(dist.shape[2]):
             d = pixel_ray(i, j, cam)
+            if wp.static(lens):
+                d = cam.rays[i, j]
             lst = tile_list(tiles.tiles_x, tiles.tiles_y, tiles.tile_shift, f, i, j)
             item, t, face, u, v = closest_from_camera(inst, f, tiles.start, tiles.items, lst, d, max_t)
+            if wp.static(lens):
+                if d[2] < 0.0:  # uncovered pixel
+                    item = wp.int32(-1)
             if item < 0:
                 item_out[f, i, j] = -1
                 face_out[f, i, j] = -1

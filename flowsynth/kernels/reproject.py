@@ -9,6 +9,9 @@ object-frame point p (float32, promoted to float64) maps to
 
     X = cam_T_obj[r, n] @ p,  valid = X.z > 0,  (u', v') = (K X)[:2] / (K X)[2]   (full K, float64)
 
+(with a lens model, flowsynth/camera.py: valid = X in the model's domain, (u', v') = the model's projection,
+``lens_project``, the same equations as cv2.projectPoints / cv2.fisheye.projectPoints)
+
 and, where requested, flow (u' - j, v' - i), occlusion (exact visibility ray, or the depth-buffer test),
 disparity change fB / X.z - fB / (cam_T_obj[s, n] @ p).z and scene flow sfM[t, n] @ p.
 
@@ -38,9 +41,45 @@ from flowsynth.kernels.blas import blas_any
 from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_silhouette, box_entry_inv, inverse_dir,
                                        tile_list, trace_any)
 
-__all__ = ["OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "pair_kernel", "world_points_kernel"]
+__all__ = ["LENS_CODES", "OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "lens_project", "pair_kernel", "world_points_kernel"]
 
 OCC_NONE, OCC_EXACT, OCC_DEPTH = 0, 1, 2
+# the pair kernel's lens variants (flowsynth.camera.LENS_MODELS)
+LENS_CODES = {"pinhole": 0, "brown_conrady": 1, "kannala_brandt": 2}
+
+
+@wp.func
+def lens_project(model: wp.int32, k: wp.array[wp.float64], lim: wp.float64, K: wp.mat33d, X: wp.vec3d):
+    """(u, v, ok) of camera-frame X through lens ``model`` (1 Brown-Conrady, k = (k1, k2, p1, p2, k3, k4, k5, k6);
+    2 Kannala-Brandt, k = (k1, k2, k3, k4)), float64, flowsynth/camera.py's equations (OpenCV's); ``ok``: X
+    lies in the domain (z > 0 and r2 < lim, resp. atan(r) < lim); u, v = 0 where not."""
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    if X[2] <= zero:
+        return zero, zero, False
+    a = X[0] / X[2]
+    b = X[1] / X[2]
+    r2 = a * a + b * b
+    ad = a
+    bd = b
+    if model == 1:
+        if r2 >= lim:
+            return zero, zero, False
+        q = (one + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))) / (one + r2 * (k[5] + r2 * (k[6] + r2 * k[7])))
+        two = wp.float64(2.0)
+        ad = a * q + two * k[2] * a * b + k[3] * (r2 + two * a * a)
+        bd = b * q + k[2] * (r2 + two * b * b) + two * k[3] * a * b
+    else:
+        r = wp.sqrt(r2)
+        th = wp.atan(r)
+        if th >= lim:
+            return zero, zero, False
+        if r > wp.float64(1.0e-8):
+            t2 = th * th
+            thd = th * (one + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+            ad = a * thd / r
+            bd = b * thd / r
+    return K[0, 0] * ad + K[0, 1] * bd + K[0, 2], K[1, 1] * bd + K[1, 2], True
 
 
 _PAIR: dict = {}
@@ -176,8 +215,11 @@ def affine_point(M: wp.mat44d, p: wp.vec3d):
                     M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3])
 
 
-def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False):
+def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False, lens: int = 0):
     """The pair kernel, specialised so unrequested outputs are compiled out.
+
+    ``lens`` (``LENS_CODES``): 0 the pinhole K, else the target view's lens model, coefficients ``lens_k`` and
+    domain bound ``lens_lim`` (``lens_project``); a point outside the domain is treated as one behind the camera.
 
     Launch dims (P, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread does
     the W pixels of its row. Every pixel of every output is written: ``valid`` (uint8, 1 = hit and
@@ -187,7 +229,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
     and dc also where not valid). For occlusion="exact", ``tiles`` are the lists without flat items
     (``SceneAccel.tile_lists(camera, flat=False)``).
     """
-    key = (bool(want_flow), int(occ_mode), bool(want_dc), bool(want_sf))
+    key = (bool(want_flow), int(occ_mode), bool(want_dc), bool(want_sf), int(lens))
     if key in _PAIR:
         return _PAIR[key]
 
@@ -210,6 +252,8 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
         depth_tol: wp.float64,
         fB: wp.float64,
         sfM: wp.array2d[wp.mat44d],
+        lens_k: wp.array[wp.float64],
+        lens_lim: wp.float64,
         band0: wp.int32,
         # outputs
         valid: wp.array3d[wp.uint8],
@@ -255,7 +299,13 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
             x = X[0]
             y = X[1]
             z = X[2]
-            if z <= wp.float64(0.0):
+            behind = z <= wp.float64(0.0)
+            u = wp.float64(0.0)
+            v = wp.float64(0.0)
+            if wp.static(lens != 0):
+                u, v, ok = lens_project(wp.static(lens), lens_k, lens_lim, K, X)
+                behind = not ok
+            if behind:
                 valid[t, i, j] = wp.uint8(0)
                 oof[t, i, j] = wp.uint8(1)
                 if wp.static(occ_mode != 0):
@@ -266,15 +316,16 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                 if wp.static(want_dc):
                     dc[t, i, j] = wp.float64(0.0)
                 continue
-            # full K (skew included), dehomogenised as kornia's convert_points_from_homogeneous does
-            h0 = K[0, 0] * x + K[0, 1] * y + K[0, 2] * z
-            h1 = K[1, 0] * x + K[1, 1] * y + K[1, 2] * z
-            h2 = K[2, 0] * x + K[2, 1] * y + K[2, 2] * z
-            sc = wp.float64(1.0)
-            if wp.abs(h2) > wp.float64(1.0e-8):
-                sc = wp.float64(1.0) / h2
-            u = sc * h0
-            v = sc * h1
+            if wp.static(lens == 0):
+                # full K (skew included), dehomogenised as kornia's convert_points_from_homogeneous does
+                h0 = K[0, 0] * x + K[0, 1] * y + K[0, 2] * z
+                h1 = K[1, 0] * x + K[1, 1] * y + K[1, 2] * z
+                h2 = K[2, 0] * x + K[2, 1] * y + K[2, 2] * z
+                sc = wp.float64(1.0)
+                if wp.abs(h2) > wp.float64(1.0e-8):
+                    sc = wp.float64(1.0) / h2
+                u = sc * h0
+                v = sc * h1
             inside = (u >= wp.float64(-0.5) and u < wp.float64(W) - wp.float64(0.5) and v >= wp.float64(-0.5)
                       and v < wp.float64(H) - wp.float64(0.5))
             valid[t, i, j] = wp.uint8(1)
