@@ -8,6 +8,10 @@ Box conventions (image coordinates, pixel (row i, col j) centred at (u, v) = (j,
 - ``box2d_amodal`` (T, N, 4) xyxy [px]: extent of the whole projected mesh (occluded parts included),
   edges crossing the near plane z = NEAR are cut there, then clipped to the image rectangle
   [-0.5, W - 0.5] x [-0.5, H - 0.5]. Objects entirely behind the camera or outside the image: all 0.
+  With a lens model (flowsynth/camera.py) the edges are curves in the image: the box bounds the projections
+  of the vertices and of ``LENS_EDGE_SAMPLES`` - 1 evenly spaced points inside each edge that lie in the
+  model's domain (the outline of a projected mesh is made of projected edges), so it can fall short of the
+  true extent by the edge's bulge between two samples.
 - ``box2d_visible`` (T, N, 4) xyxy [px]: extent of the pixels showing the object in the instance map,
   pixel edges included: (j_min - 0.5, i_min - 0.5, j_max + 0.5, i_max + 0.5); all 0 when not visible.
 - ``visible_pixels`` (T, N) int32: pixels of the instance map showing the object.
@@ -23,15 +27,25 @@ import torch
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["NEAR", "amodal_box", "object_tables"]
+__all__ = ["LENS_EDGE_SAMPLES", "NEAR", "amodal_box", "object_tables"]
 
 # Near plane [m] at which mesh edges crossing behind the camera are cut for the amodal box.
 NEAR = 1e-6
+# Intervals per mesh edge sampled for the amodal box of a lens camera.
+LENS_EDGE_SAMPLES = 16
 _BITS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], np.float64)
 
 
-def amodal_box(V_cam: np.ndarray, edges: np.ndarray, K: np.ndarray, W: int, H: int) -> np.ndarray:
-    """xyxy box of camera-frame mesh vertices ``V_cam`` (V, 3) with ``edges`` (E, 2), clipped to the image."""
+def amodal_box(V_cam: np.ndarray, edges: np.ndarray, K: np.ndarray, W: int, H: int, camera=None) -> np.ndarray:
+    """xyxy box of camera-frame mesh vertices ``V_cam`` (V, 3) with ``edges`` (E, 2), clipped to the image;
+    through ``camera``'s lens model when it has one (module docstring)."""
+    if camera is not None and not camera.is_pinhole:
+        s = np.linspace(0.0, 1.0, LENS_EDGE_SAMPLES + 1)[:, None, None]
+        a, b = V_cam[edges[:, 0]], V_cam[edges[:, 1]]
+        uv, ok = camera.project(np.concatenate([V_cam, (a + s * (b - a)).reshape(-1, 3)]))
+        if not ok.any():
+            return np.zeros(4)
+        return _clip_box(uv[ok], W, H)
     front = V_cam[:, 2] > NEAR
     pts = [V_cam[front]]
     a, b = V_cam[edges[:, 0]], V_cam[edges[:, 1]]
@@ -44,7 +58,10 @@ def amodal_box(V_cam: np.ndarray, edges: np.ndarray, K: np.ndarray, W: int, H: i
     if len(P) == 0:
         return np.zeros(4)
     uvw = P @ K.T
-    uv = uvw[:, :2] / uvw[:, 2:3]
+    return _clip_box(uvw[:, :2] / uvw[:, 2:3], W, H)
+
+
+def _clip_box(uv: np.ndarray, W: int, H: int) -> np.ndarray:
     x0, y0 = uv.min(0)
     x1, y1 = uv.max(0)
     if x1 < -0.5 or y1 < -0.5 or x0 > W - 0.5 or y0 > H - 0.5:
@@ -89,7 +106,7 @@ def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndar
             cam_T_obj = np.einsum("tij,tjk->tik", cam_T_world, world_T_obj[:, n])
             for t in range(T):
                 Vc = V @ cam_T_obj[t, :3, :3].T + cam_T_obj[t, :3, 3]
-                amodal[t, n] = amodal_box(Vc, edges, K, W, H)
+                amodal[t, n] = amodal_box(Vc, edges, K, W, H, scene.camera)
         out["box2d_amodal"] = amodal
     if "box2d_visible" in want or "visible_pixels" in want:
         row_of = np.full(len(scene.objects) + 1, -1)  # scene object index -> table row, -1 -> -1

@@ -31,7 +31,7 @@ import torch
 from flowsynth._checks import as_float64_array
 from flowsynth.errors import ConfigError
 
-__all__ = ["LENS_MODELS", "NEWTON_TOL", "Camera"]
+__all__ = ["LENS_MODELS", "LENS_UNSUPPORTED", "NEWTON_TOL", "Camera", "check_lens_outputs"]
 
 # Lens models and the numbers of coefficients each accepts (OpenCV's order).
 LENS_MODELS = {"pinhole": (0,), "brown_conrady": (4, 5, 8), "kannala_brandt": (4,)}
@@ -163,6 +163,21 @@ class Camera:
         lens = "" if self.is_pinhole else f", model={self.model!r}, dist={self.dist}"
         return (f"Camera(width={self.width}, height={self.height}, fx={self.fx:.4g}, fy={self.fy:.4g}, "
                 f"cx={self.cx:.4g}, cy={self.cy:.4g}{lens})")
+
+
+# Outputs not yet rendered through a lens model: shading's anti-aliasing and motion-blur rays, and stereo (a
+# distorted pair is not rectified: "disparity" along rows has no meaning there).
+LENS_UNSUPPORTED = ("rgb", "rgb_right", "depth_right", "disparity", "disparity_right", "disparity_change",
+                    "disparity_occ", "disparity_occ_right")
+
+
+def check_lens_outputs(camera: Camera, outputs) -> None:
+    """ConfigError when a lens camera is asked for an output not rendered through lens models yet."""
+    bad = [k for k in outputs if k in LENS_UNSUPPORTED]
+    if bad and not camera.is_pinhole:
+        raise ConfigError(f"outputs {bad} are not available with a {camera.model} camera: RGB is not yet shaded "
+                          "through lens models, and stereo disparity is defined for a rectified pinhole pair only "
+                          "(a distorted pair's epipolar lines are curves); use model='pinhole' or drop them")
 
 
 def check_lens(model, dist) -> tuple[str, tuple[float, ...]]:
