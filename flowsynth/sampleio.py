@@ -19,6 +19,7 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 | any of these per-pair keys at gap K   | KEY_kK_TTTT.*           | as the key at gap 1 (TTTT = pair t) |
 | K, cam_T_world, object tables, index  | meta.json               | JSON (float32 values, exact)        |
 | provenance                            | meta.json               | JSON object (Scene.from_meta reads) |
+| a lens camera's model, coefficients  | meta.json               | camera_model, camera_dist (OpenCV)  |
 | box2d_visible (when requested)        | boxes_coco.json         | COCO-style detection boxes          |
 | target_points, occluded, query_points | tracks.npz              | numpy .npz, the tensors as they are |
 | all three track keys (when requested) | tapvid.pkl              | TAP-Vid (Kubric) dict, see below    |
@@ -106,6 +107,9 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
     for key, value in sample.items():
         if key == PROVENANCE_KEY:
             meta[key] = json.loads(value)
+            cam = meta[key].get("camera", {})
+            if "model" in cam:  # a lens camera: its model and coefficients beside K (pinhole files unchanged)
+                meta["camera_model"], meta["camera_dist"] = cam["model"], cam["dist"]
             continue
         a = value.numpy()
         if key in _RGB:
