@@ -191,7 +191,7 @@ def main() -> int:
     torch.set_num_threads(1)
     import flowsynth as fs
     from flowsynth.plan import make_plan
-    from flowsynth.render import render_plan
+    from flowsynth.renderer import render_plan
     from flowsynth.sampling import sample_scene
 
     cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=T, render_mode="direct",

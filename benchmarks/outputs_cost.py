@@ -62,7 +62,7 @@ def main() -> None:
     import flowsynth as fs
     from flowsynth.datasets.bouncing import sample_seed
     from flowsynth.plan import make_plan
-    from flowsynth.render import render_plan
+    from flowsynth.renderer import render_plan
     from flowsynth.sampling import sample_scene
 
     W, H = (256, 192) if args.quick else (512, 384)

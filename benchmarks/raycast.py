@@ -57,7 +57,8 @@ from flowsynth import blas
 from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.plan import make_plan
-from flowsynth.render import cast_gbuffer, gbuffer_outputs, scene_arrays
+from flowsynth.gbuffer import cast_gbuffer, scene_arrays
+from flowsynth.renderer import gbuffer_outputs
 
 WIDTH, HEIGHT, FOV_DEG = 640, 480, 60.0
 NUM_SPHERES, SUBDIVISIONS, RADIUS = 30, 4, 1.0

@@ -85,7 +85,7 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
 
     import flowsynth as fs
     from flowsynth.accel import SceneAccel
-    from flowsynth.render import cast_gbuffer, scene_arrays
+    from flowsynth.gbuffer import cast_gbuffer, scene_arrays
 
     allowed = os.sched_getaffinity(0)
     from raycast import make_scene as raycast_scene  # importing raycast pins this process to one core: undo
@@ -259,8 +259,8 @@ def streams_only(cpus: int, rounds: int, n: int, default: bool = False) -> None:
 
 # The stages of a full sample, timed by ``--stages``: (module, function) wrapped for the run (render_plan looks them
 # up in their modules at call time), and the scene itself (``BouncingThings.scene``: layout, materials, physics).
-STAGES = (("flowsynth.render", "SceneAccel", "accel"), ("flowsynth.render", "cast_gbuffer", "cast"),
-          ("flowsynth.render", "gbuffer_outputs", "gbuffer outputs"), ("flowsynth.flow", "flow_outputs", "flow"),
+STAGES = (("flowsynth.renderer", "SceneAccel", "accel"), ("flowsynth.renderer", "cast_gbuffer", "cast"),
+          ("flowsynth.renderer", "gbuffer_outputs", "gbuffer outputs"), ("flowsynth.flow", "flow_outputs", "flow"),
           ("flowsynth.shading", "render_rgb", "rgb"))
 
 
@@ -272,7 +272,7 @@ def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:
     from collections import defaultdict
 
     import flowsynth as fs
-    from flowsynth.render import render_plan
+    from flowsynth.renderer import render_plan
 
     wall: dict = defaultdict(float)
     cpu: dict = defaultdict(float)

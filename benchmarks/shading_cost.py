@@ -192,7 +192,7 @@ def _tiles_vs_bvh(ds, scenes: list, rounds: int) -> tuple[float, float, bool]:
     import torch
 
     from flowsynth import shading
-    from flowsynth.render import render_plan
+    from flowsynth.renderer import render_plan
 
     per = {True: [], False: []}
     images = {}

@@ -25,7 +25,7 @@ import numpy as np
 
 from flowsynth import accel as accel_mod
 from flowsynth.accel import SceneAccel
-from flowsynth.render import cast_gbuffer, scene_arrays
+from flowsynth.gbuffer import cast_gbuffer, scene_arrays
 
 TILES = {"one list per frame": 1 << 20, "64 px tiles": 64, "16 px tiles (default)": 16, "8 px tiles": 8}
 

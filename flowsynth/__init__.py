@@ -1,11 +1,16 @@
 """flowsynth: synthetic optical-flow and geometry ground truth, ray-cast with NVIDIA Warp on the CPU.
 
 Importing flowsynth compiles nothing; Warp kernels load on first use.
+
+Every public name is an attribute of this package (``fs.render``, ``fs.render_plan``, ``fs.clear_caches``...);
+no function shares its name with a module: the renderer's module is ``flowsynth.renderer``.
 """
 
+from flowsynth.caches import clear_caches
 from flowsynth.camera import Camera
-from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ShapeError
-from flowsynth.render import render
+from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ShapeError, StorageError
+from flowsynth.plan import Plan, make_plan
+from flowsynth.renderer import render, render_plan
 from flowsynth.scene import Scene, SceneObject
 
 __version__ = "0.1.0"
@@ -17,11 +22,16 @@ __all__ = [
     "ConfigError",
     "ExportError",
     "FlowsynthError",
+    "Plan",
     "Scene",
     "SceneObject",
     "ShapeError",
+    "StorageError",
+    "clear_caches",
     "datasets",
+    "make_plan",
     "render",
+    "render_plan",
 ]
 
 

@@ -12,7 +12,9 @@ collider, so colliders that never overlap imply visual meshes that never overlap
 
 Meshes are cached per process: the same (name, size) returns the same ``trimesh.Trimesh`` object, so
 objects that share an asset share an asset id in a :class:`flowsynth.Scene` and the renderer's per-asset
-acceleration structures are reused across samples. Treat returned meshes as read-only.
+acceleration structures are reused across samples. Returned meshes are frozen (``flowsynth.meshes.freeze``):
+writing into their vertices or faces raises; ``mesh.copy()`` gives one to change. ``fs.clear_caches()`` empties
+these caches (``flowsynth.caches``).
 """
 
 from __future__ import annotations
@@ -27,8 +29,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import HalfspaceIntersection
 
+from flowsynth.caches import register
 from flowsynth.errors import AssetError
-from flowsynth.scene import clean_mesh, library_mesh
+from flowsynth.meshes import clean_mesh, freeze, library_mesh
 
 __all__ = [
     "BUILTIN_ASSETS",
@@ -142,6 +145,7 @@ def load_user_mesh(path: str) -> trimesh.Trimesh:
     return _load_user_mesh_cached(path, st.st_mtime_ns, st.st_size)
 
 
+@register("assets.user_meshes")
 @functools.lru_cache(maxsize=256)
 def _load_user_mesh_cached(path: str, mtime_ns: int, nbytes: int) -> trimesh.Trimesh:
     try:
@@ -151,7 +155,7 @@ def _load_user_mesh_cached(path: str, mtime_ns: int, nbytes: int) -> trimesh.Tri
                          "use a format trimesh reads (obj, ply, stl, glb, off)") from e
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise AssetError(f"mesh file {path!r} contains no triangles; export it as a triangle mesh")
-    return _normalise(clean_mesh(loaded, name=f"mesh file {path!r}"))
+    return freeze(_normalise(clean_mesh(loaded, name=f"mesh file {path!r}")))
 
 
 def unit_mesh(name: str) -> trimesh.Trimesh:
@@ -161,6 +165,7 @@ def unit_mesh(name: str) -> trimesh.Trimesh:
     return load_user_mesh(name)
 
 
+@register("assets.get_asset")
 @functools.lru_cache(maxsize=1024)
 def get_asset(name: str, size: float) -> Asset:
     """The asset ``name`` (built-in name or mesh file path) scaled to bounding-sphere diameter ``size`` [m].
@@ -173,12 +178,13 @@ def get_asset(name: str, size: float) -> Asset:
     mesh = library_mesh(trimesh.Trimesh(vertices=unit.vertices * size, faces=unit.faces, process=False, validate=False),
                         name=f"asset {name}")
     uh = unit_hull(name)
-    hull = trimesh.Trimesh(vertices=uh.vertices * size, faces=uh.faces, process=False, validate=False)
+    hull = freeze(trimesh.Trimesh(vertices=uh.vertices * size, faces=uh.faces, process=False, validate=False))
     kind, params = _PRIMITIVE_PARAMS.get(name, ("convex", ()))
     return Asset(name=name, size=float(size), mesh=mesh,
                  collider=Collider(kind=kind, params=tuple(p * size for p in params), hull=hull))
 
 
+@register("assets.unit_hull")
 @functools.lru_cache(maxsize=1024)
 def unit_hull(name: str) -> trimesh.Trimesh:
     """Convex polytope containing the unit mesh (cached): its convex hull, or, when that has more than
@@ -187,12 +193,12 @@ def unit_hull(name: str) -> trimesh.Trimesh:
     hull = unit_mesh(name).convex_hull
     V = np.asarray(hull.vertices, dtype=np.float64)
     if len(V) <= HULL_MAX_VERTICES:
-        return hull
+        return freeze(hull)
     coarse = trimesh.convex.convex_hull(V[_farthest_points(V, max(8, HULL_MAX_VERTICES // 4))])
     normals = np.asarray(coarse.face_normals)
     offsets = (V @ normals.T).max(0)
     cut = HalfspaceIntersection(np.hstack([normals, -offsets[:, None]]), V.mean(0))
-    return trimesh.convex.convex_hull(cut.intersections)
+    return freeze(trimesh.convex.convex_hull(cut.intersections))
 
 
 def _farthest_points(V: np.ndarray, k: int) -> np.ndarray:
@@ -209,6 +215,7 @@ ROOM_WALLS = ("floor", "ceiling", "wall_x-", "wall_x+", "wall_y-", "wall_y+")
 """Names of the room's six faces, in the order of ``room_walls`` (wall_x- is the wall at x = lo[0], ...)."""
 
 
+@register("assets.room_walls")
 @functools.lru_cache(maxsize=64)
 def room_walls(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> tuple[trimesh.Trimesh, ...]:
     """The six faces of the axis-aligned box from ``lo`` to ``hi`` [m], one two-triangle mesh each, in
@@ -257,6 +264,7 @@ def _primitive_params() -> dict[str, tuple[str, tuple[float, ...]]]:
 _PRIMITIVE_PARAMS = _primitive_params()
 
 
+@register("assets.builtin_unit")
 @functools.cache
 def _builtin_unit(name: str) -> trimesh.Trimesh:
     if name == "box":
@@ -282,7 +290,7 @@ def _builtin_unit(name: str) -> trimesh.Trimesh:
     else:
         raise AssetError(f"unknown built-in asset {name!r}; use one of {list(BUILTIN_ASSETS)}")
     # Cones are centred on their geometric centre (base at -h, apex at +h), like Newton's cone.
-    return _normalise(m)
+    return freeze(_normalise(m))
 
 
 def _normalise(mesh: trimesh.Trimesh) -> trimesh.Trimesh:

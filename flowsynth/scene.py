@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import warnings
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,15 +17,13 @@ import trimesh
 
 from flowsynth._checks import as_float64_array, check_rigid
 from flowsynth.camera import Camera
-from flowsynth.errors import AssetError, ConfigError
+from flowsynth.errors import ConfigError
+from flowsynth.meshes import clean_mesh, library_copy
 
 __all__ = ["PROVENANCE_VERSION", "Scene", "SceneObject", "clean_mesh", "provenance_json"]
 
 PROVENANCE_VERSION = 1
 """Version of the ``Scene.to_meta`` schema."""
-
-# Triangles with area below this fraction of (bounding-box diagonal)^2 are dropped as degenerate.
-DEGENERATE_AREA_REL = 1e-14
 
 
 @dataclass
@@ -36,7 +32,8 @@ class SceneObject:
 
     Attributes:
         instance: instance id k >= 1 (0 is reserved for "nothing").
-        mesh: triangle mesh in the object frame [m] (cleaned: finite, no zero-area triangles).
+        mesh: triangle mesh in the object frame [m] (cleaned: finite, no zero-area triangles; frozen, i.e.
+            read-only: ``flowsynth.meshes.freeze``).
         poses: (T, 4, 4) float64 world_T_obj per frame.
         category: category id >= 0 written to the ``category`` channel.
         asset: id of the mesh asset, >= 1; objects added with the same mesh object share it.
@@ -54,48 +51,6 @@ class SceneObject:
     material: dict = field(default_factory=dict)
     background: bool = False
     source: dict | None = None
-
-
-# Cleaned copies of the meshes flowsynth.assets makes once per process and never modifies (get_asset, room_walls),
-# keyed by identity: each is cleaned once and its copy shared by every scene, instead of cleaned per scene (which,
-# with the content hash every new mesh object then costs the ray caster, was ~6 ms of a 256x192 sample:
-# benchmarks/results/SUMMARY.md, throughput). A user's mesh, even one equal to a library mesh, is never looked up.
-_LIBRARY_MESHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def library_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
-    """Mark ``mesh``, made by flowsynth.assets and never modified afterwards, as shared: ``Scene.add_object``
-    then uses one cleaned copy of it in every scene. Returns ``mesh``."""
-    _LIBRARY_MESHES[mesh] = clean_mesh(mesh, name=name)
-    return mesh
-
-
-def clean_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
-    """Validate a mesh and drop zero-area triangles (with a warning). Returns a new float64 mesh.
-
-    Raises AssetError for meshes that are not triangle meshes, have no faces, or non-finite vertices.
-    """
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise AssetError(f"{name} must be a trimesh.Trimesh, got {type(mesh).__name__}; "
-                         "load files with trimesh.load(path, force='mesh')")
-    V = np.asarray(mesh.vertices, dtype=np.float64)
-    F = np.asarray(mesh.faces, dtype=np.int64)
-    if F.ndim != 2 or F.shape[0] == 0:
-        raise AssetError(f"{name} has no faces")
-    if not np.isfinite(V).all():
-        raise AssetError(f"{name} has non-finite vertex coordinates")
-    if F.min() < 0 or F.max() >= len(V):
-        raise AssetError(f"{name} has face indices outside its vertex array")
-    diag2 = float(np.sum((V.max(0) - V.min(0)) ** 2))
-    tri = V[F]
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    keep = area2 > 2.0 * DEGENERATE_AREA_REL * max(diag2, 1e-300)
-    if not keep.all():
-        warnings.warn(f"{name}: dropped {int((~keep).sum())} degenerate (zero-area) triangles", stacklevel=3)
-        F = F[keep]
-        if F.shape[0] == 0:
-            raise AssetError(f"{name} has only degenerate (zero-area) triangles")
-    return trimesh.Trimesh(vertices=V, faces=F, process=False, validate=False)
 
 
 class Scene:
@@ -155,7 +110,7 @@ class Scene:
         poses = np.tile(np.eye(4), (self.num_frames, 1, 1)) if poses is None else self._poses(poses, "poses")
         key = id(mesh)
         if key not in self._assets:
-            cleaned = _LIBRARY_MESHES.get(mesh) if isinstance(mesh, trimesh.Trimesh) else None
+            cleaned = library_copy(mesh)
             if cleaned is None:
                 cleaned = clean_mesh(mesh, name=f"mesh of object {len(self.objects) + 1}")
             self._assets[key] = (len(self._assets) + 1, cleaned)
@@ -184,7 +139,8 @@ class Scene:
         lights = [{k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(Light(**x) if
                    isinstance(x, dict) else x).items()} for x in self.lights]
         return {"version": PROVENANCE_VERSION,
-                "camera": {"K": self.camera.K.tolist(), "width": self.camera.width, "height": self.camera.height},
+                "camera": {"K": self.camera.K.tolist(), "width": self.camera.width, "height": self.camera.height,
+                           **self.camera.lens_meta()},
                 "num_frames": self.num_frames, "fps": self.fps, "world_T_cam": self.world_T_cam.tolist(),
                 "render_seed": int(self.render_seed), "lights": lights, "objects": objects,
                 "meta": json.loads(json.dumps(self.meta))}
@@ -205,7 +161,8 @@ class Scene:
         if not isinstance(meta, dict) or meta.get("version") != PROVENANCE_VERSION:
             raise ConfigError(f"Scene.from_meta needs a Scene.to_meta() dict of version {PROVENANCE_VERSION}")
         cam = meta["camera"]
-        scene = cls(Camera(np.asarray(cam["K"], np.float64), cam["width"], cam["height"]), meta["num_frames"],
+        scene = cls(Camera(np.asarray(cam["K"], np.float64), cam["width"], cam["height"],
+                           model=cam.get("model", "pinhole"), dist=cam.get("dist")), meta["num_frames"],
                     meta["fps"])
         scene.set_camera_poses(np.asarray(meta["world_T_cam"], np.float64))
         meshes: dict[int, trimesh.Trimesh] = {}

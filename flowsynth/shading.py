@@ -1,6 +1,6 @@
 """RGB rendering: materials and lights packed for the shading kernel, motion-blur time slices, tone mapping.
 
-``render_rgb`` is called by ``flowsynth.render.render_plan`` when "rgb" is requested. The model (render
+``render_rgb`` is called by ``flowsynth.renderer.render_plan`` when "rgb" is requested. The model (render
 modes, material schema, lights, time model, tone mapping, RNG) is documented in docs/rendering.md.
 
 Motion-blur time model: the shutter opens at the frame instant. Frame t integrates times
@@ -91,7 +91,7 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
     reuse = spp == 1 and shutter == 0 and gb.point is not None
     cam_T_world = scene.cam_T_world
     if shutter > 0:
-        times = shutter_times(T, shutter, slices).reshape(-1)
+        times = shutter_times(T, shutter, slices).reshape(-1) + plan.shutter_offset  # offset: the final pass
         world_T_cam = poses_at(scene.world_T_cam, times)
         cam_T_world = np.linalg.inv(world_T_cam)
         world_T_obj = np.stack([poses_at(o.poses, times) for o in scene.objects], 1)
@@ -165,13 +165,13 @@ def shutter_times(num_frames: int, shutter: float, slices: int) -> np.ndarray:
 
 def poses_at(poses: np.ndarray, times: np.ndarray) -> np.ndarray:
     """Rigid poses (T, 4, 4) at fractional frame times (K,): slerp + linear translation, extrapolated past
-    the last frame with the last interval's motion, held before frame 0. Returns (K, 4, 4) float64."""
+    the last frame with the last interval's motion, and before frame 0 with the first's. Returns (K, 4, 4) float64."""
     poses = np.asarray(poses, np.float64)
     times = np.asarray(times, np.float64)
     if len(poses) == 1:
         return np.repeat(poses, len(times), 0)
     k = np.clip(np.floor(times).astype(np.int64), 0, len(poses) - 2)
-    a = np.maximum(times - k, 0.0)[:, None]
+    a = (times - k)[:, None]
     A, B = poses[k], poses[k + 1]
     rel = Rotation.from_matrix(B[:, :3, :3] @ np.swapaxes(A[:, :3, :3], 1, 2)).as_rotvec()
     out = np.zeros((len(times), 4, 4))

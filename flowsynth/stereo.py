@@ -50,7 +50,7 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
                    device: str = "cpu", done=()) -> dict[str, torch.Tensor]:
     """Every stereo key the plan asks for except those in ``done`` (``disparity_change`` rides on the flow
     stage's fw gap-1 pass when that runs: flowsynth/flow.py); ``accel``/``gb`` are the left view's."""
-    from flowsynth.render import cast_gbuffer
+    from flowsynth.gbuffer import cast_gbuffer
 
     want = set(plan.outputs) - set(done)
     B = plan.stereo_baseline

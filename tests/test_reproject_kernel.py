@@ -18,7 +18,7 @@ import flowsynth as fs
 from flowsynth.accel import SceneAccel
 from flowsynth.flow import DEPTH_TEST_REL_TOL, MOTION_TOL, _visibility, reproject_pixels, world_points
 
-render_mod = importlib.import_module("flowsynth.render")
+render_mod = importlib.import_module("flowsynth.gbuffer")
 
 W, H, T = 64, 48, 4
 K = np.array([[52.0, 6.0, 30.3], [0.0, 49.0, 22.8], [0.0, 0.0, 1.0]])

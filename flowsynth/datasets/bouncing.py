@@ -104,7 +104,7 @@ class BouncingThings(IterableDataset):
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
         """Sample ``i``: exactly the item the stream yields for index ``i``."""
-        from flowsynth.render import render_plan
+        from flowsynth.renderer import render_plan
 
         if not isinstance(i, (int, np.integer)) or i < 0:
             raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
