@@ -81,6 +81,10 @@ class BouncingThingsConfig:
     mix of translation, target motion and rotation from the camera fields below) is scaled so that the
     median flow of the room between frames 0 and 1 is u (flowsynth/camerapath.py). What comes out is
     measured by ``flowsynth stats``, not promised."""
+    rest_fraction: float = 0.0
+    """Chance in [0, 1] that each object starts at rest (no velocity, no spin; it moves only when something hits
+    it) and, drawn once more per clip, that the camera holds still: the still regions real video shows beside
+    moving ones. 0 draws nothing (the samples of a config without it are unchanged)."""
     camera_motion: str = "moving"
     """"static" or "moving": the eye translates (reflected inside the camera zone), the look-at target
     moves, and pan / tilt / roll offsets turn the camera (flowsynth/camerapath.py)."""
@@ -334,6 +338,7 @@ def _validate(cfg: BouncingThingsConfig) -> None:
                                           for i, v in enumerate(limit)))
     if cfg.flow_px is not None:
         _range(cfg, "flow_px", lo=0.0, lo_open=True)
+    _set(cfg, "rest_fraction", _float(cfg, "rest_fraction", lo=0.0, hi=1.0))
     if not isinstance(cfg.planar_motion, bool):
         raise ConfigError(f"planar_motion must be True or False, got {cfg.planar_motion!r}")
     _set(cfg, "spawn_margin", _float(cfg, "spawn_margin", lo=-0.5, hi=0.5, lo_open=True, hi_open=True))

@@ -92,7 +92,8 @@ class Layout:
         world_T_cam: (T, 4, 4) float64 camera poses, OpenCV axes.
         texture_seeds: (n + 6,) int texture seeds, objects then the room's faces (``ROOM_WALLS`` order).
         motion: what ``cfg.flow_px`` resolved to (empty without it): "camera_flow_px" (target),
-            "camera_flow_px_achieved" (median room flow, frames 0-1), "object_flow_px" (targets) [px].
+            "camera_flow_px_achieved" (median room flow, frames 0-1), "object_flow_px" (targets) [px];
+            with ``cfg.rest_fraction`` > 0 also "objects_at_rest" (count) and "camera_at_rest" (when it is).
     """
 
     asset_keys: tuple[str, ...]
@@ -180,6 +181,14 @@ def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> Layout:
     w_lo, w_hi = cfg.angular_speed
     angular = _unit(rng.normal(size=(n, 3))) * rng.uniform(w_lo, w_hi, size=(n, 1))
     seeds = rng.integers(0, 2**31 - 1, size=n + len(ROOM_WALLS))
+    if cfg.rest_fraction > 0:  # drawn last, so that a config without it keeps every other draw
+        rest = rng.uniform(size=n + 1) < cfg.rest_fraction
+        velocity[rest[:n]] = 0.0
+        angular[rest[:n]] = 0.0
+        motion["objects_at_rest"] = int(rest[:n].sum())
+        if rest[n]:
+            world_T_cam = np.repeat(world_T_cam[:1], len(world_T_cam), axis=0)
+            motion["camera_at_rest"] = True
     return Layout(keys, asset_index, assets, InitialState(position, rotation, velocity, angular), world_T_cam,
                   seeds, motion)
 
