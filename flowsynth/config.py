@@ -46,7 +46,16 @@ class BouncingThingsConfig:
     fps: float = 24.0
     """Frame rate [1/s], > 0."""
     fov_deg: float = 60.0
-    """Horizontal field of view [deg], in (0, 180)."""
+    """Horizontal field of view [deg], in (0, 180) (of the pinhole part when a lens model is set)."""
+    camera_model: str = "pinhole"
+    """Lens model: "pinhole", "brown_conrady" or "kannala_brandt" (equations: flowsynth/camera.py,
+    docs/conventions.md; OpenCV's conventions). A lens model allows no rgb or stereo outputs yet."""
+    camera_dist: tuple[float, ...] = ()
+    """Lens coefficients in OpenCV's order: (k1, k2, p1, p2[, k3[, k4, k5, k6]]) for brown_conrady, (k1, k2, k3,
+    k4) for kannala_brandt, empty for pinhole; with ``camera_dist_max``, the lower ends of their ranges."""
+    camera_dist_max: tuple[float, ...] | None = None
+    """Upper ends of the lens coefficients' ranges: each sample draws coefficient i uniformly in [camera_dist[i],
+    camera_dist_max[i]] (from its own generator: the other draws are unchanged); None: camera_dist is fixed."""
     num_objects: tuple[int, int] = (4, 12)
     """(min, max) number of flying objects per scene, drawn uniformly (inclusive) [count]."""
     assets: tuple[str, ...] = ("box", "sphere", "cylinder", "capsule", "cone", "torus", "rock", "crystal",
@@ -302,12 +311,36 @@ def _choice(cfg, name: str, options: tuple[str, ...]) -> None:
         raise ConfigError(f"{name} must be one of {list(options)}, got {v!r}")
 
 
+def _lens(cfg: BouncingThingsConfig) -> None:
+    """camera_model, camera_dist and camera_dist_max: a valid lens at both ends of every range."""
+    from flowsynth.camera import Camera, check_lens
+
+    model, lo = check_lens(cfg.camera_model, cfg.camera_dist)
+    _set(cfg, "camera_dist", lo)
+    if cfg.camera_dist_max is not None:
+        _, hi = check_lens(model, cfg.camera_dist_max)
+        if len(hi) != len(lo):
+            raise ConfigError(f"camera_dist_max must have as many coefficients as camera_dist ({len(lo)}), "
+                              f"got {len(hi)}")
+        for i, (a, b) in enumerate(zip(lo, hi)):
+            if a > b:
+                raise ConfigError(f"camera_dist[{i}] = {a} > camera_dist_max[{i}] = {b}; pass min <= max")
+        _set(cfg, "camera_dist_max", hi)
+    fov = _float(cfg, "fov_deg", lo=0.0, hi=180.0, lo_open=True, hi_open=True)
+    for d in (lo, cfg.camera_dist_max or lo):
+        cam = Camera.from_fov(1, 1, fov, model=model, dist=d)
+        if cam.lens_limit <= 0:
+            raise ConfigError(f"camera_dist {d}: the {model} model folds at the optical axis (no pixel would be "
+                              "covered); use smaller coefficients")
+
+
 def _validate(cfg: BouncingThingsConfig) -> None:
     _int(cfg, "width", 1)
     _int(cfg, "height", 1)
     _int(cfg, "num_frames", 1)
     _set(cfg, "fps", _float(cfg, "fps", lo=0.0, lo_open=True))
     _set(cfg, "fov_deg", _float(cfg, "fov_deg", lo=0.0, hi=180.0, lo_open=True, hi_open=True))
+    _lens(cfg)
     _int(cfg, "max_objects", 1)
     n_hi = _range(cfg, "num_objects", lo=0, integer=True)[1]
     if n_hi > cfg.max_objects:

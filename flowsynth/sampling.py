@@ -93,7 +93,8 @@ class Layout:
         texture_seeds: (n + 6,) int texture seeds, objects then the room's faces (``ROOM_WALLS`` order).
         motion: what ``cfg.flow_px`` resolved to (empty without it): "camera_flow_px" (target),
             "camera_flow_px_achieved" (median room flow, frames 0-1), "object_flow_px" (targets) [px];
-            with ``cfg.rest_fraction`` > 0 also "objects_at_rest" (count) and "camera_at_rest" (when it is).
+            with ``cfg.rest_fraction`` > 0 also "objects_at_rest" (count) and "camera_at_rest" (when it is);
+            with ``cfg.camera_dist_max`` set, "camera_dist": the drawn lens coefficients.
     """
 
     asset_keys: tuple[str, ...]
@@ -189,6 +190,9 @@ def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> Layout:
         if rest[n]:
             world_T_cam = np.repeat(world_T_cam[:1], len(world_T_cam), axis=0)
             motion["camera_at_rest"] = True
+    if cfg.camera_dist_max is not None:  # its own generator: every other draw stays as without it
+        lens_rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 3]))
+        motion["camera_dist"] = tuple(float(x) for x in lens_rng.uniform(cfg.camera_dist, cfg.camera_dist_max))
     return Layout(keys, asset_index, assets, InitialState(position, rotation, velocity, angular), world_T_cam,
                   seeds, motion)
 
@@ -213,7 +217,8 @@ def build_scene(cfg: BouncingThingsConfig, layout: Layout, trajectory: Trajector
     """Assemble a Scene: objects (ids 1..n) with ``trajectory.poses``, then the room's six faces (ids n + 1 ..
     n + 6, marked ``background``: rendered, not in the object tables), each with a resolved material drawn in
     screen terms (module docstring)."""
-    camera = Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg)
+    camera = Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg, model=cfg.camera_model,
+                             dist=layout.motion.get("camera_dist", cfg.camera_dist))
     scene = Scene(camera, num_frames=cfg.num_frames, fps=cfg.fps)
     scene.set_camera_poses(layout.world_T_cam)
     focal = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
