@@ -49,6 +49,7 @@ from scipy.spatial.transform import Rotation
 
 from flowsynth import blas
 from flowsynth.accel import SceneAccel, pinhole
+from flowsynth.caches import clear_caches
 from flowsynth.camera import Camera
 from flowsynth.kernels import wp_runtime
 
@@ -158,7 +159,7 @@ def measure(scene_name: str, faces: int, poses, camera: Camera, repeat: int, bui
         builds["wp_mesh_build_ms"] = 1e3 * build_times(build_mesh(mesh), build_repeat)
 
         def fresh_topology():
-            blas._TOPOLOGY.clear()
+            clear_caches("blas.topology")
             return blas.topology(mesh.vertices, mesh.faces)
 
         builds["bvh4_tree_build_ms"] = 1e3 * build_times(fresh_topology, build_repeat)
@@ -168,7 +169,7 @@ def measure(scene_name: str, faces: int, poses, camera: Camera, repeat: int, bui
     shape = (camera.height, camera.width)
     warp_mesh = build_mesh(mesh)()  # what flowsynth.accel built per asset until d08ad06
     item_mesh = wp.array(np.full(accel.F * N, warp_mesh.id, np.uint64), dtype=wp.uint64)
-    inputs = [pinhole(camera), accel.frame_items, accel.near, accel._lowers, accel._uppers, accel.obj_T_ref,
+    inputs = [pinhole(camera), accel.frame_items, accel.near, accel.lowers, accel.uppers, accel.obj_T_ref,
               item_mesh, accel.item_root, A["bounds"], A["kids"], A["tris"], A["face"]]
     outs = {k: (wp.zeros(shape, dtype=wp.float32), wp.zeros(shape, dtype=wp.int32)) for k in KERNELS}
     fns = {k: (lambda k=k: wp.launch(KERNELS[k], dim=camera.height, inputs=inputs, outputs=list(outs[k])))

@@ -46,13 +46,10 @@ VARIANTS = {
 
 def cold_caches() -> None:
     """Empty the per-process caches keyed by a mesh: scaled assets, asset BVH trees, hulls, culling planes."""
-    import flowsynth.accel as accel
-    import flowsynth.blas as blas
-    from flowsynth.assets import get_asset
+    from flowsynth import accel, assets  # noqa: F401  (their caches, named below, are registered on import)
+    from flowsynth.caches import clear_caches
 
-    get_asset.cache_clear()
-    for cache in (accel._HULLS, accel._PLANES, blas._TOPOLOGY):
-        cache.clear()
+    clear_caches("assets.get_asset", "accel.hulls", "accel.face_planes", "blas.topology")
 
 
 def main() -> None:

@@ -6,7 +6,7 @@ gravity, restitution 1, friction 0 (flowsynth's defaults), from two asset sets: 
 sphere, cylinder, capsule, cone) and convex hulls (torus, rock, crystal, star, blob). Both engines start
 from the same poses and velocities and simulate the same number of frames:
 
-- flowsynth: ``flowsynth.motion._NewtonScene`` (what ``simulate_physics`` runs: Newton XPBD, 4 iterations,
+- flowsynth: ``flowsynth.motion.NewtonScene`` (what ``simulate_physics`` runs: Newton XPBD, 4 iterations,
   captured substeps) at the automatic substep count (``choose_substeps``); after every substep speeds
   are clamped into [min_speed, max_speed] and angular speeds into ``angular_speed``.
 - PyBullet (DIRECT mode, default solver settings: 50 iterations, no CCD) with the same colliders:
@@ -52,7 +52,7 @@ import warp as wp
 from scipy.spatial.transform import Rotation
 
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import DENSITY, _NewtonScene, choose_substeps, wall_boxes
+from flowsynth.motion import DENSITY, NewtonScene, choose_substeps, wall_boxes
 from flowsynth.sampling import sample_layout
 from oracle import max_penetration
 
@@ -163,7 +163,7 @@ def run(engine: str, cfg: BouncingThingsConfig, seed: int, steps: int) -> dict:
     """Simulate cfg.num_frames frames of layout (cfg, seed) with one engine; times and accuracy."""
     layout = sample_layout(cfg, seed, 0)
     t0 = time.perf_counter()
-    sim = (_NewtonScene if engine == "flowsynth" else BulletScene)(cfg, layout.assets, layout.initial, steps)
+    sim = (NewtonScene if engine == "flowsynth" else BulletScene)(cfg, layout.assets, layout.initial, steps)
     frames = [sim.read()]
     sim.advance_frame()  # frame 1, in setup: Newton captures its substep graph here
     frames.append(sim.read())

@@ -39,7 +39,7 @@ import warp as wp
 from trimesh.collision import CollisionManager
 
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import SUBSTEP_FRACTION, _NewtonScene, choose_substeps, simulate
+from flowsynth.motion import SUBSTEP_FRACTION, NewtonScene, choose_substeps, simulate
 from flowsynth.sampling import sample_layout
 
 SETS = {"primitives": ("box", "sphere", "cylinder", "capsule", "cone"),
@@ -77,7 +77,7 @@ def check(cfg: BouncingThingsConfig, assets, poses: np.ndarray) -> tuple[float, 
 def run_physics(cfg: BouncingThingsConfig, seed: int, substeps: int) -> dict:
     layout = sample_layout(cfg, seed, 0)
     t0 = time.perf_counter()
-    sim = _NewtonScene(cfg, layout.assets, layout.initial, substeps)
+    sim = NewtonScene(cfg, layout.assets, layout.initial, substeps)
     sim.advance_frame()  # builds the captured graph
     setup = time.perf_counter() - t0
     poses = [sim.read()[0]]
@@ -100,7 +100,7 @@ from flowsynth.sampling import sample_layout
 sys.path.insert(0, {here!r})
 from physics import SETS, make_cfg
 if {off}:
-    motion._memoise_newton_kernel_factories = lambda: None  # Newton's own behaviour: fresh kernels per pipeline
+    motion.memoise_newton_kernel_factories = lambda: None  # Newton's own behaviour: fresh kernels per pipeline
 cfg = make_cfg(20, SETS["primitives"] + SETS["hulls"], 2)
 times = []
 for seed in range(5):

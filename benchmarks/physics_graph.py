@@ -1,7 +1,7 @@
 """Newton stepping on one CPU core: plain Python launches against the replayed Warp CPU graph.
 
-``flowsynth.motion._NewtonScene.advance_frame`` captures one substep once per scene into a Warp CPU
-graph and replays it; this script steps the same scene both ways (``_substep`` called ``substeps`` times
+``flowsynth.motion.NewtonScene.advance_frame`` captures one substep once per scene into a Warp CPU
+graph and replays it; this script steps the same scene both ways (``substep`` called ``substeps`` times
 per frame against ``advance_frame``), from the same initial state, and reports per frame and per substep
 [ms] (medians over frames, the first frame excluded: it compiles or captures) and the largest difference
 of the body poses after all frames (0 = identical). docs/scenes.md ("Cost") quotes this table.
@@ -28,13 +28,13 @@ PINNING = pin_single_core()
 import numpy as np
 
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import _NewtonScene
+from flowsynth.motion import NewtonScene
 from flowsynth.sampling import sample_layout
 
 SUBSTEPS = 10
 
 
-def frame_times(sim: _NewtonScene, frames: int, replay: bool) -> tuple[list[float], np.ndarray]:
+def frame_times(sim: NewtonScene, frames: int, replay: bool) -> tuple[list[float], np.ndarray]:
     """Per-frame wall times [s] of ``frames`` frames and the final (N, 7) body state."""
     times = []
     for _ in range(frames):
@@ -43,7 +43,7 @@ def frame_times(sim: _NewtonScene, frames: int, replay: bool) -> tuple[list[floa
             sim.advance_frame()
         else:
             for _ in range(sim.substeps):
-                sim._substep()
+                sim.substep()
         times.append(time.perf_counter() - t0)
     return times, sim.state0.body_q.numpy().copy()
 
@@ -62,7 +62,7 @@ def main() -> None:
         layout = sample_layout(cfg, 0, 0)
         result = {}
         for name, replay in (("plain", False), ("replayed", True)):
-            sim = _NewtonScene(cfg, layout.assets, layout.initial, SUBSTEPS)
+            sim = NewtonScene(cfg, layout.assets, layout.initial, SUBSTEPS)
             result[name] = frame_times(sim, frames, replay)
         plain = 1e3 * statistics.median(result["plain"][0][1:])
         replayed = 1e3 * statistics.median(result["replayed"][0][1:])

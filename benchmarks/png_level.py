@@ -1,7 +1,7 @@
 """zlib level of 16-bit PNG encoding (``flowsynth.io.png.encode_png16``): encode time against file size.
 
 The image is a KITTI-format flow map (u*64 + 2^15, v*64 + 2^15, valid) of one rendered BouncingThings sample
-at KITTI's 1242x375, so the numbers reflect flowsynth's own flow. ``flowsynth.io.png._ZLIB_LEVEL`` is chosen
+at KITTI's 1242x375, so the numbers reflect flowsynth's own flow. ``flowsynth.io.png.ZLIB_LEVEL`` is chosen
 from this table. Run ``python benchmarks/png_level.py [--quick]``; prints a table and writes
 ``benchmarks/results/png_level.json``.
 """
@@ -23,7 +23,7 @@ import numpy as np
 
 import flowsynth as fs
 from flowsynth.io.kitti import KITTI_FLOW_SCALE
-from flowsynth.io.png import _ZLIB_LEVEL, encode_png16
+from flowsynth.io.png import ZLIB_LEVEL, encode_png16
 
 
 def kitti_image(seed: int) -> np.ndarray:
@@ -48,7 +48,7 @@ def main() -> None:
     for level in (1, 3, 6, 9):
         size = len(encode_png16(image, level=level))
         t = timeit(lambda lv=level: encode_png16(image, level=lv), repeat=repeat, warmup=0, clock="cpu")
-        rows.append({"level": level, "chosen": level == _ZLIB_LEVEL, "encode_s": t, "kB": size / 1e3})
+        rows.append({"level": level, "chosen": level == ZLIB_LEVEL, "encode_s": t, "kB": size / 1e3})
     for r in rows:
         r["size_vs_level_1"] = r["kB"] / rows[0]["kB"]
     print(f"encode_png16 of a 1242x375 KITTI flow map, median of {repeat} (process CPU time); load average "

@@ -18,7 +18,9 @@ from scipy.spatial import ConvexHull, QhullError
 from trimesh.convex import QHULL_DEFAULT
 
 from flowsynth.blas import atlas
+from flowsynth.caches import register
 from flowsynth.kernels import wp_runtime
+from flowsynth.meshes import freeze
 
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH.
 ORDERED_MAX = 64
@@ -41,13 +43,15 @@ FACE_PLANES_BUDGET = 2e7
 # to the camera) so float32 rounding of the ray never culls a true hit.
 BOX_PAD_REL = 1e-4
 
-_KEYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_KEYS: weakref.WeakKeyDictionary = register("accel.mesh_keys", weakref.WeakKeyDictionary())
 
 
 def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
-    """Content hash of a mesh, computed once per mesh object (meshes are not modified after Scene cleaning)."""
+    """Content hash of a mesh, computed once per mesh object, which is frozen first (``flowsynth.meshes.freeze``:
+    changing it afterwards raises instead of reusing the hash)."""
     key = _KEYS.get(mesh)
     if key is None:
+        freeze(mesh)
         h = hashlib.blake2b(digest_size=16)
         h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float32).tobytes())
         h.update(np.ascontiguousarray(mesh.faces, dtype=np.int32).tobytes())
@@ -115,10 +119,10 @@ class SceneAccel:
         self._tiles: dict = {}
         self._bounds: dict = {}  # (W, H, K bytes) -> _screen_bounds
         groups = np.repeat(np.arange(F, dtype=np.int32), N)
-        self._lowers = wp.array(lowers, dtype=wp.vec3, device=device)
-        self._uppers = wp.array(uppers, dtype=wp.vec3, device=device)
+        self.lowers = wp.array(lowers, dtype=wp.vec3, device=device)  # (F * N,) padded instance boxes, camera frame
+        self.uppers = wp.array(uppers, dtype=wp.vec3, device=device)
         self._groups = wp.array(groups, dtype=wp.int32, device=device)
-        self.bvh = wp.Bvh(self._lowers, self._uppers, constructor="sah" if device == "cpu" else None,
+        self.bvh = wp.Bvh(self.lowers, self.uppers, constructor="sah" if device == "cpu" else None,
                           groups=self._groups)
         roots = _group_roots(self.bvh, F, device)
         self.roots = roots
@@ -149,7 +153,7 @@ class SceneAccel:
         inst = Instances()
         inst.bvh, inst.roots, inst.use_bvh = self.bvh.id, self.roots, self.use_bvh
         inst.frame_start, inst.frame_items, inst.near = self.frame_start, self.frame_items, self.near
-        inst.lowers, inst.uppers = self._lowers, self._uppers
+        inst.lowers, inst.uppers = self.lowers, self.uppers
         inst.obj_T_ref, inst.ref_T_obj, inst.n_inst = self.obj_T_ref, self.ref_T_obj, self.N
         inst.thin, inst.obj_lo, inst.obj_hi = self.thin, self.obj_lo, self.obj_hi
         inst.item_root, inst.item_face0 = self.item_root, self.item_face0
@@ -243,7 +247,7 @@ class SceneAccel:
         return self._tiles[key]
 
 
-_HULLS: OrderedDict = OrderedDict()
+_HULLS: OrderedDict = register("accel.hulls", OrderedDict())
 
 
 def _hull_points(mesh: trimesh.Trimesh) -> np.ndarray:
@@ -301,7 +305,7 @@ def _silhouette_planes(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray) -> 
     return sil, z0
 
 
-_PLANES: OrderedDict = OrderedDict()
+_PLANES: OrderedDict = register("accel.face_planes", OrderedDict())
 
 
 def _face_planes(mesh: trimesh.Trimesh, threads: int | None = None) -> dict:

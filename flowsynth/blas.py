@@ -34,13 +34,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flowsynth.caches import register
+from flowsynth.meshes import freeze
+
 __all__ = ["BINS", "LEAF", "atlas", "build_topology", "topology"]
 
 BINS = 16  # SAH bins per axis and node
 LEAF = 4  # most triangles in a leaf (LEAF_BITS bits of the leaf code)
 LEAF_BITS = 3
 TOPOLOGY_CACHE_SIZE = 256  # distinct faces arrays kept (least recently used dropped)
-_TOPOLOGY: OrderedDict = OrderedDict()
+_TOPOLOGY: OrderedDict = register("blas.topology", OrderedDict())
 
 
 def leaf_code(first, count):
@@ -214,19 +217,20 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     return top
 
 
-_OF_MESH: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_OF_MESH: weakref.WeakKeyDictionary = register("blas.topology_of_mesh", weakref.WeakKeyDictionary())
 
 
 def _topology_of(mesh, v: np.ndarray, f: np.ndarray) -> Topology:
     """``topology(v, f)`` of ``mesh`` (its float32 vertices and faces), remembered per mesh object: a mesh object
-    seen in an earlier scene skips the face hash and vertex comparison. Meshes are not modified after Scene
-    cleaning (as ``flowsynth.accel._mesh_key`` assumes); objects that take no weak reference are not remembered."""
+    seen in an earlier scene skips the face hash and vertex comparison. The mesh is frozen when it is remembered
+    (``flowsynth.meshes.freeze``: changing it afterwards raises instead of reusing a stale tree); objects that take
+    no weak reference are not remembered."""
     try:
         top = _OF_MESH.get(mesh)
     except TypeError:
         return topology(v, f)
     if top is None:
-        top = _OF_MESH[mesh] = topology(v, f)
+        top = _OF_MESH[freeze(mesh)] = topology(v, f)
     return top
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from flowsynth.caches import register
 from flowsynth.camera import Camera
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.motion import reflect_in_box
@@ -191,6 +192,7 @@ def _median_flow(cfg: BouncingThingsConfig, uv: np.ndarray, X: np.ndarray, world
     return float(np.median(np.linalg.norm(uv1 - uv, axis=1)))
 
 
+@register("camerapath.probe_rays")
 @functools.lru_cache(maxsize=64)
 def _probe_rays(width: int, height: int, fov_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """Probe pixels (P, 2) [px] and their camera-frame ray directions (P, 3), z = 1."""

@@ -31,7 +31,8 @@ from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.plan import gap_key
 
-__all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject", "reproject_pixels"]
+__all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject", "reproject_pixels",
+           "visibility"]
 
 # A visibility ray is blocked only by a hit closer than (1 - tol) * distance to the point: this absorbs
 # float32 error of the hit point (~1e-7 relative) and grazing self-intersections, while an occluder
@@ -188,7 +189,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
     return {k: v for k, v in out.items() if k in want}
 
 
-def _visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int | None) -> np.ndarray:
+def visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int | None) -> np.ndarray:
     """Blocked flag per point: (X in camera frame r, r) lists -> one visibility-kernel launch (in bands)."""
     X = np.concatenate([x for x, _ in rays]).astype(np.float32)
     r = np.concatenate([f for _, f in rays]).astype(np.int32)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flowsynth.caches import register
 from flowsynth.errors import AssetError, ConfigError
 
 __all__ = [
@@ -424,6 +425,7 @@ def load_texture(path) -> np.ndarray:
     return _load_texture(*_texture_key(path))
 
 
+@register("materials.textures")
 @functools.lru_cache(maxsize=64)
 def _load_texture(path: str, _size: int, _mtime: int) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
@@ -456,6 +458,7 @@ def _texture_key(path) -> tuple[str, int, int]:
     return str(p.resolve()), st.st_size, st.st_mtime_ns
 
 
+@register("materials.mip_pyramids")
 @functools.lru_cache(maxsize=64)
 def _pyramid(path: str, size: int, mtime: int) -> list[np.ndarray]:
     levels = [_load_texture(path, size, mtime)]

@@ -26,13 +26,16 @@ from scipy.spatial.transform import Rotation
 
 from flowsynth.kernels import wp_runtime
 from flowsynth.assets import Asset, unit_hull
+from flowsynth.caches import register
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError, ShapeError
 
 __all__ = [
     "InitialState",
+    "NewtonScene",
     "Trajectory",
     "choose_substeps",
+    "memoise_newton_kernel_factories",
     "quat_to_rotation",
     "reflect_in_box",
     "rotation_exp",
@@ -209,7 +212,7 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
     n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
     for contact_max in (_contact_capacity(N), None):  # None: Newton's estimate, after an overflow
-        sim = _NewtonScene(cfg, assets, initial, n_sub, contact_max)
+        sim = NewtonScene(cfg, assets, initial, n_sub, contact_max)
         poses = np.empty((num_frames, N, 4, 4))
         vel = np.empty((num_frames, N, 3))
         ang = np.empty((num_frames, N, 3))
@@ -227,7 +230,7 @@ def _contact_capacity(num_objects: int) -> int:
     shape (the objects and the six wall boxes of ``wall_boxes``), and at least (N + 1)^2. The second bound keeps
     the trajectory that of Newton's estimate bit for bit: XPBD's restitution pass hashes each body pair to slot
     key mod capacity (key = (lo + 1)(N + 1) + hi + 1 < (N + 1)^2) and sums the pairs' corrections in slot order,
-    so slot must equal key as it does under Newton's estimate (1000 and up). :class:`_NewtonScene` uses Newton's
+    so slot must equal key as it does under Newton's estimate (1000 and up). :class:`NewtonScene` uses Newton's
     estimate instead where that is no larger."""
     return max(CONTACTS_PER_SHAPE * (num_objects + 6), (num_objects + 1) ** 2)
 
@@ -249,8 +252,9 @@ def wall_boxes(cfg: BouncingThingsConfig, s_max: float) -> list[tuple[np.ndarray
     return boxes
 
 
-class _NewtonScene:
-    """A Newton model of the objects and walls, stepped one frame at a time."""
+class NewtonScene:
+    """A Newton model of the objects and walls, stepped one frame at a time: what ``simulate_physics`` runs
+    (public for benchmarks/physics*.py: ``advance_frame`` replays a captured ``substep``; ``read`` the state)."""
 
     def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
                  substeps: int, contact_max: int | None = None) -> None:
@@ -258,7 +262,7 @@ class _NewtonScene:
         import newton
         import warp as wp
 
-        _memoise_newton_kernel_factories()
+        memoise_newton_kernel_factories()
         self.cfg, self.substeps = cfg, substeps
         self.dt = 1.0 / (cfg.fps * substeps)
         s_min = min(a.size for a in assets)
@@ -319,12 +323,12 @@ class _NewtonScene:
 
         if self.graph is None:
             with wp.ScopedCapture(device="cpu") as capture:
-                self._substep()
+                self.substep()
             self.graph = capture.graph
         for _ in range(self.substeps):
             wp.capture_launch(self.graph)
 
-    def _substep(self) -> None:
+    def substep(self) -> None:
         """collide and step state0 -> state1, then clamp the speeds of state1 into state0 (one launch that
         also copies the poses back, so every substep starts from state0 and one substep can be captured)."""
         import warp as wp
@@ -416,7 +420,7 @@ _NEWTON_BUILDER_FUNCTIONS = ("_convex_hull_adjacency",)
 
 
 @functools.cache
-def _memoise_newton_kernel_factories() -> None:
+def memoise_newton_kernel_factories() -> None:
     """Cache Newton's narrow-phase kernel factories and hull adjacency per process. Private Newton API:
     tests/test_newton_internals.py fails, naming this function, when Newton renames them or stops looking
     them up in those modules."""
@@ -456,6 +460,7 @@ def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:
         b.add_shape_convex_hull(body, mesh=_newton_unit_hull(asset.name), scale=(s, s, s), cfg=shape_cfg)
 
 
+@register("motion.newton_unit_hull")
 @functools.lru_cache(maxsize=1024)
 def _newton_unit_hull(name: str):
     """newton.Mesh of the unit-size convex collider of asset ``name``, shared by every instance and scale

@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from flowsynth.flow import _visibility, reproject
+from flowsynth.flow import reproject, visibility
 
 __all__ = ["EDGE_REL_DEPTH", "track_outputs"]
 
@@ -93,7 +93,7 @@ def track_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: 
             uv, front = scene.camera.project(X)
         inside = front & (uv[:, 0] >= -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < H - 0.5)
         occ = ~inside
-        occ[inside] = _visibility(accel, [(X[inside], f[inside])], plan.threads)
+        occ[inside] = visibility(accel, [(X[inside], f[inside])], plan.threads)
         target = uv.reshape(Q, T, 2).astype(np.float32)
         occluded = occ.reshape(Q, T)
         query = np.stack([fq, i, j], 1).astype(np.float32)

@@ -154,12 +154,12 @@ def test_contact_capacity_never_changes_a_trajectory(monkeypatch, name, cfg, ind
     layout = sample_layout(cfg, 0, index)
     sims = []  # every simulation's Newton scene
 
-    class Spy(motion._NewtonScene):
+    class Spy(motion.NewtonScene):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             sims.append(self)
 
-    monkeypatch.setattr(motion, "_NewtonScene", Spy)
+    monkeypatch.setattr(motion, "NewtonScene", Spy)
     got = simulate(cfg, layout.assets, layout.initial)
     monkeypatch.setattr(motion, "_contact_capacity", lambda n: None)
     ref = simulate(cfg, layout.assets, layout.initial)

@@ -1,6 +1,6 @@
 """flowsynth.motion uses private corners of Newton; these tests fail loudly, naming the cause, when they move.
 
-``motion._memoise_newton_kernel_factories`` wraps Newton's narrow-phase kernel factories
+``motion.memoise_newton_kernel_factories`` wraps Newton's narrow-phase kernel factories
 (``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every CollisionPipeline of a process
 shares one set of kernels, and ``newton._src.sim.builder._convex_hull_adjacency`` so each hull's edge
 adjacency is computed once per process (benchmarks/physics.py, "memoisation"). That only works while
@@ -12,7 +12,7 @@ import flowsynth as fs
 from flowsynth import motion
 from flowsynth.sampling import sample_layout
 
-CAUSE = ("Newton's private narrow-phase module changed: flowsynth.motion._memoise_newton_kernel_factories "
+CAUSE = ("Newton's private narrow-phase module changed: flowsynth.motion.memoise_newton_kernel_factories "
          "(which memoises {names} in newton._src.geometry.narrow_phase) no longer applies, so every scene "
          "would recompile Newton's collision kernels. Update the patch for this Newton version, or drop it "
          "and re-measure benchmarks/physics.py.")
@@ -33,11 +33,11 @@ def test_hull_adjacency_computed_once_per_hull():
 
     cfg = fs.BouncingThingsConfig(num_objects=(3, 3), num_frames=2, assets=("rock",))
     layout = sample_layout(cfg, 0, 0)
-    motion._NewtonScene(cfg, layout.assets, layout.initial, 2)
+    motion.NewtonScene(cfg, layout.assets, layout.initial, 2)
     fn = builder._convex_hull_adjacency
     assert hasattr(fn, "cache_info"), CAUSE.format(names=list(motion._NEWTON_BUILDER_FUNCTIONS))
     hits = fn.cache_info().hits
-    motion._NewtonScene(cfg, layout.assets, layout.initial, 2)
+    motion.NewtonScene(cfg, layout.assets, layout.initial, 2)
     assert fn.cache_info().hits > hits, CAUSE.format(names=list(motion._NEWTON_BUILDER_FUNCTIONS)) + \
         " (ModelBuilder.finalize no longer calls builder._convex_hull_adjacency)"
 
@@ -48,7 +48,7 @@ def test_pipelines_share_memoised_kernels():
     scenes = []
     for seed in (0, 1):
         layout = sample_layout(cfg, seed, 0)
-        scenes.append(motion._NewtonScene(cfg, layout.assets, layout.initial, 2))
+        scenes.append(motion.NewtonScene(cfg, layout.assets, layout.initial, 2))
     a, b = (s.pipeline.narrow_phase for s in scenes)
     for attr in ("primitive_kernel", "narrow_phase_kernel"):
         ka, kb = getattr(a, attr, None), getattr(b, attr, None)
@@ -63,7 +63,7 @@ def test_contact_estimate_is_the_pipelines_default():
 
     cfg = fs.BouncingThingsConfig(num_objects=(5, 5), num_frames=2, assets=("box", "rock"))
     layout = sample_layout(cfg, 0, 0)
-    scene = motion._NewtonScene(cfg, layout.assets, layout.initial, 2, None)
+    scene = motion.NewtonScene(cfg, layout.assets, layout.initial, 2, None)
     default = newton.CollisionPipeline(scene.model, broad_phase="sap").rigid_contact_max
     assert motion._newton_contact_estimate(scene.model) == default == scene.pipeline.rigid_contact_max, (
         "Newton's private newton._src.sim.collide._estimate_rigid_contact_max moved or no longer gives "

@@ -4,7 +4,7 @@ reprojection of the same G-buffer (the gather/scatter code the kernel replaced, 
 The scene has a moving, turning camera with a skewed K, objects leaving the image and objects passing behind
 the camera, so every branch (valid, out of frame, behind the camera, occluded, visible) is taken. The
 exact occlusion is compared with the visibility kernel over each frame's whole instance list
-(flowsynth.flow._visibility), the depth test with its numpy form.
+(flowsynth.flow.visibility), the depth test with its numpy form.
 """
 
 import importlib
@@ -16,7 +16,7 @@ from oracle import pose
 
 import flowsynth as fs
 from flowsynth.accel import SceneAccel
-from flowsynth.flow import DEPTH_TEST_REL_TOL, MOTION_TOL, _visibility, reproject_pixels, world_points
+from flowsynth.flow import DEPTH_TEST_REL_TOL, MOTION_TOL, reproject_pixels, visibility, world_points
 
 render_mod = importlib.import_module("flowsynth.gbuffer")
 
@@ -133,7 +133,7 @@ def test_kernel_equals_numpy_reprojection(setup, gap, direction):
     assert np.abs(flow).max() > 5.0, "the motion must be visible"
     # exact occlusion: same as the visibility kernel over the frame's whole instance list
     occ = np.zeros((P, 1, H, W), bool)
-    blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
+    blocked = visibility(accel, [(X[inside], r[inside])], threads=1)
     hidden = ~inside
     hidden[inside] = blocked
     occ[f, 0, i, j] = hidden
@@ -250,7 +250,7 @@ def _assert_culled_occ_is_the_full_walk(scene, accel, gb, cam_T_obj, src0: int, 
     _, _, (f, i, j, r, X, uv, inside) = numpy_pairs(gb, cam_T_obj, src0, step, P, scene.camera.K)
     got = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,
                            occlusion="exact", threads=2)
-    blocked = _visibility(accel, [(X[inside], r[inside])], threads=1)
+    blocked = visibility(accel, [(X[inside], r[inside])], threads=1)
     assert blocked.sum() > 20 and (~blocked).sum() > 1000
     occ = np.zeros((P, 1, scene.camera.height, scene.camera.width), bool)
     hidden = ~inside

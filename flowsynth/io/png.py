@@ -27,6 +27,7 @@ from flowsynth.errors import ExportError, ShapeError
 from flowsynth.io.atomic import atomic_write_bytes
 
 __all__ = [
+    "ZLIB_LEVEL",
     "decode_png",
     "encode_png16",
     "read_mask_png",
@@ -45,14 +46,14 @@ _U16_MAX = 65535
 # zlib level of encode_png16. benchmarks/png_level.py, a 1242x375 KITTI flow map of a flowsynth sample:
 # level 1 13 ms / 212 kB, level 3 19 ms / 174 kB, level 6 54 ms / 125 kB, level 9 0.37 s / 111 kB
 # (docs/decisions/0010-png16-zlib-level-3.md).
-_ZLIB_LEVEL = 3
+ZLIB_LEVEL = 3
 
 
 def _chunk(tag: bytes, payload: bytes) -> bytes:
     return struct.pack(">I", len(payload)) + tag + payload + struct.pack(">I", zlib.crc32(tag + payload))
 
 
-def encode_png16(image: np.ndarray, *, level: int = _ZLIB_LEVEL) -> bytes:
+def encode_png16(image: np.ndarray, *, level: int = ZLIB_LEVEL) -> bytes:
     """Encode a 16-bit greyscale (H, W) or RGB (H, W, 3) image as PNG bytes.
 
     Args:
