@@ -18,10 +18,12 @@ from flowsynth.plan import (
     DEFAULT_BOUNCES,
     DEFAULT_RENDER_MODE,
     DEFAULT_TONEMAP,
+    FINAL_OPTIONS,
     MAX_BOUNCES,
     RENDER_MODES,
     TONEMAPS,
     TRACK_SAMPLING,
+    FinalPass,
 )
 
 __all__ = ["CAMERA_MOTIONS", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig"]
@@ -160,6 +162,36 @@ class BouncingThingsConfig:
     texture_families: tuple[str, ...] = ("noise", "value", "cells", "stripes", "checks", "blend")
     """Texture families to draw each surface's material from (non-empty; flowsynth.materials.TEXTURE_FAMILIES).
     "solid" (one flat colour) is drawn only when listed."""
+    # The final pass, output ``rgb_final`` (flowsynth/finalpass.py; models and defaults: docs/rendering.md, Final
+    # pass). Only read when rgb_final is requested; the ground truth never depends on them.
+    final_shutter: float = 0.5
+    """Final pass: shutter open time [fraction of the frame interval] in [0, 1], centred on the frame instant
+    (the ground truth's instant); 0 = no motion blur (the clean pass's own ``shutter`` then applies)."""
+    final_time_samples: int = 8
+    """Final pass: motion-blur time samples per pixel [count], >= 1 (its spp is max(spp, this))."""
+    final_dof_prob: float = 0.3
+    """Final pass: probability in [0, 1] that a clip has depth of field (thin lens)."""
+    final_aperture: tuple[float, float] = (0.01, 0.04)
+    """Final pass: (min, max) aperture diameter of a clip with depth of field [m], >= 0, drawn log-uniformly."""
+    final_focus: float | None = None
+    """Final pass: focus distance (planar depth) [m], > 0; None draws it per clip as the depth of a random object
+    pixel of the middle frame."""
+    final_max_coc: float = 16.0
+    """Final pass: largest circle-of-confusion diameter [px] in [0, 64]; larger ones are clamped."""
+    final_shot_noise: tuple[float, float] = (0.0, 0.002)
+    """Final pass: (min, max) Poisson gain a [linear intensity] in [0, 1], drawn uniformly per clip: shot-noise
+    variance a x at linear signal x (1 = white)."""
+    final_read_noise: tuple[float, float] = (0.0, 0.004)
+    """Final pass: (min, max) read-noise standard deviation b [linear intensity] in [0, 1], drawn uniformly per
+    clip."""
+    final_exposure_jitter: float = 0.1
+    """Final pass: standard deviation of each frame's exposure change [stops, log2 of the gain], in [0, 4]."""
+    final_wb_jitter: float = 0.03
+    """Final pass: standard deviation of each frame's red and blue white-balance gains [natural log], in [0, 1]."""
+    final_fog_density: float = 0.0
+    """Final pass: fog extinction coefficient sigma [1/m], >= 0; 0 = no fog."""
+    final_fog_color: tuple[float, float, float] = (0.5, 0.5, 0.55)
+    """Final pass: radiance of the fog [linear RGB], each >= 0."""
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -213,7 +245,7 @@ class BouncingThingsConfig:
 
 # Config fields that are options of flowsynth.plan.make_plan, under the same names.
 PLAN_OPTIONS = ("max_objects", "render_mode", "spp", "edge_spp", "shutter", "bounces", "tonemap", "exposure",
-                "flow_gaps", "num_tracks", "track_sampling", "stereo_baseline")
+                "flow_gaps", "num_tracks", "track_sampling", "stereo_baseline") + FINAL_OPTIONS
 
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
@@ -426,6 +458,14 @@ def _validate(cfg: BouncingThingsConfig) -> None:
     except ConfigError as e:
         raise ConfigError(f"texture_families/texture_dir: {e}") from None
     _validate_assets(cfg)
+    _validate_final(cfg)
+
+
+def _validate_final(cfg: BouncingThingsConfig) -> None:
+    """The final_* fields, checked and normalised by flowsynth.plan.FinalPass (errors name the field)."""
+    fp = FinalPass.from_options({name: getattr(cfg, name) for name in FINAL_OPTIONS})
+    for name in FINAL_OPTIONS:
+        _set(cfg, name, getattr(fp, name.removeprefix("final_")))
 
 
 def _validate_assets(cfg: BouncingThingsConfig) -> None:

@@ -77,6 +77,10 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
         from flowsynth.shading import render_rgb
 
         out["rgb"] = render_rgb(scene, accel, gb, plan, device=device)
+    if plan.final:  # the final pass (flowsynth/finalpass.py): camera effects, the ground truth untouched
+        from flowsynth.finalpass import render_final
+
+        out["rgb_final"] = render_final(scene, accel, gb, plan, device=device)
     if "K" in plan.outputs:
         out["K"] = torch.from_numpy(scene.camera.K.astype(np.float32))
     if "cam_T_world" in plan.outputs:
