@@ -167,8 +167,8 @@ class Camera:
 
 # Outputs not yet rendered through a lens model: shading's anti-aliasing and motion-blur rays, and stereo (a
 # distorted pair is not rectified: "disparity" along rows has no meaning there).
-LENS_UNSUPPORTED = ("rgb", "rgb_right", "depth_right", "disparity", "disparity_right", "disparity_change",
-                    "disparity_occ", "disparity_occ_right")
+LENS_UNSUPPORTED = ("rgb", "rgb_final", "rgb_right", "depth_right", "disparity", "disparity_right",
+                    "disparity_change", "disparity_occ", "disparity_occ_right")
 
 
 def check_lens_outputs(camera: Camera, outputs) -> None:

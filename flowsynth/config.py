@@ -54,7 +54,8 @@ class BouncingThingsConfig:
     docs/conventions.md; OpenCV's conventions). A lens model allows no rgb or stereo outputs yet."""
     camera_dist: tuple[float, ...] = ()
     """Lens coefficients in OpenCV's order: (k1, k2, p1, p2[, k3[, k4, k5, k6]]) for brown_conrady, (k1, k2, k3,
-    k4) for kannala_brandt, empty for pinhole; with ``camera_dist_max``, the lower ends of their ranges."""
+    k4) for kannala_brandt, empty for pinhole; with ``camera_dist_max``, the lower ends of their ranges. On the
+    command line a negative first value needs '=': --camera-dist=-0.2,0.05,0,0."""
     camera_dist_max: tuple[float, ...] | None = None
     """Upper ends of the lens coefficients' ranges: each sample draws coefficient i uniformly in [camera_dist[i],
     camera_dist_max[i]] (from its own generator: the other draws are unchanged); None: camera_dist is fixed."""
