@@ -574,6 +574,20 @@ def final_ratios(runs: list, arm: str = "flowsynth", against: str = "chairs2d") 
 PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "net", "flowsynth_config")
 
 
+def same_protocol(a: dict, b: dict) -> bool:
+    """Two runs' PROTOCOL fields are equal; in the flowsynth config, a field that only one of them has (a field added
+    to the library between the runs) counts as equal when it holds the field's default, which leaves the samples
+    unchanged (benchmarks/hashes.py checks that for each new field)."""
+    import flowsynth as fs
+
+    defaults = fs.BouncingThingsConfig().to_dict()
+    if any(a[k] != b[k] for k in PROTOCOL if k != "flowsynth_config"):
+        return False
+    ca, cb = a["flowsynth_config"] or {}, b["flowsynth_config"] or {}
+    return all(ca.get(k) == cb.get(k) if k in ca and k in cb else
+               (ca if k in ca else cb)[k] == defaults.get(k, object()) for k in set(ca) | set(cb))
+
+
 def summarize(mask: str, pattern: str = "learning*.json", arm: str = "flowsynth", against: str = "chairs2d") -> dict:
     """Pool the seeds of the results/ files matching ``pattern`` written with loss mask ``mask`` (module
     docstring): per test the ratio ``arm`` / ``against``, and the mean EPE of zero flow, of the untrained net and
@@ -593,7 +607,7 @@ def summarize(mask: str, pattern: str = "learning*.json", arm: str = "flowsynth"
         proto = {k: d.get(k, "random-v1" if k == "net" else None) for k in PROTOCOL}
         if protocol is None:
             protocol = proto
-        elif proto != protocol:
+        elif not same_protocol(proto, protocol):
             diff = sorted(k for k in PROTOCOL if proto[k] != protocol[k])
             print(f"not pooled: {f.name}, run under another protocol than {used[0]} (differs in {diff})")
             continue

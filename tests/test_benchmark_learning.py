@@ -58,3 +58,70 @@ def test_too_few_steps_is_a_usage_error():
     script = Path(__file__).resolve().parents[1] / "benchmarks" / "learning.py"
     r = subprocess.run([sys.executable, str(script), "--steps", "10"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "at least 20 steps" in r.stderr
+
+
+def _write_flo_by_hand(path: Path, flow) -> None:
+    """The Middlebury .flo format written with numpy alone: b'PIEH', int32 width and height, then float32 (u, v)
+    interleaved row by row (the oracle; flowsynth's own writer is not used)."""
+    import numpy as np
+
+    h, w = flow.shape[1:]
+    body = np.ascontiguousarray(np.asarray(flow, np.float32).transpose(1, 2, 0)).tobytes()
+    path.write_bytes(b"PIEH" + np.array([w, h], "<i4").tobytes() + body)
+
+
+def test_middlebury_pairs_reads_frames_flow_and_unknown_marker(tmp_path):
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    h, w = 37, 53  # not multiples of 8
+    img = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for _ in range(2)]
+    flow = rng.normal(size=(2, h, w)).astype(np.float32) * 3
+    flow[:, 5, 7] = 1.5e9  # the format's marker of unknown flow
+    d = tmp_path / "Venus"
+    d.mkdir()
+    for name, im in zip(("frame10.png", "frame11.png"), img):
+        cv2.imwrite(str(d / name), im[..., ::-1])  # OpenCV writes BGR
+    _write_flo_by_hand(d / "flow10.flo", flow)
+    (tmp_path / "Grove2").mkdir()  # incomplete: skipped
+    sets = learning.middlebury_pairs(str(tmp_path))
+    assert list(sets) == ["mb_Venus"]
+    a, b, f, valid = sets["mb_Venus"]
+    assert a.shape == (1, 3, h, w) and f.shape == (1, 2, h, w) and valid.shape == (1, 1, h, w)
+    assert torch.equal(a[0], torch.from_numpy(img[0].transpose(2, 0, 1).astype(np.float32) / 255))
+    assert valid[0, 0, 5, 7] == 0 and float(valid.sum()) == h * w - 1
+    known = valid[0, 0] > 0
+    assert torch.equal(f[0][:, known], torch.from_numpy(flow)[:, known])
+    assert torch.isfinite(f).all() and float(f[0, :, 5, 7].abs().max()) == 0
+    assert learning.middlebury_pairs(None) == {} and learning.middlebury_pairs(str(tmp_path / "none")) == {}
+
+
+def test_predict_pads_any_size_and_recovers_a_translation():
+    """At a size that is not a multiple of the coarsest stride the padded prediction has the image's size and the
+    untrained matcher still recovers the translation away from the padded border."""
+    torch.manual_seed(0)
+    net = learning.build_net()
+    a, b = _shifted_pair(3, -2)
+    a, b = a[..., :90, :121], b[..., :90, :121]
+    with torch.no_grad():
+        flow = learning.predict(net, a, b)[0]
+    assert flow.shape == (2, 90, 121)
+    inner = flow[:, 16:-16, 16:-16]
+    err = (inner - torch.tensor([3.0, -2.0]).view(2, 1, 1)).norm(dim=0)
+    assert float(err.mean()) < 0.6
+    test = (a, b, torch.tensor([3.0, -2.0]).view(1, 2, 1, 1).expand(1, 2, 90, 121), torch.ones(1, 1, 90, 121))
+    with torch.no_grad():
+        full = learning.evaluate(net, test)
+    assert full == pytest.approx(float((flow - test[2][0]).norm(dim=0).mean()), rel=1e-5)
+
+
+def test_with_means_and_same_protocol():
+    assert learning.with_means({"stereo": 2.0, "mb_A": 1.0, "mb_B": 3.0})["middlebury"] == 2.0
+    assert "middlebury" not in learning.with_means({"stereo": 2.0})
+    base = {k: 1 for k in learning.PROTOCOL} | {"flowsynth_config": {"width": 128}}
+    newer = dict(base, flowsynth_config={"width": 128, "rest_fraction": 0.0})  # a field added at its default
+    assert learning.same_protocol(base, newer)
+    assert not learning.same_protocol(base, dict(base, flowsynth_config={"width": 128, "rest_fraction": 0.1}))
+    assert not learning.same_protocol(base, dict(base, steps=2))
+    assert not learning.same_protocol(base, dict(base, flowsynth_config={"width": 96}))
