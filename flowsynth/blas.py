@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flowsynth.caches import register
+from flowsynth.errors import AssetError
 from flowsynth.meshes import freeze
 
 __all__ = ["BINS", "LEAF", "atlas", "build_topology", "topology"]
@@ -196,7 +197,7 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     v = np.asarray(vertices, np.float64)
     f = np.ascontiguousarray(faces, np.int64).reshape(-1, 3)
     if not len(f):
-        raise ValueError("a BVH needs at least one face")
+        raise AssetError("a BVH needs at least one face")
     s = np.abs(v).max()
     unit = v / (s if s > 0 else 1.0)
     key = hashlib.blake2b(f.tobytes(), digest_size=16).digest()
@@ -208,7 +209,7 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
 
     top = build_topology(v, f)
     if 3 * len(top.levels) + 1 > STACK:
-        raise ValueError(f"a mesh of {len(f)} faces gives a BVH of depth {len(top.levels)}: more than the "
+        raise AssetError(f"a mesh of {len(f)} faces gives a BVH of depth {len(top.levels)}: more than the "
                          f"ray stack of {STACK} entries holds")
     _TOPOLOGY.setdefault(key, []).append((unit, top))
     _TOPOLOGY.move_to_end(key)
@@ -259,7 +260,7 @@ def atlas(meshes: list, device: str = "cpu") -> dict:
         n_nodes += len(top.kids)
         n_tris += len(top.order)
     if n_tris >= 1 << (31 - LEAF_BITS):
-        raise ValueError(f"a scene of {n_tris} triangles is more than a leaf code holds")
+        raise AssetError(f"a scene of {n_tris} triangles is more than a leaf code holds")
     k = np.concatenate(kids).astype(np.int32) if n_nodes else np.zeros((0, 4), np.int32)
     slot = np.empty(n_tris, np.int32)
     for f0, order in zip(face0, face):

@@ -8,9 +8,11 @@ docstrings in flowsynth/config.py).
 
 Exit status:
   0    success.
-  1    an unexpected failure (a bug: please report the traceback).
+  1    an unexpected failure: a bug in flowsynth, not your input. The traceback is printed; please report
+       it. (Any exception that is not a flowsynth error, a ValueError from numpy or torch included.)
   2    bad input: a flag or config value, a config file, an output folder that holds something else,
-       or a sample too large for the memory; nothing was written.
+       or a sample too large for the memory (flowsynth's own errors: ConfigError, AssetError,
+       ExportError...); nothing was written.
   3    reading or writing files failed (disk full, permission denied, ...); samples already finished
        are kept, temporaries removed: free space and re-run the same command to resume.
   130  interrupted (Ctrl-C); re-run the same command to resume.
@@ -24,6 +26,7 @@ import json
 import re
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from flowsynth._flags import add_config_flags, integer
@@ -234,12 +237,17 @@ def main(argv: list[str] | None = None) -> int:
     except StorageError as e:
         print(f"flowsynth {args.command}: error: {e}", file=sys.stderr)
         return 3
-    except (FlowsynthError, ValueError) as e:
+    except FlowsynthError as e:  # flowsynth's own errors only: a ValueError from elsewhere is a bug, not bad input
         print(f"flowsynth {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"flowsynth {args.command}: interrupted; re-run the same command to resume", file=sys.stderr)
         return 130
+    except Exception:
+        traceback.print_exc()
+        print(f"flowsynth {args.command}: internal error (exit status 1): a bug in flowsynth, not in your input; "
+              "please report it with the traceback above", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -19,15 +19,21 @@ class ShapeError(FlowsynthError, ValueError):
     """A tensor or array has the wrong shape or dtype."""
 
 
-class ExportError(FlowsynthError, OSError):
-    """Writing or reading an exported dataset failed (unwritable folder, conflicting manifest)."""
+class ExportError(FlowsynthError):
+    """Writing or reading an exported dataset failed (a folder that holds something else, a conflicting manifest,
+    a file that is not what its layout says). The CLI exits with status 2.
+
+    Not an ``OSError`` (it was one until issue 41): most export errors are bad input, not the operating system's.
+    What the file system refused is a :class:`StorageError`, which is both.
+    """
 
 
-class StorageError(ExportError):
+class StorageError(ExportError, OSError):
     """The file system refused a read or write (disk full, permission denied, a file vanished).
 
     Not bad input: the same command can succeed once the cause is fixed. ``errno`` holds the OS error
-    number when there was one. The CLI exits with status 3.
+    number when there was one. An ``OSError`` as well as an ExportError, so ``except OSError`` still catches it.
+    The CLI exits with status 3.
     """
 
     def __init__(self, message: str, errno: int | None = None) -> None:

@@ -52,7 +52,7 @@ __all__ = [
     "OBJECT_CATEGORY_OFFSET",
     "ROOM_CATEGORY",
     "WALL_NORMALS",
-    "Layout",
+    "SceneLayout",
     "build_scene",
     "expose_lights",
     "look_at",
@@ -81,8 +81,9 @@ along the line of sight moves few pixels, and its speed must stay finite."""
 
 
 @dataclass(frozen=True)
-class Layout:
-    """Everything drawn for one scene before motion.
+class SceneLayout:
+    """Everything drawn for one scene before motion (``sample_layout``). Named ``Layout`` until issue 41; that
+    name now belongs to the export layouts alone (``flowsynth.io.layouts.base.Layout``).
 
     Attributes:
         asset_keys: the resolved asset list (built-in names and absolute paths).
@@ -149,7 +150,7 @@ def size_levels(cfg: BouncingThingsConfig) -> np.ndarray:
     return np.geomspace(lo, hi, cfg.size_levels)
 
 
-def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> Layout:
+def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> SceneLayout:
     """Draw objects, sizes, camera path, initial states and texture seeds (no motion)."""
     rng = make_rng(seed, index)
     keys = resolve_assets(cfg.assets)
@@ -193,7 +194,7 @@ def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> Layout:
     if cfg.camera_dist_max is not None:  # its own generator: every other draw stays as without it
         lens_rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 3]))
         motion["camera_dist"] = tuple(float(x) for x in lens_rng.uniform(cfg.camera_dist, cfg.camera_dist_max))
-    return Layout(keys, asset_index, assets, InitialState(position, rotation, velocity, angular), world_T_cam,
+    return SceneLayout(keys, asset_index, assets, InitialState(position, rotation, velocity, angular), world_T_cam,
                   seeds, motion)
 
 
@@ -213,7 +214,7 @@ def _speed_for_flow(cfg: BouncingThingsConfig, camera: Camera, world_T_cam: np.n
     return flow_px * dist * cfg.fps / (camera.fx * np.maximum(sin, MIN_SIN_SIGHT))
 
 
-def build_scene(cfg: BouncingThingsConfig, layout: Layout, trajectory: Trajectory) -> Scene:
+def build_scene(cfg: BouncingThingsConfig, layout: SceneLayout, trajectory: Trajectory) -> Scene:
     """Assemble a Scene: objects (ids 1..n) with ``trajectory.poses``, then the room's six faces (ids n + 1 ..
     n + 6, marked ``background``: rendered, not in the object tables), each with a resolved material drawn in
     screen terms (module docstring)."""
@@ -360,3 +361,13 @@ def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tu
 
 def _unit(x: np.ndarray) -> np.ndarray:
     return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def __getattr__(name: str):
+    if name == "Layout":  # deprecated alias (issue 41): one class per name across the package
+        import warnings
+
+        warnings.warn("flowsynth.sampling.Layout is renamed SceneLayout; the old name will be removed",
+                      DeprecationWarning, stacklevel=2)
+        return SceneLayout
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
