@@ -1,6 +1,16 @@
 """Does a flow network learn from flowsynth? Same net, same budget, two training sets, real photos as the test.
 
-    python benchmarks/learning.py [--quick] [--seeds 0,1,2] [--steps 1200] [--jobs 2]
+    python benchmarks/learning.py [--quick] [--seeds 0,1,2] [--steps 1200] [--jobs 2] [--middlebury DIR]
+                                  [--photo-arms]
+
+The judges (issue 38; protocol and rules pre-registered in docs/decisions/0019-learning-judge-real-flow.md) are
+real footage with true motion: the Motorcycle stereo pair ("stereo") and, with ``--middlebury DIR``, the mean EPE
+over the Middlebury flow pairs in DIR at full resolution ("middlebury"; each pair also as "mb_NAME"). Get them from
+https://vision.middlebury.edu/flow/data/ (other-color-twoframes.zip and other-gt-flow.zip, unpacked into one
+folder: DIR/Venus/frame10.png, frame11.png, flow10.flo, ...). Without DIR that judge is skipped, and said so.
+The homography tests stay as diagnostic columns. A net must beat zero flow and its own untrained start on a real
+set before its ratio to the baseline means anything; the report says, per real set and arm, in how many seeds it
+does.
 
 Training sets (each a pool of pre-generated pairs at 128x96, the same size for both):
 
@@ -31,7 +41,7 @@ Test sets (every net is tested on all three; images that ship with scikit-image,
 either training set), EPE over pixels whose flow lands inside the image:
 - "resampled", "symmetric" (``photo_pairs``): photographs (``skimage.data``), random 128x96 crops warped by
   random homographies with exact ground truth (cv2.warpPerspective); two ways of making the second frame.
-  The goal of issue 12 is judged here.
+  Issue 12 judged here; since issue 38 a diagnostic column only.
 - "stereo" (``stereo_pairs``): a real 3D scene, the Middlebury 2014 Motorcycle stereo pair with its measured
   disparity, downsampled crops: depth edges, occlusions and real lighting, which a homography has none of.
 
