@@ -15,8 +15,9 @@ created with ``max_restarts=-1`` and ``max_task_retries=-1``
 restarted and its batch runs again.
 
 Export needs no dataset, only "run this job somewhere and give me its record": ``export_results``
-drives plain actors with the same restart options itself. Samples are pure functions of
-(config, seed, index), so a retry writes the same bytes.
+drives plain actors with the same restart options itself, each holding the exporter's own
+:class:`flowsynth.writer.ExportWriter` (the object the local engine calls). Samples are pure functions
+of (config, seed, index), so a retry writes the same bytes.
 
 Nothing outside this module imports Ray, and this module imports it only inside its functions.
 """
@@ -124,28 +125,23 @@ def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] 
         compute=_pool(ray, actors, num_samples), batch_format="numpy")
 
 
-class ExportWriter:
-    """Ray actor around the local exporter's per-sample writer: runs
-    ``flowsynth.export._init_pool_worker(*initargs)`` once, then ``write(job)`` is
-    ``flowsynth.export._write_one(job)`` (the files are on disk, the record comes back)."""
+class WriterActor:
+    """Ray actor around a :class:`flowsynth.writer.ExportWriter`: opens it once as a worker process
+    (one thread), then ``write(job)`` is ``writer(job)`` (the files are on disk, the record comes back)."""
 
-    def __init__(self, initargs: tuple) -> None:
-        from flowsynth.export import _init_pool_worker
-
-        _init_pool_worker(*initargs)
+    def __init__(self, writer) -> None:
+        self.writer = writer.open(worker_process=True)
 
     def write(self, job: tuple) -> tuple:
-        from flowsynth.export import _write_one
-
-        return _write_one(job)
+        return self.writer(job)
 
 
 _IN_FLIGHT = 2  # jobs queued per actor: the next one waits in the actor while the driver handles a result
 
 
-def export_results(jobs: list, initargs: tuple, *, actors: int | None = None, address: str | None = None) -> Iterator:
-    """Run ``flowsynth.export._write_one(job)`` for every job in a pool of Ray actors; yields its return
-    values in completion order. Each actor runs ``flowsynth.export._init_pool_worker(*initargs)`` once.
+def export_results(jobs: list, writer, *, actors: int | None = None, address: str | None = None) -> Iterator:
+    """Run ``writer(job)`` (a :class:`flowsynth.writer.ExportWriter`) for every job in a pool of Ray actors;
+    yields its return values in completion order. Each actor opens its copy of the writer once.
 
     Plain actors, not Ray Data (whose map operator would add a stats actor, a Ray Data import in every
     actor and a polling executor in the driver: start-up measured in benchmarks/ray_export.py). They are
@@ -160,8 +156,8 @@ def export_results(jobs: list, initargs: tuple, *, actors: int | None = None, ad
 
     ray = connect(address)
     size = _pool_size(ray, actors, len(jobs))
-    writer = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=-1)(ExportWriter)
-    pool = [writer.remote(initargs) for _ in range(size)]  # every actor starts at once
+    actor = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=-1)(WriterActor)
+    pool = [actor.remote(writer) for _ in range(size)]  # every actor starts at once
     queue = deque(jobs)
     running: dict = {}  # ObjectRef -> the actor it runs on
 

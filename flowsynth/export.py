@@ -10,9 +10,14 @@ sintel, ...). This module does the bookkeeping that is the same for every layout
       .journal.jsonl      records of samples finished since manifest.json was last rewritten
       ...                 the layout's files (paths in the manifest are relative to DIR)
 
-Crash safety: a sample is written by its layout into a hidden staging folder ``DIR/.tmp-NNNNN-*``,
-hashed, recorded in the journal, and then moved into place file by file (a folder that does not exist
-yet moves whole) with :func:`os.replace`; so a file under its final name is always whole. Folders and
+Units of work: a layout splits the export into units (``Layout.units``): one sample each, or for
+``webdataset`` one shard of ``--shard-size`` samples. A worker (:class:`flowsynth.writer.ExportWriter`, the
+same object in worker processes and Ray actors) makes a whole unit.
+
+Crash safety: a unit is written by its layout into a hidden staging folder ``DIR/.tmp-NNNNN-*``,
+hashed, recorded in the journal (every sample of the unit in one write), and then moved into place file
+by file (a folder that does not exist yet moves whole) with :func:`os.replace`; so a file under its
+final name is always whole. Folders and
 files get the modes the umask gives (0755 / 0644 under the usual 022), never the staging folder's 0700.
 ``manifest.json`` is rewritten atomically every 16 samples and at the end, which empties the journal.
 
@@ -21,9 +26,10 @@ the memory a sample needs, :mod:`flowsynth.memory`), and ``manifest.json`` appea
 sample is about to be moved into place: a run that fails before that leaves nothing in the way of the
 corrected command.
 
-Resume (:mod:`flowsynth.integrity`): a sample counts as done when it has a record and every recorded
-file passes the check, quick (present, recorded size) or with ``verify=True`` full (sha256); every
-other sample is written again. Files that no record names are reported as foreign and left untouched.
+Resume (:mod:`flowsynth.integrity`): a unit counts as done when each of its samples has a record,
+every recorded file passes the check, quick (present, recorded size) or with ``verify=True`` full
+(sha256), and the samples recorded with each file are exactly the unit's; every other unit is written
+again whole. Files that no record names are reported as foreign and left untouched.
 
 I/O failures (disk full, permission denied) raise :class:`flowsynth.errors.StorageError` (CLI exit
 status 3) after the staging folders are removed; every finished sample stays recorded.
@@ -32,21 +38,21 @@ status 3) after the staging folders are removed; every finished sample stays rec
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import multiprocessing as mp
 import os
 import shutil
 import sys
 import tempfile
-import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from tqdm import tqdm
 
 from flowsynth.errors import ConfigError, ExportError, StorageError
+from flowsynth.integrity import file_records
 from flowsynth.io import layouts
+from flowsynth.writer import ExportWriter, run_job
 
 __all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export"]
 
@@ -69,12 +75,17 @@ def _versions() -> dict:
     return out
 
 
-def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compression: str, engine: str = "local"):
+def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compression: str, engine: str = "local",
+             shard_size: int | None = None):
     """Validate everything before anything is written; returns (Layout, outputs tuple)."""
     from flowsynth.memory import check_sample_memory
     from flowsynth.plan import make_plan
 
     lay = layouts.get(layout, exr_compression=exr_compression)
+    if shard_size is not None:
+        if "shard_size" not in lay.options():
+            raise ConfigError(f"--shard-size applies to layouts that write shards (webdataset), not {layout}")
+        lay = layouts.get(layout, exr_compression=exr_compression, shard_size=shard_size)
     if not isinstance(num, int) or num < 1:
         raise ConfigError(f"num must be an integer >= 1, got {num!r}")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
@@ -90,61 +101,6 @@ def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compressio
     lay.check(cfg, outputs, num)
     check_sample_memory(cfg, processes=min(workers or 1, num))
     return lay, outputs
-
-
-def _record(folder: Path, paths) -> dict:
-    """{path: {"size": bytes, "sha256": hex}} of the files ``paths`` under ``folder``."""
-    out = {}
-    for rel in sorted(paths):
-        data = (folder / rel).read_bytes()
-        out[rel] = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
-    return out
-
-
-_WORKER: dict = {}
-
-
-def _init_worker(cfg, outputs, seed, occlusion, layout) -> None:
-    import torch
-
-    from flowsynth.datasets import BouncingThings
-    from flowsynth.stats import cheap_stats_outputs
-
-    torch.set_num_threads(1)
-    _WORKER["ds"] = BouncingThings(cfg, outputs=cheap_stats_outputs(outputs), seed=seed, occlusion=occlusion)
-    _WORKER["keep"] = set(outputs) | {"index", "seed", "K", "cam_T_world", "provenance"}
-    _WORKER["layout"] = layout
-
-
-def _init_pool_worker(*args) -> None:
-    """``_init_worker`` in one of several worker processes: ray launches use one thread (flowsynth.parallel)."""
-    from flowsynth.parallel import set_worker_process
-
-    set_worker_process()
-    _init_worker(*args)
-
-
-def _write_one(args) -> tuple[int, str, dict, dict]:
-    """Generate sample i and write it into a staging folder.
-
-    Returns (i, staging folder, {path: {size, sha256}}, flowsynth.stats.sample_record).
-    """
-    from flowsynth.stats import sample_record
-
-    i, root = args
-    t = time.perf_counter()
-    sample = _WORKER["ds"].sample(i)
-    stats = sample_record(sample, time.perf_counter() - t)
-    sample = {k: v for k, v in sample.items() if k in _WORKER["keep"]}
-    staging = Path(tempfile.mkdtemp(prefix=f".tmp-{i:05d}-", dir=root))
-    try:
-        files = _WORKER["layout"].write(sample, i, staging)
-        return i, str(staging), _record(staging, files), stats
-    except BaseException as e:
-        shutil.rmtree(staging, ignore_errors=True)
-        if isinstance(e, OSError) and not isinstance(e, ExportError):
-            raise StorageError(f"could not write sample {i} under {root}: {e.strerror or e}", e.errno) from e
-        raise
 
 
 def _place(src: Path, dst: Path) -> None:
@@ -187,12 +143,13 @@ def _recorded(root: Path, old: dict) -> dict[int, dict]:
 def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None, workers: int | None = None,
            layout: str = "native", overwrite: bool = False, occlusion: str = "exact",
            exr_compression: str = "zip", verify: bool = False, progress: bool = True, engine: str = "local",
-           address: str | None = None) -> Path:
+           address: str | None = None, shard_size: int | None = None) -> Path:
     """Export samples 0..num-1 of ``BouncingThings(cfg, outputs, seed)`` to ``out``; resumes if interrupted.
 
     Args:
         layout: a name of ``flowsynth.io.layouts.names()``; ``outputs=None`` takes its defaults.
         exr_compression: lossless compression of EXR files, ``flowsynth.io.layouts.EXR_COMPRESSIONS``.
+        shard_size: samples per shard of a layout that writes shards (``webdataset``; None: its default).
         verify: on resume, check the sha256 of every recorded file, not only its presence and size.
         workers: ``engine="local"``: processes on this machine (None: 1); ``engine="ray"``: Ray actors,
             one CPU each (None: one per CPU of the cluster).
@@ -207,7 +164,7 @@ def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None
     (an ExportError) when a file cannot be written: finished samples are kept, temporaries removed, and
     the same call resumes. Returns the output folder.
     """
-    lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression, engine)
+    lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression, engine, shard_size)
     _check_dataset(cfg, outputs, seed, occlusion)
     root = Path(out)
     identity = {"config": cfg.to_dict(), "seed": seed, "outputs": list(outputs), "layout": lay.name,
@@ -223,15 +180,16 @@ def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None
             records = _recorded(root, old)
         elif old is not None:  # another export, overwrite=True
             _clear(root, old.get("layout"))
-        samples.update(_verified(root, records, num, "full" if verify else "quick"))
+        units = lay.units(num)
+        samples.update(_verified(root, records, units, "full" if verify else "quick"))
         _report_foreign(root, records, old)
         if (root / MANIFEST).exists():  # a resumed export: the manifest says what passed the check
             _write_manifest(root, identity, num, samples)
             (root / JOURNAL).unlink(missing_ok=True)  # its records are in the manifest now
-        todo = [i for i in range(num) if i not in samples]
-        _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples, engine,
-             address)
-        index = _record(root, lay.finish(root, num, cfg))
+        todo = [u for u in units if any(i not in samples for i in u)]
+        writer = ExportWriter(cfg, outputs, seed, occlusion, lay)
+        _run(todo, root, writer, workers, progress, identity, num, samples, engine, address)
+        index = file_records(root, lay.finish(root, num, cfg))
         _write_manifest(root, identity, num, samples, index)
     except OSError as e:
         if isinstance(e, ExportError) and not isinstance(e, StorageError):
@@ -282,23 +240,40 @@ def _check_folder(root: Path, identity: dict, overwrite: bool) -> dict | None:
     return None
 
 
-def _verified(root: Path, records: dict, num: int, mode: str) -> dict[int, dict]:
-    """The records of samples < num whose files pass the ``mode`` check; says which will be written again."""
+def _verified(root: Path, records: dict, units: list[range], mode: str) -> dict[int, dict]:
+    """The records of the samples of ``units`` whose unit is complete; says which will be written again.
+
+    A unit is complete when each of its samples has a record whose files pass the ``mode`` check, and
+    the samples recorded with each of those files are exactly the unit's (a shard written for another
+    ``num`` holds other samples).
+    """
     from flowsynth.integrity import sample_problem
 
+    owners: dict[str, set[int]] = {}
+    for i, files in records.items():
+        for rel in files:
+            owners.setdefault(rel, set()).add(i)
     samples, redo = {}, []
-    for i, files in sorted(records.items()):
-        if i >= num:
+    for unit in units:
+        if not any(i in records for i in unit):
             continue
-        problem = sample_problem(root, files, mode)
+        problem = next((f"sample {i:05d} is not recorded" for i in unit if i not in records), None)
+        problem = problem or next((f"{rel} holds other samples" for i in unit for rel in records[i]
+                                   if owners[rel] != set(unit)), None)
+        problem = problem or next((p for i in unit if (p := sample_problem(root, records[i], mode))), None)
         if problem is None:
-            samples[i] = files
+            samples.update({i: records[i] for i in unit})
         else:
-            redo.append(f"{i:05d} ({problem})")
+            redo.append(f"{_unit_name(unit)} ({problem})")
     if redo:
-        _note(f"{len(redo)} incomplete or damaged sample{'s' if len(redo) != 1 else ''} will be written "
+        what = "sample" if all(len(u) == 1 for u in units) else "shard"
+        _note(f"{len(redo)} incomplete or damaged {what}{'s' if len(redo) != 1 else ''} will be written "
               f"again: {_first(redo)}")
     return samples
+
+
+def _unit_name(unit: range) -> str:
+    return f"{unit[0]:05d}" if len(unit) == 1 else f"{unit[0]:05d}-{unit[-1]:05d}"
 
 
 def _report_foreign(root: Path, records: dict, old: dict | None) -> None:
@@ -323,41 +298,45 @@ def _note(text: str) -> None:
     tqdm.write(f"flowsynth export: {text}", file=sys.stderr)
 
 
-def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, identity, num, samples, engine,
+def _run(todo: list[range], root, writer: ExportWriter, workers, progress, identity, num, samples, engine,
          address) -> None:
-    bar = tqdm(total=num, initial=num - len(todo), unit="sample", disable=not progress, dynamic_ncols=True)
-    jobs = [(i, str(root)) for i in todo]
+    bar = tqdm(total=num, initial=num - sum(len(u) for u in todo), unit="sample", disable=not progress,
+               dynamic_ncols=True)
+    jobs = [(tuple(u), str(root)) for u in todo]
     records: list[tuple[int, dict]] = []  # (index, stats record): summed in index order, whatever the engine
     pool = None
     results = None
     journal = None
+    placed = 0
     try:
         if engine == "ray" and jobs:
             from flowsynth.distributed import export_results
 
-            results = export_results(jobs, (cfg, outputs, seed, occlusion, lay), actors=workers, address=address)
+            results = export_results(jobs, writer, actors=workers, address=address)
         elif workers in (None, 1) or len(jobs) <= 1:
-            _init_worker(cfg, outputs, seed, occlusion, lay)
-            results = map(_write_one, jobs)
+            results = map(writer, jobs)
         else:
             pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=_mp_context(),
-                                       initializer=_init_pool_worker, initargs=(cfg, outputs, seed, occlusion, lay))
-            results = pool.map(_write_one, jobs, chunksize=1)
-        for n, (i, staging, files, stats) in enumerate(results, 1):
-            if journal is None:  # the first sample is about to be placed: now the folder is an export
+                                       initializer=writer.start_worker)
+            results = pool.map(run_job, jobs, chunksize=1)
+        for indices, staging, files, stats in results:
+            if journal is None:  # the first unit is about to be placed: now the folder is an export
                 if not (root / MANIFEST).exists():
                     _write_manifest(root, identity, num, samples)
                 journal = open(root / JOURNAL, "a")  # closed in finally
-            # record first, then move: a record whose files are not all in place fails the resume check
-            journal.write(json.dumps({"sample": f"{i:05d}", "files": files}) + "\n")
+            # record first, then move: a record whose files are not all in place fails the resume check;
+            # one write for the whole unit (a torn line leaves the unit incomplete, so it is written again)
+            journal.write("".join(json.dumps({"sample": f"{i:05d}", "files": files}) + "\n" for i in indices))
             journal.flush()
             os.fsync(journal.fileno())
             _place(Path(staging), root)
             shutil.rmtree(staging, ignore_errors=True)
-            samples[i] = files
-            records.append((i, stats))
-            bar.update(1)
-            if n % _MANIFEST_EVERY == 0:
+            for i, st in zip(indices, stats):
+                samples[i] = files
+                records.append((i, st))
+            bar.update(len(indices))
+            placed, before = placed + len(indices), placed
+            if placed // _MANIFEST_EVERY != before // _MANIFEST_EVERY:
                 _write_manifest(root, identity, num, samples)
                 journal.seek(0)
                 journal.truncate()
@@ -366,7 +345,7 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
             results.close()
         if pool is not None:
             pool.shutdown(cancel_futures=True)
-        for tmp in root.glob(".tmp-*"):  # staging of samples that never got placed
+        for tmp in root.glob(".tmp-*"):  # staging of units that never got placed
             shutil.rmtree(tmp, ignore_errors=True)
         bar.close()
         if journal is not None:
@@ -376,7 +355,7 @@ def _run(todo, root, lay, cfg, outputs, seed, occlusion, workers, progress, iden
 
             records.sort(key=lambda x: x[0])
             _write_manifest(root, identity, num, samples,
-                            stats=summarize([r for _, r in records], cfg) if records else None)
+                            stats=summarize([r for _, r in records], writer.cfg) if records else None)
             (root / JOURNAL).unlink(missing_ok=True)
 
 
@@ -413,7 +392,7 @@ class Sizes:
 
 
 def estimate(cfg, num: int, *, seed: int = 0, outputs=None, layout: str = "native", occlusion: str = "exact",
-             exr_compression: str = "zip") -> Sizes:
+             exr_compression: str = "zip", shard_size: int | None = None) -> Sizes:
     """Sizes of ``export(cfg, ..., num, ...)`` without writing under its folder (``flowsynth export --dry-run``).
 
     Sample 0 is generated and written in a temporary folder that is removed afterwards; other
@@ -422,7 +401,7 @@ def estimate(cfg, num: int, *, seed: int = 0, outputs=None, layout: str = "nativ
     """
     from flowsynth.datasets import BouncingThings
 
-    lay, outputs = _resolve(cfg, num, outputs, layout, 1, exr_compression)
+    lay, outputs = _resolve(cfg, num, outputs, layout, 1, exr_compression, shard_size=shard_size)
     sample = BouncingThings(cfg, outputs=outputs, seed=seed, occlusion=occlusion).sample(0)
     per_sample: dict[str, int] = {}
     with tempfile.TemporaryDirectory(prefix="flowsynth-dry-run-") as tmp:

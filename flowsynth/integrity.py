@@ -19,7 +19,7 @@ from pathlib import Path
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["VERIFY_MODES", "file_problem", "foreign_files", "sample_problem"]
+__all__ = ["VERIFY_MODES", "file_problem", "file_records", "foreign_files", "sample_problem"]
 
 VERIFY_MODES = ("quick", "full", "none")
 _CHUNK = 1 << 20
@@ -31,6 +31,15 @@ def _sha256(path: Path) -> str:
         while chunk := f.read(_CHUNK):
             h.update(chunk)
     return h.hexdigest()
+
+
+def file_records(folder: Path, paths: Iterable[str]) -> dict[str, dict]:
+    """The manifest's records ``{path: {"size": bytes, "sha256": hex}}`` of the files ``paths`` under ``folder``."""
+    out = {}
+    for rel in sorted(paths):
+        data = (Path(folder) / rel).read_bytes()
+        out[rel] = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    return out
 
 
 def file_problem(root: Path, rel: str, record: dict, mode: str = "quick") -> str | None:

@@ -160,7 +160,7 @@ def test_killed_actor_loses_nothing(cluster, tmp_path):
     deadline = time.time() + 300
     while time.time() < deadline and _done(out) < 1:
         time.sleep(0.05)
-    victims = _actor_pids("ExportWriter")
+    victims = _actor_pids("WriterActor")
     assert victims and _done(out) < num, "no actor was running while samples remained; make the export longer"
     os.kill(victims[0], signal.SIGKILL)
     thread.join(600)
@@ -201,16 +201,15 @@ def test_ray_job_error_is_the_local_one(cluster, tmp_path):
     """A job that fails in an actor raises what the same job raises in this process (type and errno), not
     Ray's wrapper: the exporter turns an OSError into StorageError (exit status 3) with its errno."""
     from flowsynth.distributed import export_results
-    from flowsynth.export import _init_worker, _write_one
     from flowsynth.io import layouts
+    from flowsynth.writer import ExportWriter
 
-    initargs = (CFG, OUTS.split(","), 0, "exact", layouts.get("native"))
-    job = (0, str(tmp_path / "missing"))  # the staging folder cannot be made there
-    _init_worker(*initargs)
+    writer = ExportWriter(CFG, OUTS.split(","), 0, "exact", layouts.get("native"))
+    job = ((0,), str(tmp_path / "missing"))  # the staging folder cannot be made there
     with pytest.raises(OSError) as local:
-        _write_one(job)
+        writer(job)
     with pytest.raises(OSError) as remote:
-        list(export_results([job], initargs, actors=1))
+        list(export_results([job], writer, actors=1))
     assert type(remote.value) is type(local.value) and remote.value.errno == local.value.errno is not None
     assert not (tmp_path / "missing").exists()
 
@@ -232,8 +231,8 @@ def test_driver_failure_stops_the_actors_before_cleaning_up(cluster, tmp_path, m
         ex.export(CFG, out, 8, seed=1, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
     assert err.value.errno == 28
     deadline = time.time() + 30  # killed and waited for; their processes may take a moment to exit
-    while _actor_pids("ExportWriter") and time.time() < deadline:
+    while _actor_pids("WriterActor") and time.time() < deadline:
         time.sleep(0.1)
-    assert _actor_pids("ExportWriter") == []
+    assert _actor_pids("WriterActor") == []
     time.sleep(3)  # a sample of this size renders in well under a second
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".tmp-")) == []

@@ -32,7 +32,15 @@ def check_manifest(root: Path, num: int):
     two samples share a file."""
     manifest = json.loads((root / "manifest.json").read_text())
     assert sorted(manifest["samples"]) == [f"{i:05d}" for i in range(num)]
-    recorded = [*manifest["index"]] + [f for files in manifest["samples"].values() for f in files]
+    owners: dict[str, set[int]] = {}
+    for name, files in manifest["samples"].items():
+        for f in files:
+            owners.setdefault(f, set()).add(int(name))
+    # a file belongs to exactly the samples of one unit of the layout (one sample; a webdataset shard's)
+    for unit in layouts.get(manifest["layout"], **manifest["layout_options"]).units(num):
+        for i in unit:
+            assert all(owners[f] == set(unit) for f in manifest["samples"][f"{i:05d}"]), (i, unit)
+    recorded = [*manifest["index"], *owners]
     assert len(recorded) == len(set(recorded))
     on_disk = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
     assert on_disk == sorted([*recorded, "manifest.json"])

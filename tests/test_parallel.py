@@ -119,12 +119,12 @@ def test_default_threads_is_one_in_export_workers(tmp_path):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from flowsynth import export
     from flowsynth.io import layouts
+    from flowsynth.writer import ExportWriter
 
     cfg = fs.BouncingThingsConfig(width=16, height=12, num_frames=1, num_objects=(1, 1), motion="static")
-    with ProcessPoolExecutor(1, mp_context=mp.get_context("fork"), initializer=export._init_pool_worker,
-                             initargs=(cfg, ("depth",), 0, "exact", layouts.get("native"))) as pool:
+    writer = ExportWriter(cfg, ("depth",), 0, "exact", layouts.get("native"))
+    with ProcessPoolExecutor(1, mp_context=mp.get_context("fork"), initializer=writer.start_worker) as pool:
         assert list(pool.map(_worker_default, [0])) == [1]
 
 

@@ -1,10 +1,11 @@
 """Datasets: ``BouncingThings`` streams generated samples; ``FlowPairs`` adapts them to torchvision's
-optical-flow tuples; ``Exported`` reads a folder written by ``flowsynth export``."""
+optical-flow tuples; ``Exported`` reads a folder written by ``flowsynth export``; ``Shards`` streams the
+shards of a ``webdataset`` export (shuffled, split by worker and rank)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.flowpairs import FlowPairs
 
-__all__ = ["BouncingThings", "Exported", "FlowPairs", "sample_seed"]
+__all__ = ["BouncingThings", "Exported", "FlowPairs", "Shards", "sample_seed"]
 
 
 def __getattr__(name: str):
@@ -12,4 +13,8 @@ def __getattr__(name: str):
         from flowsynth.datasets.exported import Exported
 
         return Exported
+    if name == "Shards":
+        from flowsynth.datasets.shards import Shards
+
+        return Shards
     raise AttributeError(f"module 'flowsynth.datasets' has no attribute {name!r}")

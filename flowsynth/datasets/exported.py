@@ -77,4 +77,4 @@ class Exported(Dataset):
         if self.verify == "full" and (problem := sample_problem(self.root, files, "full")):
             raise ExportError(f"sample {self.names[i]} of {self.root}: {problem} (sha256 check); the export is "
                               "damaged: re-run `flowsynth export ... --verify` with the same arguments to repair it")
-        return self.layout.read(self.root, list(files))
+        return self.layout.read_sample(self.root, list(files), int(self.names[i]))

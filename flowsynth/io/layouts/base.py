@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import shutil
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import ClassVar
 
@@ -110,6 +110,32 @@ class Layout(ABC):
         Returns:
             a sample dict with the stream's keys, shapes and dtypes, for the outputs the layout stores.
         """
+
+    def units(self, num: int) -> list[range]:
+        """The export's units of work: sample indices written, recorded and resumed together, in order.
+
+        Default: one sample each. A layout that packs several samples into one file (``webdataset``'s
+        shards) returns one range per file; the exporter then writes, journals and resumes whole units.
+        """
+        return [range(i, i + 1) for i in range(num)]
+
+    def write_unit(self, samples: Iterable[tuple[int, dict[str, torch.Tensor]]], folder: Path) -> dict[str, str]:
+        """Write one unit's samples, ``(index, sample)`` pairs made one at a time, under the staging ``folder``.
+
+        Returns relative path -> the output it stores, like :meth:`write`. Default: :meth:`write` each.
+        """
+        out: dict[str, str] = {}
+        for index, sample in samples:
+            out.update(self.write(sample, index, folder))
+        return out
+
+    def read_sample(self, root: Path, files: Sequence[str], index: int) -> dict[str, torch.Tensor]:
+        """Sample ``index`` from its recorded ``files``; what :class:`flowsynth.datasets.Exported` calls.
+
+        Default: :meth:`read` (the files hold this one sample); layouts whose files hold several samples
+        pick sample ``index`` out of them.
+        """
+        return self.read(root, files)
 
     def finish(self, root: Path, num: int, cfg) -> list[str]:
         """Write index files that cover the whole export (after the last sample); returns their paths."""

@@ -1,0 +1,119 @@
+"""``ExportWriter``: makes one unit of an export (its samples, written by the layout into a staging folder).
+
+One picklable object holds what a worker needs (config, outputs, seed, occlusion method, layout); the
+local exporter (:mod:`flowsynth.export`) calls it in this process or in worker processes, and the Ray
+engine (:mod:`flowsynth.distributed`) in Ray actors. Every engine therefore runs the same code and writes
+the same bytes. The dataset is built on first use in the process that runs the writer, never pickled.
+
+A job is ``(indices, root)``: the sample indices of one unit (``Layout.units``: one sample for most
+layouts, a shard for ``webdataset``) and the export root. ``writer(job)`` generates the samples, lets
+the layout write them into a new hidden staging folder ``root/.tmp-NNNNN-*`` and returns
+``(indices, staging folder, {path: {"size", "sha256"}}, [flowsynth.stats.sample_record per sample])``;
+moving the files into place is the caller's job. On failure the staging folder is removed, and an
+``OSError`` becomes :class:`flowsynth.errors.StorageError` naming the sample.
+
+In a pool of worker processes, ``ProcessPoolExecutor(initializer=writer.start_worker)`` installs the
+writer as its process's writer once, and ``pool.map(run_job, jobs)`` runs jobs on it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+from flowsynth.errors import ExportError, StorageError
+
+__all__ = ["ExportWriter", "run_job"]
+
+# keys every exported sample keeps besides the requested outputs (cameras, provenance, index, seed)
+_ALWAYS_KEPT = ("index", "seed", "K", "cam_T_world", "provenance")
+
+
+class ExportWriter:
+    """Generate and write units of ``BouncingThings(cfg, outputs, seed, occlusion)`` in ``layout``.
+
+    Args:
+        cfg: the export's ``BouncingThingsConfig``.
+        outputs: resolved output keys (``flowsynth.plan.make_plan(...).outputs``).
+        seed: dataset seed.
+        occlusion: occlusion method (``flowsynth.plan.OCCLUSION_METHODS``).
+        layout: a ``flowsynth.io.layouts.Layout`` instance.
+    """
+
+    def __init__(self, cfg, outputs: Sequence[str], seed: int, occlusion: str, layout) -> None:
+        self.cfg, self.outputs, self.seed, self.occlusion, self.layout = cfg, tuple(outputs), seed, occlusion, layout
+        self.keep = set(self.outputs) | set(_ALWAYS_KEPT)
+        self._ds = None
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_ds"}  # the dataset is per process
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, _ds=None)
+
+    def open(self, *, worker_process: bool = False) -> ExportWriter:
+        """Build the dataset now (it is built on first use otherwise); returns self.
+
+        ``worker_process``: this process is one of several workers (a pool process, a Ray actor):
+        launches use one thread (``flowsynth.parallel.set_worker_process``), and so does torch.
+        """
+        import torch
+
+        from flowsynth.datasets import BouncingThings
+        from flowsynth.stats import cheap_stats_outputs
+
+        if worker_process:
+            from flowsynth.parallel import set_worker_process
+
+            set_worker_process()
+        torch.set_num_threads(1)
+        self._ds = BouncingThings(self.cfg, outputs=cheap_stats_outputs(self.outputs), seed=self.seed,
+                                  occlusion=self.occlusion)
+        return self
+
+    def start_worker(self) -> None:
+        """Initializer of a worker process: open this writer and make it the one :func:`run_job` uses."""
+        global _PROCESS_WRITER
+        _PROCESS_WRITER = self.open(worker_process=True)
+
+    def _samples(self, indices: Sequence[int], stats: list) -> Iterator[tuple[int, dict]]:
+        """(index, sample) of each index, made when the layout asks for it; appends each one's stats."""
+        from flowsynth.stats import sample_record
+
+        for i in indices:
+            t = time.perf_counter()
+            sample = self._ds.sample(i)
+            stats.append(sample_record(sample, time.perf_counter() - t))
+            yield i, {k: v for k, v in sample.items() if k in self.keep}
+
+    def __call__(self, job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict]]:
+        """Write the unit ``job = (indices, root)`` into a staging folder under root (module docstring)."""
+        from flowsynth.integrity import file_records
+
+        indices, root = tuple(int(i) for i in job[0]), job[1]
+        if self._ds is None:
+            self.open()
+        staging = Path(tempfile.mkdtemp(prefix=f".tmp-{indices[0]:05d}-", dir=root))
+        stats: list[dict] = []
+        try:
+            files = self.layout.write_unit(self._samples(indices, stats), staging)
+            return indices, str(staging), file_records(staging, files), stats
+        except BaseException as e:
+            shutil.rmtree(staging, ignore_errors=True)
+            if isinstance(e, OSError) and not isinstance(e, ExportError):
+                what = f"sample {indices[0]}" if len(indices) == 1 else f"samples {indices[0]}-{indices[-1]}"
+                raise StorageError(f"could not write {what} under {root}: {e.strerror or e}", e.errno) from e
+            raise
+
+
+_PROCESS_WRITER: ExportWriter | None = None  # set in a worker process by ExportWriter.start_worker
+
+
+def run_job(job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict]]:
+    """Run ``job`` on this worker process's writer (installed by :meth:`ExportWriter.start_worker`)."""
+    if _PROCESS_WRITER is None:
+        raise RuntimeError("run_job runs in a worker process started with initializer=ExportWriter.start_worker")
+    return _PROCESS_WRITER(job)
