@@ -95,6 +95,7 @@ def build_config(args: argparse.Namespace):
 
 def _parser() -> argparse.ArgumentParser:
     from flowsynth.io import layouts
+    from flowsynth.io.layouts.webdataset import DEFAULT_SHARD_SIZE
     from flowsynth.plan import OCCLUSION_METHODS
 
     _sub_kw = {"epilog": "exit status:\n" + __doc__.split("Exit status:\n")[1].rstrip(),
@@ -118,6 +119,9 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--layout", choices=layouts.names(), default="native",
                     help="files on disk; " + "; ".join(f"{n}: {layouts.get(n).summary}" for n in layouts.names())
                     + " [default native]")
+    ex.add_argument("--shard-size", type=integer, default=None,
+                    help="layouts that write shards (webdataset): samples per shard, also the unit a worker "
+                         f"writes and a resume rewrites [int, default {DEFAULT_SHARD_SIZE}]")
     ex.add_argument("--outputs", default=None, help="comma-separated output keys [default: the layout's set]")
     ex.add_argument("--exr-compression", choices=layouts.EXR_COMPRESSIONS, default="zip",
                     help="lossless compression of EXR files (sizes and times: benchmarks/export.py) [default zip]")
@@ -179,7 +183,7 @@ def _dry_run(args, cfg) -> None:
     from flowsynth.export import estimate
 
     sizes = estimate(cfg, args.num, seed=args.seed, outputs=args.outputs, layout=args.layout,
-                     occlusion=args.occlusion, exr_compression=args.exr_compression)
+                     occlusion=args.occlusion, exr_compression=args.exr_compression, shard_size=args.shard_size)
     rows = [(k, v, v * args.num) for k, v in sorted(sizes.per_sample.items(), key=lambda kv: -kv[1])]
     if sizes.index:
         rows.append(("(index files)", 0, sizes.index))
@@ -199,7 +203,7 @@ def _export(args, cfg) -> None:
     root = export(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
                   layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
                   exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress,
-                  engine=args.engine, address=args.address)
+                  engine=args.engine, address=args.address, shard_size=args.shard_size)
     print(f"exported {args.num} sample{'s' if args.num != 1 else ''} to {root} in "
           f"{time.perf_counter() - start:.1f} s, layout {args.layout}; load it in Python with "
           f"{layouts.get(args.layout).load_hint(root)}")
