@@ -34,7 +34,7 @@ estimator whose output layer starts at zero. Untrained, it is at 2.1-2.6 px on t
 2.0-2.1 px on the stereo test (zero flow: 4.7-5.0 and 9.4-10.5 px; seeds 0-5), so training can make it better or
 worse, and the learning curve shows which. (The first version, "random-v1", until 2026-11-25: the same matcher on
 random learned features at strides 16, 8 and 4, 0.37 M parameters; untrained it was at 25 px, far worse than zero
-flow, so training mostly repaired the initialisation; its results are in benchmarks/results/SUMMARY.md.) Trained
+flow, so training mostly repaired the initialisation; its results are in docs/decisions/notebook-2026-11.md.) Trained
 with Adam on a multi-scale EPE loss over valid pixels.
 
 Test sets (every net is tested on all three; images that ship with scikit-image, none of them a texture of
@@ -50,10 +50,11 @@ would have said (random-v1: 1800 steps, every 600; a step of ncc-v2 costs about 
 stride-2 level). Each set is a stream: its pool holds steps x batch = 9600 pairs and every pair is trained on
 once, in a random order (``batches``), as a net fed by ``fs.datasets.BouncingThings`` would see them. Until
 2026-11-25 (results/learning_ncc*.json) the pools held 768 pairs drawn with replacement (~12.5 epochs); a
-pre-registered 5-seed comparison made the stream the default (benchmarks/results/SUMMARY.md, learning); ``--pool
-768`` still runs that protocol. A stream seed renders 14,400 flowsynth pairs (7-10 min on 2 cores) and holds ~10 GB
-while it trains. The two nets of a seed train at once, each in a process of its own (``--jobs``). Reports the
-test EPE of zero flow, of the untrained net, of the net trained on each set along the curve, and the ratio
+pre-registered 5-seed comparison made the stream the default
+(docs/decisions/0017-learning-benchmark-protocol.md); ``--pool 768`` still runs that protocol. A stream seed
+renders 14,400 flowsynth pairs (7-10 min on 2 cores) and holds ~10 GB while it trains. The two nets of a seed
+train at once, each in a process of its own (``--jobs``). Reports the test EPE
+of zero flow, of the untrained net, of the net trained on each set along the curve, and the ratio
 flowsynth / chairs2d (< 1: flowsynth trains the better flow network), per seed. Writes results/learning.json.
 
 ``--summarize`` trains nothing: it pools the seeds of the results/learning*.json files (``--files``) of one loss
