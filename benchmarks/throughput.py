@@ -3,12 +3,18 @@
     python benchmarks/throughput.py [--quick]
     python benchmarks/throughput.py --ratio [--samples 12]
     python benchmarks/throughput.py --edge [--samples 8]
+    python benchmarks/throughput.py --lens [--quick] [--samples 8]
 
 Writes benchmarks/results/throughput.json. Times are wall-clock on this machine (see "machine").
 
 ``--edge`` runs only the cost of silhouette anti-aliasing (``edge_spp``, default 4) on the full stream at
 256x192 and 512x384, flat and direct rgb: the same indices with edge_spp 1 and the default, alternated in one
 process; writes benchmarks/results/throughput_edge.json.
+
+``--lens`` runs only the cost of a lens model: the stream of every geometric output a lens camera allows
+(depth, flow fw/bw, valid, occ, oof, instance, tracks, boxes; no rgb or stereo) with camera_model pinhole,
+brown_conrady and kannala_brandt on the same indices, alternated in one process, timed by process CPU time
+(and wall); 128x96 with --quick, else 256x192; writes benchmarks/results/throughput_lens.json.
 
 ``--ratio`` runs only issue 13's "skipping pays" check (goal: depth-only >= 4x faster than the full stream at
 256x192, T=2): depth-only and full samples of the same indices, alternated in one process after a warm-up
@@ -163,6 +169,40 @@ def memory_curve(cfg, n: int) -> list[dict]:
     return out
 
 
+LENS_SETTINGS = {"pinhole": (), "brown_conrady": (-0.25, 0.05, -0.001, -0.001, 0.0),
+                 "kannala_brandt": (0.05, -0.01, 0.002, -0.0005)}
+LENS_OUTPUTS = ["depth", "instance", "flow_fw", "flow_bw", "valid_fw", "occ_fw", "oof_fw", "target_points",
+                "occluded", "query_points", "box2d_amodal", "box2d_visible", "visible_pixels"]
+
+
+def lens_cost(n: int, size: tuple[int, int]) -> dict:
+    """Process CPU and wall seconds per sample of LENS_OUTPUTS for each of LENS_SETTINGS, alternated per index."""
+    import os
+
+    import flowsynth as fs
+
+    W, H = size
+    streams = {}
+    for model, dist in LENS_SETTINGS.items():
+        cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, camera_model=model, camera_dist=dist)
+        streams[model] = fs.datasets.BouncingThings(cfg, outputs=LENS_OUTPUTS, seed=0)
+    for ds in streams.values():
+        ds.sample(0)  # warm-up: kernels compiled, caches filled
+    cpu = dict.fromkeys(streams, 0.0)
+    wall = dict.fromkeys(streams, 0.0)
+    load0 = os.getloadavg()
+    for i in range(1, n + 1):
+        for model, ds in streams.items():
+            c, t = time.process_time(), time.perf_counter()
+            ds.sample(i)
+            cpu[model] += time.process_time() - c
+            wall[model] += time.perf_counter() - t
+    rows = [{"camera_model": m, "cpu s/sample": cpu[m] / n, "wall s/sample": wall[m] / n,
+             "vs pinhole": cpu[m] / cpu["pinhole"]} for m in streams]
+    return {"size": [W, H], "samples": n, "outputs": LENS_OUTPUTS, "settings": LENS_SETTINGS, "rows": rows,
+            "load_average": [load0[0], os.getloadavg()[0]]}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -170,7 +210,16 @@ def main() -> None:
     p.add_argument("--ratio", action="store_true", help="only depth-only vs full at 256x192 (process CPU time)")
     p.add_argument("--edge", action="store_true",
                    help="only the full stream with edge_spp 1 vs the default, 256x192 and 512x384 (process CPU time)")
+    p.add_argument("--lens", action="store_true",
+                   help="only pinhole vs brown_conrady vs kannala_brandt, geometric outputs (process CPU time)")
     args = p.parse_args()
+    if args.lens:
+        r = lens_cost(args.samples or (4 if args.quick else 16), (128, 96) if args.quick else (256, 192))
+        print(f"\nLens models, {r['size'][0]}x{r['size'][1]}, T=2, {r['samples']} samples each alternated; load "
+              f"average {r['load_average'][0]:.2f} -> {r['load_average'][1]:.2f}")
+        print_table(r["rows"], ["camera_model", "cpu s/sample", "wall s/sample", "vs pinhole"])
+        write_json("throughput_lens" + ("_quick" if args.quick else ""), {"machine": machine_info(), **r})
+        return
     if args.edge:
         runs = [edge_cost(args.samples or 8, size, mode) for size in ((256, 192), (512, 384))
                 for mode in ("flat", "direct")]

@@ -227,6 +227,7 @@ def _bc_radial(k: np.ndarray, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return N, D, g
 
 
+@functools.lru_cache(maxsize=64)
 def lens_limit(model: str, dist: tuple) -> float:
     """The domain's bound: Brown-Conrady the largest r2 = a^2 + b^2 (the first fold of r q(r) or zero of its
     denominator, inf when none up to r = 100), Kannala-Brandt the largest theta (the first fold of theta_d,
