@@ -7,7 +7,7 @@ own process, one thread (``torch.set_num_threads(1)``, ``threads=1`` where the r
 Rounds alternate base/head so that load from other processes hits both alike. Clock: process CPU time per
 sample after one warm-up sample (kernel load), and wall time.
 
-Two settings per revision:
+Three settings per revision:
 
 - ``fixed``: issue 13's profile settings, given explicitly so both revisions render the same kind of scene:
   512x384, T=2, direct RGB, 20 objects, static camera; outputs rgb, depth, normals, instance, flow, valid and

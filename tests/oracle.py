@@ -14,6 +14,7 @@ Mesh penetration comes from python-fcl contact depths (trimesh's CollisionManage
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 from trimesh.collision import CollisionManager
 
 # Slack on the barycentric inside test: rays through a shared edge or vertex hit at least one triangle.
@@ -44,6 +45,12 @@ def pose(rotvec=(0.0, 0.0, 0.0), t=(0.0, 0.0, 0.0)) -> np.ndarray:
     T[:3, :3] = rotation(rotvec)
     T[:3, 3] = t
     return T
+
+
+def quad(half: float) -> trimesh.Trimesh:
+    """Two-triangle square in the object plane z = 0, side 2 * half [m], normal +z."""
+    V = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])
+    return trimesh.Trimesh(V, np.array([[0, 1, 2], [0, 2, 3]]), process=False)
 
 
 def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:

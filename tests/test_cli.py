@@ -16,8 +16,6 @@ from flowsynth import cli
 from flowsynth.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
-SMALL = ["--width", "32", "--height", "24", "--num-frames", "2", "--motion", "kinematic",
-         "--num-objects", "2,3", "--max-objects", "4"]
 
 
 def _source_docstrings() -> dict[str, str]:
@@ -59,8 +57,8 @@ def test_export_help_lists_every_flag_with_type_default_and_meaning(capsys, monk
     ("--substeps", "many", "expected an integer or none"),
     ("--num", "x", "expected an integer"),
 ])
-def test_parse_errors_name_the_flag_and_the_form(tmp_path, capsys, flag, value, form):
-    args = ["export", "--out", str(tmp_path / "o"), "--num", "1", *SMALL, flag, value]
+def test_parse_errors_name_the_flag_and_the_form(tmp_path, capsys, flag, value, form, small_flags):
+    args = ["export", "--out", str(tmp_path / "o"), "--num", "1", *small_flags, flag, value]
     assert main(args) == 2
     err = capsys.readouterr().err
     assert f"argument {flag}: {form}" in err and repr(value) in err, err
@@ -84,9 +82,9 @@ def test_exit_codes_documented_in_docstring_help_and_readme(capsys):
         assert re.search(rf"\b{code}\b", readme_codes[:1200]), code
 
 
-def test_closing_summary_is_singular_and_says_how_to_load(tmp_path, capsys):
+def test_closing_summary_is_singular_and_says_how_to_load(tmp_path, capsys, small_flags):
     assert main(["export", "--out", str(tmp_path / "one"), "--num", "1", "--no-progress", "--outputs", "depth",
-                 *SMALL]) == 0
+                 *small_flags]) == 0
     out = capsys.readouterr().out
     assert "exported 1 sample to " in out and "1 samples" not in out
     assert "layout native" in out and re.search(r" in \d+\.\d s", out)
@@ -129,10 +127,10 @@ def test_readme_preview_shows_the_current_defaults():
     assert _png_config(REPO / "docs" / "preview.png") == json.loads(json.dumps(fs.BouncingThingsConfig().to_dict()))
 
 
-def test_preview_script_writes_the_config_it_used(tmp_path):
+def test_preview_script_writes_the_config_it_used(tmp_path, small_flags):
     out = tmp_path / "p.png"
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    r = subprocess.run([sys.executable, str(REPO / "scripts" / "make_preview.py"), "--out", str(out), *SMALL],
+    r = subprocess.run([sys.executable, str(REPO / "scripts" / "make_preview.py"), "--out", str(out), *small_flags],
                        capture_output=True, text=True, cwd=tmp_path, env=env)
     assert r.returncode == 0, r.stderr
     cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
@@ -140,14 +138,14 @@ def test_preview_script_writes_the_config_it_used(tmp_path):
     assert _png_config(out) == json.loads(json.dumps(cfg.to_dict()))
 
 
-def test_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch):
+def test_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch, small_flags):
     import flowsynth.export
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(flowsynth.export, "export", interrupted)
-    assert main(["export", "--out", str(tmp_path / "o"), "--num", "1", *SMALL]) == 130
+    assert main(["export", "--out", str(tmp_path / "o"), "--num", "1", *small_flags]) == 130
     assert "re-run the same command to resume" in capsys.readouterr().err
 
 

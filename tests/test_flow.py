@@ -16,6 +16,7 @@ from oracle import (
     pair_truth,
     plane_homography,
     pose,
+    quad,
     rigid_inverse,
 )
 
@@ -32,12 +33,6 @@ def make_scene(cam, world_T_cam, objects):
     for mesh, poses in objects:
         scene.add_object(mesh, poses=poses)
     return scene
-
-
-def quad(half: float) -> trimesh.Trimesh:
-    """Two-triangle square in the object plane z = 0, side 2 * half [m]."""
-    V = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])
-    return trimesh.Trimesh(V, np.array([[0, 1, 2], [0, 2, 3]]), process=False)
 
 
 def epe(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -9,7 +9,17 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from oracle import apply, cast_frame, homography_flow, pair_truth, plane_homography, pose, rigid_inverse, silhouette
+from oracle import (
+    apply,
+    cast_frame,
+    homography_flow,
+    pair_truth,
+    plane_homography,
+    pose,
+    quad,
+    rigid_inverse,
+    silhouette,
+)
 from torch.utils.data import default_collate
 
 import flowsynth as fs
@@ -17,11 +27,6 @@ from flowsynth.cli import main
 from flowsynth.sampleio import read_sample, write_sample
 
 W, H = 64, 48
-
-
-def quad(half: float) -> trimesh.Trimesh:
-    V = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])
-    return trimesh.Trimesh(V, np.array([[0, 1, 2], [0, 2, 3]]), process=False)
 
 
 def plane_clip(T: int, offset: float = 0.0):

@@ -1,16 +1,16 @@
 """``--layout flyingchairs`` read by torchvision.datasets.FlyingChairs and OpenCV's .flo reader."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
 import tvision
 
-import flowsynth as fs
 from flowsynth.cli import main
 from flowsynth.datasets import BouncingThings
 from flowsynth.export import export
 
-SMALL = dict(width=32, height=24, motion="kinematic", num_objects=(2, 3), max_objects=4)
 
 
 def check_pairs(ds, stream, pairs_per_sample, indices):
@@ -26,24 +26,23 @@ def check_pairs(ds, stream, pairs_per_sample, indices):
 
 
 @pytest.mark.parametrize("num", [1, 3])
-def test_torchvision_reads_any_num(tmp_path, num, capsys):
+def test_torchvision_reads_any_num(tmp_path, num, capsys, small_config, small_flags):
     """--num 1 used to write a one-line split file, which np.loadtxt turns into an unindexable 0-d array."""
     assert main(["export", "--out", str(tmp_path), "--num", str(num), "--layout", "flyingchairs", "--no-progress",
-                 "--width", "32", "--height", "24", "--num-frames", "2", "--motion", "kinematic",
-                 "--num-objects", "2,3", "--max-objects", "4"]) == 0
+                 *small_flags]) == 0
     assert f"torchvision.datasets.FlyingChairs(root='{tmp_path}')" in capsys.readouterr().out
     ds = tvision.datasets().FlyingChairs(root=tmp_path, split="train")
     assert len(ds) == num and len(tvision.datasets().FlyingChairs(root=tmp_path, split="val")) == 0
-    stream = BouncingThings(fs.BouncingThingsConfig(num_frames=2, **SMALL), outputs=["rgb", "flow_fw"])
+    stream = BouncingThings(small_config, outputs=["rgb", "flow_fw"])
     check_pairs(ds, stream, 1, range(num))
     for i, flo in enumerate(sorted((tmp_path / "FlyingChairs" / "data").glob("*.flo"))):
         np.testing.assert_array_equal(cv2.readOpticalFlow(str(flo)).transpose(2, 0, 1),
                                       stream.sample(i)["flow_fw"][0].numpy())
 
 
-def test_every_frame_pair_is_a_sample(tmp_path):
+def test_every_frame_pair_is_a_sample(tmp_path, small_config):
     """num_frames 6 and 2 samples: 10 pairs, the 10th in the val split, nothing dropped."""
-    cfg = fs.BouncingThingsConfig(num_frames=6, **SMALL)
+    cfg = dataclasses.replace(small_config, num_frames=6)
     export(cfg, tmp_path, 2, layout="flyingchairs", progress=False)
     assert len(list((tmp_path / "FlyingChairs" / "data").glob("*_flow.flo"))) == 10
     train = tvision.datasets().FlyingChairs(root=tmp_path, split="train")

@@ -1,6 +1,8 @@
 """``--layout flyingthings3d`` (FlyingThings3D "subset" tree) read back by OpenCV, an independent PFM/.flo/PNG
 reader: disparity, disparity change and flow exact to float32, masks exact, images to 8 bits."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -9,12 +11,11 @@ import flowsynth as fs
 from flowsynth.datasets import BouncingThings, Exported
 from flowsynth.export import export
 
-CFG = fs.BouncingThingsConfig(width=48, height=32, num_frames=3, motion="kinematic", num_objects=(3, 4),
-                              max_objects=4, min_speed=2.0, max_speed=3.0, stereo_baseline=0.25)
 ROOT = "FlyingThings3D_subset/train"
 
 
-def test_opencv_reads_export(tmp_path):
+def test_opencv_reads_export(tmp_path, layout_config):
+    CFG = dataclasses.replace(layout_config, stereo_baseline=0.25)
     export(CFG, tmp_path, 2, layout="flyingthings3d", progress=False)
     stream = BouncingThings(CFG, outputs=list(fs.io.layouts.get("flyingthings3d").default_outputs))
     T = CFG.num_frames

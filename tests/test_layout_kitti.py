@@ -5,21 +5,18 @@ import numpy as np
 import torch
 import tvision
 
-import flowsynth as fs
 from flowsynth.datasets import BouncingThings, Exported
 from flowsynth.export import export
 from flowsynth.io import layouts
 
-CFG = fs.BouncingThingsConfig(width=48, height=32, num_frames=3, motion="kinematic", num_objects=(3, 4),
-                              max_objects=4, min_speed=2.0, max_speed=3.0)
 HALF_STEP = 0.5 / 64  # the writer rounds to the nearest 1/64 px
 
 
-def test_torchvision_reads_export(tmp_path):
-    export(CFG, tmp_path, 2, layout="kitti", progress=False)
+def test_torchvision_reads_export(tmp_path, layout_config):
+    export(layout_config, tmp_path, 2, layout="kitti", progress=False)
     ds = tvision.datasets().KittiFlow(root=tmp_path, split="train")
     assert len(ds) == 4  # 2 samples x 2 frame pairs
-    stream = BouncingThings(CFG, outputs=["rgb", "flow_fw", "valid_fw", "occ_fw"])
+    stream = BouncingThings(layout_config, outputs=["rgb", "flow_fw", "valid_fw", "occ_fw"])
     occluded = 0
     for k in range(4):
         img1, img2, flow, valid = ds[k]

@@ -6,9 +6,11 @@ is atomic (:mod:`flowsynth.io.atomic`): a crash never leaves a partial file unde
 - ``exr``: ``.exr`` named float32 channels (depth, flow, normals, ...); lossless, bit-exact.
 - ``flo``: Middlebury ``.flo`` flow (2, H, W); bit-exact float32.
 - ``kitti``: KITTI 16-bit flow PNG with valid mask; 1/64 px steps, range [-512, 512) px.
+- ``pfm``: PFM float maps (FlyingThings3D's disparity and disparity change); bit-exact float32.
 - ``png``: 8-bit RGB PNG and PPM; 16-bit greyscale PNG for ids and masks, exact up to 65535; 8-bit
   0 / 255 mask PNG (Sintel's occlusions).
-- ``layouts``: export layouts (native, flyingchairs, kitti, sintel) as plug-ins, found by name.
+- ``layouts``: export layouts (native, flyingchairs, kitti, sintel, flyingthings3d, webdataset) as
+  plug-ins, found by name (``flowsynth.io.layouts``; README, Export, lists each one's tree).
 - ``jsonio``: JSON metadata and COCO-style boxes; finite numbers only.
 """
 

@@ -1,0 +1,59 @@
+"""Shared test set-up: the hypothesis profile, and the small scenes most tests render.
+
+Fixtures (use them instead of copying the values into a new test file):
+
+- ``small_flags``: CLI flags of a 32x24, 2-frame, kinematic scene of 2-3 objects
+  (``main(["export", ..., *small_flags])``).
+- ``small_config``: the same scene as a ``BouncingThingsConfig``; ``dataclasses.replace(small_config, num_frames=6)``
+  for a variant.
+- ``layout_config``: 48x32, 3 frames, 3-4 objects moving 2-3 m/s: enough motion for the export layouts' tests.
+
+Geometry helpers (poses, rotations, a quad mesh, brute-force flow) are plain functions in ``tests/oracle.py``.
+
+Hypothesis runs derandomized by default (profile ``ci``: every run tries the same examples, so a failure
+reproduces, and hypothesis then keeps no example database). ``HYPOTHESIS_PROFILE=dev`` turns the randomness back on
+for a local search for new counterexamples, with the database that replays them under the repository's ignored
+``.cache/hypothesis``, as scripts/test.sh says of every cache (never ``.hypothesis/`` in the working directory).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from hypothesis import settings
+from hypothesis.database import DirectoryBasedExampleDatabase
+
+import flowsynth as fs
+
+ROOT = Path(__file__).resolve().parents[1]
+_DATABASE = DirectoryBasedExampleDatabase(str(ROOT / ".cache" / "hypothesis"))
+
+# deadline None: a derandomized example must not fail because a shared 2-core machine ran it slowly
+settings.register_profile("ci", derandomize=True, database=None, deadline=None)
+settings.register_profile("dev", derandomize=False, database=_DATABASE, deadline=None)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+SMALL_FLAGS = ("--width", "32", "--height", "24", "--num-frames", "2", "--motion", "kinematic",
+               "--num-objects", "2,3", "--max-objects", "4")
+
+
+@pytest.fixture
+def small_flags() -> list[str]:
+    """CLI flags of the small scene (a fresh list: a test may extend it)."""
+    return list(SMALL_FLAGS)
+
+
+@pytest.fixture
+def small_config() -> fs.BouncingThingsConfig:
+    """The small scene of ``small_flags`` as a config: 32x24, 2 frames, kinematic, 2-3 objects (at most 4)."""
+    return fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
+                                   max_objects=4)
+
+
+@pytest.fixture
+def layout_config() -> fs.BouncingThingsConfig:
+    """48x32, 3 frames, kinematic, 3-4 objects at 2-3 m/s: the export layouts' round-trip scene."""
+    return fs.BouncingThingsConfig(width=48, height=32, num_frames=3, motion="kinematic", num_objects=(3, 4),
+                                   max_objects=4, min_speed=2.0, max_speed=3.0)
