@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Run the test suite as a clean machine would: a fresh, empty TMPDIR and HOME for this run, and every
-# cache (Warp kernels, XDG, matplotlib, hypothesis) in the repository's ignored .cache/ folder, never
-# under HOME. Arguments go to pytest. Run scripts/setup.sh first (the README's test command does).
+# cache (Warp kernels, XDG, matplotlib) in the repository's ignored .cache/ folder, never under HOME.
+# Hypothesis runs derandomized and keeps no example database; HYPOTHESIS_PROFILE=dev keeps one in
+# .cache/hypothesis (tests/conftest.py). Arguments go to pytest. Run scripts/setup.sh first (the README's
+# test command does).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
