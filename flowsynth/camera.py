@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from flowsynth._checks import as_float64_array
+from flowsynth.caches import register
 from flowsynth.errors import ConfigError
 
 __all__ = ["LENS_MODELS", "LENS_UNSUPPORTED", "NEWTON_TOL", "Camera", "check_lens_outputs"]
@@ -227,6 +228,7 @@ def _bc_radial(k: np.ndarray, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return N, D, g
 
 
+@register("camera.lens_limit")
 @functools.lru_cache(maxsize=64)
 def lens_limit(model: str, dist: tuple) -> float:
     """The domain's bound: Brown-Conrady the largest r2 = a^2 + b^2 (the first fold of r q(r) or zero of its
@@ -372,6 +374,7 @@ def _kb_theta(k: np.ndarray, rd: np.ndarray, limit: float) -> np.ndarray:
     return th
 
 
+@register("camera.pixel_rays")
 @functools.lru_cache(maxsize=16)
 def _pixel_rays(K_bytes: bytes, width: int, height: int) -> np.ndarray:
     """(H, W, 3) float64 unit directions K^-1 (u, v, 1) / |.|, cached per intrinsics and size (read-only)."""
@@ -383,6 +386,7 @@ def _pixel_rays(K_bytes: bytes, width: int, height: int) -> np.ndarray:
     return d
 
 
+@register("camera.lens_rays")
 @functools.lru_cache(maxsize=16)
 def _lens_rays(K_bytes: bytes, width: int, height: int, model: str, dist: tuple) -> np.ndarray:
     """(H, W, 3) float64 unit rays through the pixel centres of a lens model, 0 where uncovered (read-only)."""
