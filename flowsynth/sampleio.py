@@ -6,7 +6,7 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 
 | key                                   | file                    | format                              |
 |---------------------------------------|-------------------------|-------------------------------------|
-| rgb, rgb_right                        | KEY_TTTT.png            | 8-bit sRGB PNG                      |
+| rgb, rgb_right, rgb_final             | KEY_TTTT.png            | 8-bit sRGB PNG                      |
 | depth, distance, normals, position    | KEY_TTTT.exr            | float32 EXR (channels: io.exr)      |
 | depth_right                           | KEY_TTTT.exr            | float32 EXR, channel Z              |
 | disparity, disparity_right,           | KEY_TTTT.exr            | float32 EXR, channel disparity      |
@@ -69,7 +69,7 @@ _EXR = {"depth": "depth", "distance": "distance", "normals": "normals", "positio
         "flow_fw": "flow", "flow_bw": "flow", "scene_flow_fw": "scene_flow", "scene_flow_bw": "scene_flow",
         "depth_right": "depth", "disparity": "disparity", "disparity_right": "disparity",
         "disparity_change": "disparity"}
-_RGB = ("rgb", "rgb_right")
+_RGB = ("rgb", "rgb_right", "rgb_final")
 _U16 = (("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.startswith("flow_"))
         + ("disparity_occ", "disparity_occ_right"))
 # Keys stored as JSON arrays in meta.json: cameras, object tables, and the sample's index and seed.
