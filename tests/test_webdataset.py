@@ -63,12 +63,13 @@ def _exr_channels(data: bytes, tmp: Path) -> dict[str, np.ndarray]:
 
 def _decode_member(suffix: str, value, tmp: Path):
     """(output key, frame or None, numpy array or str) of one member, decoded with numpy / Pillow / OpenEXR.
-    ``value`` is the member's bytes, or what Ray's default decoder made of it (PNG, npy: arrays; json: dict)."""
+    ``value`` is the member's bytes, or what Ray's default decoder made of it (PNG, npy: arrays, a 0-d npy a
+    Python scalar; json: dict)."""
     from PIL import Image
 
     name, ext = suffix.rsplit(".", 1)
     if ext == "npy":
-        return name, None, value if isinstance(value, np.ndarray) else np.load(io.BytesIO(value))
+        return name, None, np.load(io.BytesIO(value)) if isinstance(value, bytes) else np.asarray(value)
     if ext == "json":
         return "provenance", None, value if isinstance(value, dict) else json.loads(value)
     key, t = name.rsplit("_", 1)

@@ -7,7 +7,8 @@ layout with :func:`register`; adding a layout is adding one module (and its test
 - ``flyingchairs``: ``FlyingChairs/data/NNNNN_img1.ppm`` ... for ``torchvision.datasets.FlyingChairs``;
 - ``kitti``: ``KittiFlow/training/image_2`` + ``flow_occ`` for ``torchvision.datasets.KittiFlow``;
 - ``sintel``: ``Sintel/training/clean`` + ``flow`` + ``occlusions`` for ``torchvision.datasets.Sintel``;
-- ``flyingthings3d``: FlyingThings3D's "subset" tree, stereo (PFM disparity, disparity change) + flow.
+- ``flyingthings3d``: FlyingThings3D's "subset" tree, stereo (PFM disparity, disparity change) + flow;
+- ``webdataset``: tar shards ``shard-NNNNNN.tar`` of many samples each, for ``webdataset`` and Ray Data.
 """
 
 from __future__ import annotations

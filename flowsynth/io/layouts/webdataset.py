@@ -97,8 +97,8 @@ class WebDataset(Layout):
     """
 
     name = "webdataset"
-    summary = ("tar shards shard-NNNNNN.tar of --shard-size samples, files keyed %08d (images as native, "
-               "tensors .npy); webdataset.WebDataset, ray.data.read_webdataset, flowsynth.datasets.Shards")
+    summary = ("tar shards shard-NNNNNN.tar of --shard-size samples, files keyed by the 8-digit index (images "
+               "as native, tensors .npy); flowsynth.datasets.Shards, webdataset.WebDataset, ray.data.read_webdataset")
     default_outputs = Native.default_outputs
 
     def __init__(self, *, shard_size: int = DEFAULT_SHARD_SIZE, exr_compression: str = "zip") -> None:
