@@ -95,6 +95,9 @@ MIDDLEBURY = ("Dimetrodon", "Grove2", "Urban2", "Venus")  # the pairs looked for
 TRAIN_PHOTOS = ("hubble_deep_field", "retina", "moon", "cell", "clock", "microaneurysms", "page", "text")
 # pixels the training loss covers (--mask): flow defined (every pixel of chairs2d), or seen in both frames
 MASKS = ("valid", "visible")
+# the frames the flowsynth arm trains on (--pass): the clean render, the final pass (blur, depth of field, noise,
+# exposure and white balance; docs/rendering.md), or each pair one of the two
+PASSES = ("clean", "final", "mix")
 PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "immunohistochemistry", "camera", "coins", "grass",
           "gravel", "brick")
 
@@ -210,12 +213,15 @@ def multiscale_loss(preds, flow, valid):
 
 # -- data ---------------------------------------------------------------------------------------------------
 def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float] | None = None,
-                    overrides: dict | None = None):
-    """n flowsynth pairs: (img1, img2, flow, valid, visible) tensors (n, C, H, W), and the config used. ``valid``
-    is ``valid_fw`` (occluded and out-of-frame pixels included), ``visible`` is ``valid_fw & ~occ_fw`` (as
-    ``FlowPairs(mask="visible")``); a net trains on (img1, img2, flow, one of the two). ``flow_px``: another
+                    overrides: dict | None = None, render_pass: str = "clean"):
+    """n flowsynth pairs: (img1, img2, flow, valid, visible, clean1) tensors (n, C, H, W), and the config used.
+    ``valid`` is ``valid_fw`` (occluded and out-of-frame pixels included), ``visible`` is ``valid_fw & ~occ_fw``
+    (as ``FlowPairs(mask="visible")``); a net trains on (img1, img2, flow, one of the two). ``flow_px``: another
     ``BouncingThingsConfig.flow_px`` at the 512x384 scale than the default's (to try a candidate default);
-    ``overrides``: other config fields of a candidate default (``--set``), resolution-free ones only."""
+    ``overrides``: other config fields of a candidate default (``--set``), resolution-free ones only.
+    ``render_pass`` (PASSES): the frames are ``rgb`` ("clean"), ``rgb_final`` ("final"), or per pair one of the two
+    with equal chance ("mix", drawn from ``seed``); ``clean1`` is always the clean first frame (the baseline's
+    textures)."""
     import torch
     from torch.utils.data import DataLoader
 
@@ -224,13 +230,20 @@ def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float
     base = fs.BouncingThingsConfig.from_dict(overrides or {})
     cfg = dataclasses.replace(base, width=W, height=H, num_frames=2,
                               flow_px=tuple(x / SCALE for x in (flow_px or base.flow_px)))
-    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw", "occ_fw"], seed=seed, length=n)
+    outputs = ["rgb", "flow_fw", "valid_fw", "occ_fw"] + (["rgb_final"] if render_pass != "clean" else [])
+    ds = fs.datasets.BouncingThings(cfg, outputs=outputs, seed=seed, length=n)
     batches = list(DataLoader(ds, batch_size=16, num_workers=workers))
     rgb = torch.cat([b["rgb"] for b in batches])
+    frames = rgb
+    if render_pass != "clean":
+        final = torch.cat([b["rgb_final"] for b in batches])
+        pick = (torch.ones(len(rgb), dtype=torch.bool) if render_pass == "final" else
+                torch.rand(len(rgb), generator=torch.Generator().manual_seed(40_000 + seed)) < 0.5)
+        frames = torch.where(pick[:, None, None, None, None], final, rgb)
     valid = torch.cat([b["valid_fw"][:, 0] for b in batches])
     visible = valid & ~torch.cat([b["occ_fw"][:, 0] for b in batches])
-    return (rgb[:, 0], rgb[:, 1], torch.cat([b["flow_fw"][:, 0] for b in batches]), valid.float(),
-            visible.float()), cfg
+    return (frames[:, 0], frames[:, 1], torch.cat([b["flow_fw"][:, 0] for b in batches]), valid.float(),
+            visible.float(), rgb[:, 0]), cfg
 
 
 def _affine(rng, shift_px: float, rot: float, zoom: float):
@@ -582,7 +595,9 @@ def final_ratios(runs: list, arm: str = "flowsynth", against: str = "chairs2d") 
             for kind in test_keys(runs)}
 
 
-PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "net", "flowsynth_config")
+PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "net", "flowsynth_config", "render_pass")
+# what a file written before a PROTOCOL field existed ran under
+PROTOCOL_BEFORE = {"net": "random-v1", "render_pass": "clean"}
 
 
 def same_protocol(a: dict, b: dict) -> bool:
@@ -615,7 +630,7 @@ def summarize(mask: str, pattern: str = "learning*.json", arm: str = "flowsynth"
         d = json.loads(f.read_text())
         if d.get("mask", "valid") != mask or any(x not in d["runs"][0]["results"] for x in (arm, against)):
             continue
-        proto = {k: d.get(k, "random-v1" if k == "net" else None) for k in PROTOCOL}
+        proto = {k: d.get(k, PROTOCOL_BEFORE.get(k)) for k in PROTOCOL}
         if protocol is None:
             protocol = proto
         elif not same_protocol(proto, protocol):
@@ -697,6 +712,9 @@ def main() -> None:
                    help="also train chairs2d_photos (the baseline textured with scikit-image photographs that no "
                         "test uses, TRAIN_PHOTOS) and flowsynth_photos (the flowsynth config with those photographs "
                         "in texture_dir and 'image' among its texture families): four nets a seed")
+    p.add_argument("--pass", dest="render_pass", choices=PASSES, default="clean",
+                   help="frames the flowsynth arm trains on: 'clean' (rgb), 'final' (rgb_final) or 'mix' (each pair "
+                        "one of the two); the baseline keeps clean flowsynth frames as textures; use with --tag")
     p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm (default flowsynth)")
     p.add_argument("--against", default="chairs2d", help="--summarize: the denominator arm (default chairs2d)")
     p.add_argument("--summarize", action="store_true",
@@ -736,6 +754,7 @@ def main() -> None:
             "complete": end_load is not None, "seeds_planned": seeds,
             "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
             "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
+            "render_pass": args.render_pass,
             "photos": list(PHOTOS), "net": NET, "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
             "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
@@ -751,11 +770,11 @@ def main() -> None:
             p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8] or motion=\"kinematic\"")
     for seed in seeds:
         t = time.perf_counter()
-        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px, overrides)
+        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px, overrides, args.render_pass)
         gen_s = time.perf_counter() - t
         fs_valid = tuple(x[:pool] for x in synth[:4])
-        fs_train = fs_valid if args.mask == "valid" else tuple(x[:pool] for x in synth[:3] + synth[4:])
-        sources = synth[0][pool:]  # textures from flowsynth frames not trained on
+        fs_train = fs_valid if args.mask == "valid" else tuple(x[:pool] for x in synth[:3] + synth[4:5])
+        sources = synth[5][pool:]  # textures from (clean) flowsynth frames not trained on
         pilot = chairs2d_pairs(64, seed + 1, sources)
         motion_scale = mean_flow(fs_valid) / mean_flow(pilot)  # same mean |flow| as the flowsynth pool
         chairs = chairs2d_pairs(pool, seed, sources, motion_scale, visible=args.mask == "visible")
@@ -764,8 +783,9 @@ def main() -> None:
             photo_dir = photo_folder()
             synth_p, _ = flowsynth_pairs(pool, seed, args.workers, args.flow_px, {
                 **overrides, "texture_dir": str(photo_dir),
-                "texture_families": list(overrides.get("texture_families", base_families())) + ["image"]})
-            arms.append(tuple(x[:pool] for x in (synth_p[:4] if args.mask == "valid" else synth_p[:3] + synth_p[4:])))
+                "texture_families": list(overrides.get("texture_families", base_families())) + ["image"]},
+                args.render_pass)
+            arms.append(tuple(x[:pool] for x in (synth_p[:4] if args.mask == "valid" else synth_p[:3] + synth_p[4:5])))
             del synth_p
             arms.append(chairs2d_pairs(pool, seed, photo_sources(pool // 2, seed), motion_scale,
                                        visible=args.mask == "visible"))
