@@ -233,12 +233,16 @@ class SceneAccel:
                     keep = ~self._flat[local]  # (F, N): the same instances are flat in every frame
                     order = order[keep].reshape(self.F, -1)
                 kb = key[:3] + key[4:]
-                if kb not in self._bounds:
-                    # a lens model's rays are not the pinhole's: every instance in every tile
-                    self._bounds[kb] = (_screen_bounds(self._meshes, self._cam_T_obj, camera.K) if camera.is_pinhole
-                                        else np.tile([-np.inf, np.inf, -np.inf, np.inf], (self.F, self.N, 1)))
-                bounds = self._bounds[kb]
-                start, items, tx, ty = _tile_lists(bounds, order, camera.width, camera.height, TILE)
+                if camera.is_pinhole:
+                    if kb not in self._bounds:
+                        self._bounds[kb] = _screen_bounds(self._meshes, self._cam_T_obj, camera.K)
+                    start, items, tx, ty = _tile_lists(self._bounds[kb], order, camera.width, camera.height, TILE)
+                else:  # a lens model: rays' normalised coordinates per tile against the hulls' (_lens_tile_mask)
+                    if kb not in self._bounds:
+                        self._bounds[kb] = _screen_bounds(self._meshes, self._cam_T_obj, np.eye(3))
+                    mask = _lens_tile_mask(self._bounds[kb], order, camera, TILE)
+                    start, items = _csr_lists(mask, order)
+                    ty, tx = mask.shape[2:]
             t = TileLists()
             t.start = wp.array(start, dtype=wp.int32, device=self.device)
             t.items = wp.array(items if len(items) else np.zeros(1, np.int32), dtype=wp.int32, device=self.device)
@@ -470,12 +474,93 @@ def _tile_lists(bounds: np.ndarray, order: np.ndarray, W: int, H: int,
     ti = np.arange(ty)[None, None, :, None]
     tj = np.arange(tx)[None, None, None, :]
     mask = (ti >= i0) & (ti <= i1) & (tj >= j0) & (tj <= j1) & ~offscreen  # (F, N near to far, ty, tx)
+    start, items = _csr_lists(mask, order)
+    return start, items, tx, ty
+
+
+def _csr_lists(mask: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR lists (start, items) of ``mask`` (F, N near to far, ty, tx): per (frame, tile) row-major, the global
+    item indices ``order`` (F, N) of the instances it holds, near to far."""
+    F, _, ty, tx = mask.shape
     f, y, x, k = np.nonzero(mask.transpose(0, 2, 3, 1))  # row-major: near to far within each tile
     items = order[f, k].astype(np.int32)
     counts = np.bincount((f * ty + y) * tx + x, minlength=F * ty * tx)
     start = np.zeros(F * ty * tx + 1, np.int32)
     start[1:] = np.cumsum(counts)
-    return start, items, tx, ty
+    return start, items
+
+
+# Lens cameras: candidate lists from the rays' normalised coordinates (``_lens_tile_mask``); False gives every
+# instance to every tile (the brute-force lists tests/test_lens.py compares against).
+LENS_TILE_BOUNDS = True
+# Rings of pixel centres around a tile whose rays bound its box (``_lens_tile_mask``): one for the shading
+# kernel's sub-pixel stencils, one for visibility rays that land within half a pixel of a centre.
+LENS_TILE_RING = 2
+
+
+def _lens_tile_mask(nbounds: np.ndarray, order: np.ndarray, camera, tile: int) -> np.ndarray:
+    """(F, N' near to far, ty, tx) bool: instance ``order[f, k]`` may be hit by a ray of tile (y, x) of a lens
+    camera.
+
+    A ray from the camera centre that hits an instance has its normalised coordinates (a, b) = (x / z, y / z) in
+    the box ``nbounds`` (F, N, 4) of the instance's clipped hull (``_screen_bounds`` with K = I: a pinhole of unit
+    focal length, exact for any ray with z > 0). A tile's box bounds (a, b) of the covered rays of its pixel
+    centres and of ``LENS_TILE_RING`` rings around them (``Camera.ray_grid``), padded by the largest step of (a, b)
+    between adjacent centres there: the rays the kernels cast for a tile are the pixel centres' (the primary
+    cast: inside by construction), convex combinations of four neighbouring centres' rays (the shading kernel's
+    sub-pixel samples: a bilinear blend of rays keeps (a, b) in the convex hull of theirs) and rays through
+    points within half a pixel of a centre (the pair kernel's visibility rays: the image of a pixel cell bows out
+    of its corners' box by far less than one step unless the lens folds there). A tile whose rings hold both
+    covered and uncovered centres (the edge of the lens's image, where the unprojection's slope is unbounded)
+    gets every instance; one that holds only uncovered centres gets none (no ray there hits anything)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    F, N = nbounds.shape[:2]
+    H, W = camera.height, camera.width
+    p = LENS_TILE_RING
+    R = camera.ray_grid(p)
+    cov = R[..., 2] > 0
+    z = np.where(cov, R[..., 2], 1.0)
+    ab = [np.where(cov, R[..., c] / z, np.nan) for c in (0, 1)]
+    step = np.zeros(cov.shape)
+    for c in (0, 1):
+        for axis in (0, 1):
+            d = np.abs(np.diff(ab[c], axis=axis))
+            d = np.where(np.isnan(d), 0.0, d)
+            lo = [slice(None), slice(None)]
+            lo[axis] = slice(0, -1)
+            step[tuple(lo)] = np.maximum(step[tuple(lo)], d)
+            hi = [slice(None), slice(None)]
+            hi[axis] = slice(1, None)
+            step[tuple(hi)] = np.maximum(step[tuple(hi)], d)
+    size = 2 * p + 1
+    ty, tx = -(-H // tile), -(-W // tile)
+
+    def blocks(x: np.ndarray, fill: float, reduce) -> np.ndarray:
+        """(ty, tx) ``reduce`` over each tile of (H, W) ``x`` (the image padded to whole tiles with ``fill``)."""
+        full = np.full((ty * tile, tx * tile), fill)
+        full[:H, :W] = x
+        return reduce(reduce(full.reshape(ty, tile, tx, tile), axis=3), axis=1)
+
+    inner = (slice(p, p + H), slice(p, p + W))
+    box = []
+    for c in (0, 1):
+        box.append(blocks(minimum_filter(np.where(cov, ab[c], np.inf), size, mode="nearest")[inner], np.inf, np.min))
+        box.append(blocks(maximum_filter(np.where(cov, ab[c], -np.inf), size, mode="nearest")[inner], -np.inf,
+                          np.max))
+    pad = blocks(maximum_filter(step, size, mode="nearest")[inner], 0.0, np.max)
+    some = blocks(maximum_filter(cov, size, mode="nearest")[inner], False, np.max)
+    edge = some & blocks(maximum_filter(~cov, size, mode="nearest")[inner], False, np.max)
+    a0, a1, b0, b1 = box[0] - pad, box[1] + pad, box[2] - pad, box[3] + pad
+    a0, b0 = np.where(edge, -np.inf, a0), np.where(edge, -np.inf, b0)
+    a1, b1 = np.where(edge, np.inf, a1), np.where(edge, np.inf, b1)
+    if not LENS_TILE_BOUNDS:
+        a0, b0, a1, b1 = (np.full((ty, tx), v) for v in (-np.inf, -np.inf, np.inf, np.inf))
+        some = np.ones((ty, tx), bool)
+    local = order - (np.arange(F) * N)[:, None]
+    nb = np.take_along_axis(nbounds, local[..., None], axis=1)[..., None, None, :]  # (F, N', 1, 1, 4)
+    seen = ~np.isnan(nb[..., 0])
+    return (seen & some & (nb[..., 0] <= a1) & (nb[..., 1] >= a0) & (nb[..., 2] <= b1) & (nb[..., 3] >= b0))
 
 
 def _rigid_inverse(T: np.ndarray) -> np.ndarray:
@@ -498,8 +583,9 @@ def _group_roots(bvh, F: int, device: str):
     return roots
 
 
-def pinhole(camera, device: str = "cpu"):
-    """The kernels' ``Pinhole`` struct of a camera's K (and a lens model's per-pixel rays, on ``device``)."""
+def pinhole(camera, device: str = "cpu", pad: int = 0):
+    """The kernels' ``Pinhole`` struct of a camera's K (and a lens model's per-pixel rays, on ``device``; with
+    ``pad`` > 0 those of ``Camera.ray_grid(pad)``, rows and columns -pad .. H - 1 + pad, for the shading kernel)."""
     from flowsynth.kernels.raycast import Pinhole
 
     wp = wp_runtime()
@@ -508,7 +594,7 @@ def pinhole(camera, device: str = "cpu"):
     p.intr = wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     p.skew = float(K[0, 1])
     if not camera.is_pinhole:  # a lens model's rays; uncovered pixels get (0, 0, -1): no hit
-        rays = camera.pixel_rays_numpy().astype(np.float32)
+        rays = camera.ray_grid(pad).astype(np.float32)
         rays[rays[..., 2] <= 0] = (0.0, 0.0, -1.0)
         p.rays = wp.array(rays, dtype=wp.vec3, device=device)
     return p

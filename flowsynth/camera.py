@@ -1,4 +1,4 @@
-"""Camera with OpenCV intrinsics and an optional lens model (OpenCV's conventions, kornia's implementations).
+"""Camera with OpenCV intrinsics and an optional lens model (OpenCV's conventions; kornia's equations).
 
 Conventions (see docs/conventions.md): camera frame x right, y down, z forward. The centre of pixel
 (row i, col j) has image coordinates (u, v) = (j, i). A camera point X = (x, y, z), z > 0, with normalised
@@ -125,6 +125,15 @@ class Camera:
             return _pixel_rays(self._K.tobytes(), self.width, self.height)
         return _lens_rays(self._K.tobytes(), self.width, self.height, self.model, self.dist)
 
+    def ray_grid(self, pad: int = 2) -> np.ndarray:
+        """Read-only cached (H + 2 pad, W + 2 pad, 3) float64 unit rays through the pixel centres of rows -pad ..
+        H - 1 + pad and columns -pad .. W - 1 + pad (``pixel_rays_numpy`` inside, bit for bit; the ring outside
+        through ``unproject`` too), 0 where uncovered: the stencils of shading's sub-pixel rays and the lens tile
+        bounds of ``flowsynth.accel`` (one ring each)."""
+        if pad == 0:
+            return self.pixel_rays_numpy()
+        return _ray_grid(self._K.tobytes(), self.width, self.height, self.model, self.dist, int(pad))
+
     @property
     def covered(self) -> np.ndarray:
         """(H, W) bool: the pixel centre has a ray (always True for a pinhole)."""
@@ -166,19 +175,19 @@ class Camera:
                 f"cx={self.cx:.4g}, cy={self.cy:.4g}{lens})")
 
 
-# Outputs not yet rendered through a lens model: shading's anti-aliasing and motion-blur rays, and stereo (a
-# distorted pair is not rectified: "disparity" along rows has no meaning there).
-LENS_UNSUPPORTED = ("rgb", "rgb_final", "rgb_right", "depth_right", "disparity", "disparity_right",
-                    "disparity_change", "disparity_occ", "disparity_occ_right")
+# Outputs a lens camera does not give: stereo (a distorted pair is not rectified: "disparity" along rows has no
+# meaning there). RGB (rgb, rgb_final) is shaded through the model (flowsynth/kernels/shade.py).
+LENS_UNSUPPORTED = ("rgb_right", "depth_right", "disparity", "disparity_right", "disparity_change", "disparity_occ",
+                    "disparity_occ_right")
 
 
 def check_lens_outputs(camera: Camera, outputs) -> None:
-    """ConfigError when a lens camera is asked for an output not rendered through lens models yet."""
+    """ConfigError when a lens camera is asked for an output it does not give (``LENS_UNSUPPORTED``)."""
     bad = [k for k in outputs if k in LENS_UNSUPPORTED]
     if bad and not camera.is_pinhole:
-        raise ConfigError(f"outputs {bad} are not available with a {camera.model} camera: RGB is not yet shaded "
-                          "through lens models, and stereo disparity is defined for a rectified pinhole pair only "
-                          "(a distorted pair's epipolar lines are curves); use model='pinhole' or drop them")
+        raise ConfigError(f"outputs {bad} are not available with a {camera.model} camera: stereo disparity is "
+                          "defined for a rectified pinhole pair only (a distorted pair's epipolar lines are curves); "
+                          "use model='pinhole' or drop them")
 
 
 def check_lens(model, dist) -> tuple[str, tuple[float, ...]]:
@@ -270,18 +279,27 @@ def in_domain(model: str, limit: float, ab: np.ndarray) -> np.ndarray:
 
 
 def distort(model: str, dist: tuple, ab: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Normalised points ab (P, 2) -> pixels (P, 2) through the lens model, by kornia (float64):
-    ``kornia.geometry.calibration.distort_points`` (Brown-Conrady), ``distort_points_kannala_brandt``."""
-    from kornia.geometry.calibration import distort_points
-    from kornia.geometry.camera import distort_points_kannala_brandt
-
-    t = torch.from_numpy(np.ascontiguousarray(ab, np.float64))
-    Kt = torch.from_numpy(np.array(K, np.float64))
+    """Normalised points ab (P, 2) -> pixels (P, 2) through the lens model (module docstring), numpy float64:
+    the equations of kornia's ``distort_points`` (Brown-Conrady) and ``distort_points_kannala_brandt``, which
+    tests/test_lens.py checks this against (and against OpenCV). Not kornia's calls themselves: they were ~87% of
+    a lens sample's profile (the amodal boxes project every mesh edge's sample points; benchmarks/throughput.py
+    --lens), and this form computes the same values."""
+    ab = np.asarray(ab, np.float64)
+    a, b = ab[:, 0], ab[:, 1]
     if model == "brown_conrady":
-        pix = t @ Kt[:2, :2].T + Kt[:2, 2]  # kornia takes pixels of the undistorted camera (its new_K = K)
-        return distort_points(pix, Kt, torch.from_numpy(_bc(dist))).numpy()
-    params = torch.tensor([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist], dtype=torch.float64)
-    return distort_points_kannala_brandt(t, params).numpy()
+        k = _bc(dist)
+        r2 = a * a + b * b
+        q = (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))) / (1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7])))
+        ad = a * q + 2 * k[2] * a * b + k[3] * (r2 + 2 * a * a)
+        bd = b * q + k[2] * (r2 + 2 * b * b) + 2 * k[3] * a * b
+    else:
+        r = np.hypot(a, b)
+        small = r < 1e-8
+        rr = np.where(small, 1.0, r)
+        th = np.arctan(rr)
+        s = np.where(small, 1.0, _kb_poly(np.asarray(dist, np.float64), th)[0] / rr)
+        ad, bd = s * a, s * b
+    return np.stack([K[0, 0] * ad + K[0, 2], K[1, 1] * bd + K[1, 2]], 1)
 
 
 def _bc_forward(k: np.ndarray, a: np.ndarray, b: np.ndarray):
@@ -396,3 +414,26 @@ def _lens_rays(K_bytes: bytes, width: int, height: int, model: str, dist: tuple)
     d = np.ascontiguousarray(rays.reshape(height, width, 3))
     d.setflags(write=False)
     return d
+
+
+@register("camera.ray_grid")
+@functools.lru_cache(maxsize=16)
+def _ray_grid(K_bytes: bytes, width: int, height: int, model: str, dist: tuple, pad: int) -> np.ndarray:
+    """``Camera.ray_grid``: the pixel rays (cached) framed by a ring of ``pad`` unprojected pixel centres."""
+    K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
+    inner = (_pixel_rays(K_bytes, width, height) if model == "pinhole"
+             else _lens_rays(K_bytes, width, height, model, dist))
+    v, u = np.mgrid[-pad:height + pad, -pad:width + pad].astype(np.float64)
+    ring = np.ones(v.shape, bool)
+    ring[pad:-pad, pad:-pad] = False
+    uv = np.stack([u[ring], v[ring]], 1)
+    if model == "pinhole":
+        d = np.concatenate([uv, np.ones((len(uv), 1))], 1) @ np.linalg.inv(K).T
+        rays = d / np.linalg.norm(d, axis=1, keepdims=True)
+    else:
+        rays, _ = unproject_lens(model, dist, lens_limit(model, dist), K, uv)
+    out = np.zeros(v.shape + (3,))
+    out[ring] = rays
+    out[pad:-pad, pad:-pad] = inner
+    out.setflags(write=False)
+    return out

@@ -9,6 +9,10 @@ t + shutter * (s + 1/2) / S [frame units], s = 0 .. S-1, with S = min(spp, MAX_T
 is a second ``SceneAccel`` over T * S pose sets. Poses between frames k and k+1 (fraction a): translation
 linear, rotation R(a) = exp(a log(R_{k+1} R_k^T)) R_k (slerp); after the last frame the last interval's
 motion continues (a > 1); a one-frame clip does not move.
+
+A lens camera (flowsynth/camera.py) shades through its model: the pixel-centre sample on the G-buffer's ray,
+sub-pixel samples (anti-aliasing, spp > 1, motion blur) on blended rays of the surrounding centres, uncovered
+pixels black (``flowsynth.kernels.shade.shade_kernel``).
 """
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ MAX_RAY_DIST = 1.0e9
 # top-level BVH, as with motion blur; the same hits, tests/test_rgb.py):
 # docs/decisions/0015-shading-camera-rays-tiles.md.
 CAMERA_RAY_TILES = True
+# A lens camera's shading kernel reads the rays of the pixel centres and of this many rings around the image
+# (``Camera.ray_grid``): a sub-pixel sample blends its four surrounding centres' rays.
+LENS_RAY_PAD = 2
 
 
 def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch.Tensor:
@@ -127,9 +134,11 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
         return wp.full((1, 1, 1), fill, dtype=dtype, device=device)
 
     radiance = wp.empty((T, H, W), dtype=wp.vec3, device=device)  # the kernel writes every pixel
-    launch_bands(shade_kernel(plan.render_mode), (T, H, W), 1, [
+    lens = not scene.camera.is_pinhole  # sub-pixel rays blend the ray grid's centres (kernels/shade.lens_ray)
+    cam = pinhole(scene.camera, device, pad=LENS_RAY_PAD) if lens else pinhole(scene.camera)
+    launch_bands(shade_kernel(plan.render_mode, lens), (T, H, W), 1, [
         sc, gbuf(gb.item, wp.int32, -1, edge_spp > 0), gbuf(gb.face, wp.int32, -1),
-        gbuf(gb.dist, wp.float32, 0.0), gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), pinhole(scene.camera), spp,
+        gbuf(gb.dist, wp.float32, 0.0), gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), cam, spp,
         edge_spp, slices, _seed32(plan.seed),
         int(plan.bounces), BAND0], [radiance], device, plan.threads, row_loop=True)
     return radiance.numpy()  # finite and >= 0: the kernel clamps each value (kernels/shade.finite_nonneg)

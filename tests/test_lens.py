@@ -263,8 +263,6 @@ def test_config_draws_and_validation():
     with pytest.raises(ConfigError, match="skew"):
         fs.Camera(np.array([[50.0, 1.0, 30.0], [0, 50.0, 20.0], [0, 0, 1]]), W, H, model=KB[0], dist=KB[1])
     with pytest.raises(ConfigError, match="not available"):
-        fs.render(make_scene(*BC, T=2), ["rgb"])
-    with pytest.raises(ConfigError, match="not available"):
         fs.render(make_scene(*BC, T=2), ["disparity"], stereo_baseline=0.1)
 
 

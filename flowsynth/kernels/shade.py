@@ -33,7 +33,8 @@ from flowsynth.kernels.raycast import (Instances, Pinhole, TileLists, closest_fr
                                        trace_closest)
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
-__all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "shade_kernel", "srgb_pow_tables", "tonemap_kernel"]
+__all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "lens_ray", "shade_kernel", "srgb_pow_tables",
+           "tonemap_kernel"]
 
 LIGHT_DIRECTIONAL = 0
 LIGHT_POINT = 1
@@ -97,6 +98,28 @@ def camera_ray(v: wp.float32, u: wp.float32, cam: Pinhole):
     y = (v - cam.intr[3]) / cam.intr[1]
     x = (u - cam.intr[2] - cam.skew * y) / cam.intr[0]
     return wp.normalize(wp.vec3(x, y, 1.0))
+
+
+@wp.func
+def lens_ray(v: wp.float32, u: wp.float32, rays: wp.array2d[wp.vec3], pad: wp.int32):
+    """Unit camera-frame direction through image point (u, v) [px] of a lens camera: the bilinear blend of the
+    unit rays of the four pixel centres around it, renormalised. ``rays`` holds the centres of rows and columns
+    -pad .. H - 1 + pad (``flowsynth.camera.Camera.ray_grid``, z < 0: uncovered), pad >= 1, so every point within
+    half a pixel of the image has its four. (0, 0, -1) when one of them is uncovered (the sample is black)."""
+    y = v + wp.float32(pad)
+    x = u + wp.float32(pad)
+    i0 = wp.clamp(wp.int32(wp.floor(y)), 0, rays.shape[0] - 2)
+    j0 = wp.clamp(wp.int32(wp.floor(x)), 0, rays.shape[1] - 2)
+    fy = y - wp.float32(i0)
+    fx = x - wp.float32(j0)
+    r00 = rays[i0, j0]
+    r01 = rays[i0, j0 + 1]
+    r10 = rays[i0 + 1, j0]
+    r11 = rays[i0 + 1, j0 + 1]
+    if r00[2] <= 0.0 or r01[2] <= 0.0 or r10[2] <= 0.0 or r11[2] <= 0.0:
+        return wp.vec3(0.0, 0.0, -1.0)
+    d = (r00 * (1.0 - fx) + r01 * fx) * (1.0 - fy) + (r10 * (1.0 - fx) + r11 * fx) * fy
+    return wp.normalize(d)
 
 
 @wp.func
@@ -301,14 +324,24 @@ def finite_nonneg(c: wp.vec3):
 _SHADE: dict = {}
 
 
-def shade_kernel(mode: str):
+def shade_kernel(mode: str, lens: bool = False):
     """The shading kernel for render mode "flat", "direct" or "path" (other modes' code compiled out).
 
     Launch dims (T, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread shades
     the W pixels of its row. Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
+
+    ``lens``: a lens camera (flowsynth/camera.py); ``cam.rays`` holds ``Camera.ray_grid(pad)`` (rows and columns
+    -pad .. H - 1 + pad, pad = (rows - H) / 2 >= 1). The pixel-centre sample takes its centre's ray (the ray the
+    G-buffer cast, so it still reuses that hit); a sub-pixel sample at (u, v) takes ``lens_ray``, the
+    bilinear blend of the four surrounding centres' rays (tests/test_lens.py bounds how far it projects from
+    (u, v) through OpenCV). A sample whose ray is uncovered (or whose blend touches an uncovered centre)
+    contributes black (0): an uncovered pixel is black, a pixel at the edge of the lens's image is dimmed by
+    the share of its samples there. The pinhole variant's code is that of before (the lens lines are
+    ``wp.static`` branches).
     """
-    if mode in _SHADE:
-        return _SHADE[mode]
+    key = mode if not lens else (mode, True)
+    if key in _SHADE:
+        return _SHADE[key]
     if mode not in RENDER_MODES:
         raise ValueError(f"unknown render mode {mode!r}; choose from {RENDER_MODES}")
     path = mode == "path"
@@ -337,6 +370,8 @@ def shade_kernel(mode: str):
         seed_t = wp.int32(hash3(t, 0, seed))
         seed_p = wp.int32(hash3(t, 1, seed))
         seed_e = wp.int32(hash3(t, 2, seed))
+        if wp.static(lens):
+            pad = (cam.rays.shape[0] - radiance.shape[1]) // 2
         for j in range(radiance.shape[2]):
             pix = wp.uint32(i * radiance.shape[2] + j)
             prng = wp.rand_init(seed_p, wp.int32(pix))
@@ -363,6 +398,10 @@ def shade_kernel(mode: str):
                 d = wp.vec3(0.0)
                 if own != 0:
                     d = camera_ray(wp.float32(i), wp.float32(j), cam)
+                    if wp.static(lens):
+                        d = cam.rays[i + pad, j + pad]
+                        if d[2] <= 0.0:  # uncovered: black
+                            continue
                     item = gb_item[t, i, j]
                     face = gb_face[t, i, j]
                     dist = gb_dist[t, i, j]
@@ -371,6 +410,10 @@ def shade_kernel(mode: str):
                     du = (wp.float32(k) + wp.randf(rng)) / wp.float32(ns)
                     dv = unit(reverse_bits(wp.uint32(k)) ^ scramble)
                     d = camera_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam)
+                    if wp.static(lens):
+                        d = lens_ray(wp.float32(i) + dv - 0.5, wp.float32(j) + du - 0.5, cam.rays, pad)
+                        if d[2] <= 0.0:  # uncovered: black
+                            continue
                     bu = wp.float32(0.0)
                     bv = wp.float32(0.0)
                     if sc.use_tiles != 0:  # the primary cast's walk: candidates of the pixel's tile, near to far
@@ -402,7 +445,7 @@ def shade_kernel(mode: str):
                     acc += L
             radiance[t, i, j] = finite_nonneg(acc / wp.float32(ns))
 
-    _SHADE[mode] = shade
+    _SHADE[key] = shade
     return shade
 
 
