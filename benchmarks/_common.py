@@ -1,8 +1,23 @@
-"""Shared helpers for the scripts in ``benchmarks/``: machine description, timing, table, JSON, plot.
+"""Shared helpers for the scripts in ``benchmarks/``: the named workloads, machine description, timing, table,
+JSON, plot.
 
 Every benchmark prints a table, writes ``benchmarks/results/<name>.json`` holding its numbers and
 ``machine_info()``, and says how it was pinned. Only the standard library is imported at module level,
-so a benchmark can set its thread environment before numpy, torch or Warp are loaded.
+so a benchmark can set its thread environment before numpy, torch or Warp are loaded (the workload functions
+import flowsynth when called). ``FLOWSYNTH_BENCH_RESULTS=DIR`` sends every results file to DIR instead (a smoke
+run that must not overwrite the recorded results).
+
+Named workloads, defined once here so that every script measures the same thing:
+
+- ``full_sample_config()`` / ``FULL_SAMPLE_OUTPUTS``: issue 13's full sample, 512x384, T=2, direct RGB, 20 objects,
+  a static camera, and every per-pixel output of the pair pass. Before issue 41 five scripts configured it, and
+  scaling.py's part 1, cycles.py and shading_cost.py used a moving camera (the config's default) where
+  versions.py and scaling.py's part 1b used a static one; results recorded before then are not comparable to
+  within that difference.
+- ``default_stream()``: ``BouncingThingsConfig()`` as it is, with rgb and forward flow, validity and occlusion.
+- ``EXPORT_SAMPLE`` / ``EXPORT_OUTPUTS``: what export.py and ray_export.py write (T=2, direct RGB, 8 outputs).
+- ``raycast_scene()``: 30 icospheres of 5120 faces at 640x480 (``RAYCAST_WIDTH`` x ``RAYCAST_HEIGHT``), the scene of
+  raycast.py, bvh.py, tiles.py and scaling.py's cast.
 """
 
 from __future__ import annotations
@@ -17,10 +32,86 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-__all__ = ["RESULTS_DIR", "machine_info", "pin_single_core", "print_table", "save_plot", "time_calls",
+__all__ = ["DEFAULT_STREAM_OUTPUTS", "EXPORT_OUTPUTS", "EXPORT_SAMPLE", "FULL_SAMPLE", "FULL_SAMPLE_OUTPUTS",
+           "RAYCAST_FOV_DEG", "RAYCAST_HEIGHT", "RAYCAST_RADIUS", "RAYCAST_SPHERES", "RAYCAST_SUBDIVISIONS",
+           "RAYCAST_WIDTH", "RAYCAST_Z_RANGE", "RESULTS_DIR", "Timer", "default_stream", "full_sample_config",
+           "machine_info", "pin_single_core", "print_table", "raycast_scene", "save_plot", "time_calls",
            "time_round_robin", "timeit", "write_json"]
 
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
+RESULTS_DIR = Path(os.environ.get("FLOWSYNTH_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
+
+FULL_SAMPLE = {"width": 512, "height": 384, "num_frames": 2, "render_mode": "direct", "num_objects": (20, 20),
+               "camera_motion": "static"}
+"""Issue 13's full sample as config keywords (plain data: versions.py hands it to another revision's flowsynth)."""
+FULL_SAMPLE_OUTPUTS = ("rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw",
+                       "occ_bw")
+"""The full sample's outputs: the image, the G-buffer and the flow family both ways."""
+DEFAULT_STREAM_OUTPUTS = ("rgb", "flow_fw", "valid_fw", "occ_fw")
+EXPORT_SAMPLE = {"num_frames": 2, "render_mode": "direct"}
+"""The export benchmarks' sample (export.py, ray_export.py) as config keywords; the width and height are theirs."""
+EXPORT_OUTPUTS = ("rgb", "depth", "normals", "flow_fw", "flow_bw", "occ_fw", "instance", "box2d_visible")
+RAYCAST_WIDTH, RAYCAST_HEIGHT, RAYCAST_FOV_DEG = 640, 480, 60.0
+RAYCAST_SPHERES, RAYCAST_SUBDIVISIONS, RAYCAST_RADIUS = 30, 4, 1.0
+RAYCAST_Z_RANGE = (4.0, 12.0)  # sphere centre depth [m]
+
+
+def full_sample_config(**overrides):
+    """``BouncingThingsConfig`` of issue 13's full sample (``FULL_SAMPLE``), with ``overrides`` applied (a variant
+    says what it changes: ``full_sample_config(width=256, height=192)``)."""
+    import flowsynth as fs
+
+    return fs.BouncingThingsConfig(**{**FULL_SAMPLE, **overrides})
+
+
+def default_stream():
+    """(config, outputs) of the default stream: ``BouncingThingsConfig()`` and ``DEFAULT_STREAM_OUTPUTS``."""
+    import flowsynth as fs
+
+    return fs.BouncingThingsConfig(), list(DEFAULT_STREAM_OUTPUTS)
+
+
+def raycast_scene(seed: int = 0):
+    """30 unit icospheres (5120 faces) at random rotations and non-overlapping positions 4-12 m away inside the view
+    frustum of a 640x480, 60 degree camera; one frame. The same scene for every seed-0 caller."""
+    import numpy as np
+    import trimesh
+
+    import flowsynth as fs
+
+    rng = np.random.default_rng(seed)
+    camera = fs.Camera.from_fov(RAYCAST_WIDTH, RAYCAST_HEIGHT, RAYCAST_FOV_DEG)
+    scene = fs.Scene(camera, num_frames=1)
+    mesh = trimesh.creation.icosphere(subdivisions=RAYCAST_SUBDIVISIONS, radius=RAYCAST_RADIUS)
+    half_x = np.tan(np.radians(RAYCAST_FOV_DEG) / 2)
+    half_y = half_x * RAYCAST_HEIGHT / RAYCAST_WIDTH
+    centres: list = []
+    while len(centres) < RAYCAST_SPHERES:
+        z = rng.uniform(*RAYCAST_Z_RANGE)
+        c = np.array([rng.uniform(-1, 1) * half_x * z * 0.85, rng.uniform(-1, 1) * half_y * z * 0.85, z])
+        if all(np.linalg.norm(c - p) > 2.02 * RAYCAST_RADIUS for p in centres):
+            centres.append(c)
+    for c in centres:
+        pose = np.eye(4)
+        q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+        pose[:3, :3] = q * np.sign(np.diag(r)) * np.sign(np.linalg.det(q * np.sign(np.diag(r))))
+        pose[:3, 3] = c
+        scene.add_object(mesh, pose)
+    return scene
+
+
+class Timer:
+    """Wall and process-CPU time of a block: ``with Timer() as t: ...`` then ``t.wall_s``, ``t.cpu_s`` [s].
+
+    Process CPU time counts every thread of this process (not child processes)."""
+
+    def __enter__(self) -> Timer:
+        self.wall_s = self.cpu_s = 0.0
+        self._w, self._c = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.wall_s = time.perf_counter() - self._w
+        self.cpu_s = time.process_time() - self._c
 
 # Thread-count variables read by OpenMP, MKL, OpenBLAS and numexpr when they load. TBB (Embree's thread
 # pool) has none: it sizes itself from the CPU affinity mask, hence ``pin_single_core``'s affinity.

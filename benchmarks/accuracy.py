@@ -31,7 +31,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent), str(HERE.parent / "tests")]  # _common, flowsynth, oracle
-from _common import RESULTS_DIR, machine_info, pin_single_core, print_table, write_json
+from _common import RESULTS_DIR, Timer, machine_info, pin_single_core, print_table, write_json
 
 PINNING = pin_single_core()
 
@@ -73,9 +73,9 @@ def timeit_many(fns: dict, repeat: int) -> dict:
     best = dict.fromkeys(fns, float("inf"))
     for _ in range(repeat):
         for key, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()
-            best[key] = min(best[key], time.perf_counter() - t0)
+            with Timer() as tm:
+                fn()
+            best[key] = min(best[key], tm.wall_s)
     return best
 
 
@@ -109,9 +109,9 @@ def scene_poses(scene: fs.Scene) -> tuple[np.ndarray, np.ndarray, list]:
 def bench_occlusion(width: int, height: int, repeat: int) -> list[dict]:
     scene = make_scene(width, height, 2)
     cams, world_T_obj, meshes = scene_poses(scene)
-    t0 = time.perf_counter()
-    truth = pair_truth(scene.camera.K, width, height, cams, meshes, world_T_obj, 0, 1)
-    oracle_s = time.perf_counter() - t0
+    with Timer() as tm:
+        truth = pair_truth(scene.camera.K, width, height, cams, meshes, world_T_obj, 0, 1)
+    oracle_s = tm.wall_s
     casts = {}
     inst1 = pair_truth(scene.camera.K, width, height, cams, meshes, world_T_obj, 1, 0, casts=casts,
                        occlusion=False)["instance"]

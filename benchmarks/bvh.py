@@ -12,7 +12,7 @@ Scenes, 640x480 pixels, 60 deg horizontal fov, camera at the origin looking down
 
 - ``single``: one icosphere (radius 1 m, random rotation) 1.5 m in front of the camera, filling the view
   (every ray hits);
-- ``30 spheres``: the scene of benchmarks/raycast.py (``make_scene``: 30 icospheres 4-12 m away); each ray
+- ``30 spheres``: the scene of benchmarks/raycast.py (``raycast_scene``: 30 icospheres 4-12 m away); each ray
   walks the instances near to far (sorted by the distance to their boxes) and stops at the first box beyond
   its best hit, as flowsynth's camera rays do (``flowsynth.kernels.raycast.closest_from_camera``).
 
@@ -37,14 +37,25 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import machine_info, pin_single_core, plot_curves, print_table, time_round_robin, write_json
+from _common import (
+    RAYCAST_FOV_DEG,
+    RAYCAST_HEIGHT,
+    RAYCAST_WIDTH,
+    machine_info,
+    pin_single_core,
+    plot_curves,
+    print_table,
+    raycast_scene,
+    time_round_robin,
+    write_json,
+)
 
 PINNING = pin_single_core()
+WIDTH, HEIGHT, FOV_DEG = RAYCAST_WIDTH, RAYCAST_HEIGHT, RAYCAST_FOV_DEG  # raycast.py's camera
 
 import numpy as np
 import torch
 import trimesh
-from raycast import FOV_DEG, HEIGHT, WIDTH, make_scene
 from scipy.spatial.transform import Rotation
 
 from flowsynth import blas
@@ -129,7 +140,7 @@ def single_scene_poses(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def raycast_scene_poses() -> tuple[np.ndarray, np.ndarray]:
     """(cam_T_world (1, 4, 4), world_T_obj (1, 30, 4, 4)) of benchmarks/raycast.py's scene."""
-    scene = make_scene()
+    scene = raycast_scene()
     return scene.cam_T_world, np.stack([o.poses for o in scene.objects], 1)
 
 

@@ -5,8 +5,8 @@
 Issue 13 (whole samples): "the full sample is depth, normals, ids, forward and backward flow, occlusion and
 direct RGB, 2 frames, 512x384, 20 objects. Goal: at least 5x faster than Cycles on one core."
 
-Scene: ``sample_scene(BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct",
-num_objects=(20, 20)), 0, 0)`` (20 things and the room). Its sampling (layout + physics) is timed apart.
+Scene: ``sample_scene(_common.full_sample_config(), 0, 0)`` (512x384, 2 frames, direct RGB, 20 things and the room,
+a static camera; a moving one before issue 41). Its sampling (layout + physics) is timed apart.
 
 - flowsynth: ``render_plan`` of rgb (direct: lights and shadows), depth, normals, instance, flow_fw,
   flow_bw, occ_fw, occ_bw, valid_fw, valid_bw (exact occlusion), ``threads=1``, torch 1 thread, the process
@@ -51,12 +51,25 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import RESULTS_DIR, machine_info, pin_single_core, print_table, time_calls, time_round_robin, write_json
+from _common import (
+    FULL_SAMPLE,
+    FULL_SAMPLE_OUTPUTS,
+    RESULTS_DIR,
+    Timer,
+    full_sample_config,
+    machine_info,
+    pin_single_core,
+    print_table,
+    time_calls,
+    time_round_robin,
+    write_json,
+)
 
-OUTPUTS = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "valid_fw", "valid_bw"]
+OUTPUTS = list(FULL_SAMPLE_OUTPUTS)
 NO_RGB = [k for k in OUTPUTS if k != "rgb"]
 PASSES = ["depth", "normals", "instance", "flow_fw", "flow_bw"]  # what Cycles' Z/Normal/IndexOB/Vector hold
-W, H, T, NUM_OBJECTS = 512, 384, 2, 20
+W, H, T = FULL_SAMPLE["width"], FULL_SAMPLE["height"], FULL_SAMPLE["num_frames"]
+NUM_OBJECTS = FULL_SAMPLE["num_objects"][1]
 GOAL = 5.0  # Cycles / flowsynth, on one core
 COLUMNS = ["engine", "what", "cpu s", "wall s", "cycles/flowsynth", "goal", "met"]
 
@@ -189,23 +202,21 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    import flowsynth as fs
     from flowsynth.plan import make_plan
     from flowsynth.renderer import render_plan
     from flowsynth.sampling import sample_scene
 
-    cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=T, render_mode="direct",
-                                  num_objects=(NUM_OBJECTS, NUM_OBJECTS))
-    w0, c0 = time.perf_counter(), time.process_time()
-    scene = sample_scene(cfg, 0, 0)
-    sampling = {"cold_wall_s": time.perf_counter() - w0, "cold_cpu_s": time.process_time() - c0}
+    cfg = full_sample_config()
+    with Timer() as cold:
+        scene = sample_scene(cfg, 0, 0)
+    sampling = {"cold_wall_s": cold.wall_s, "cold_cpu_s": cold.cpu_s}
     if not args.quick:
         s = time_calls(lambda: sample_scene(cfg, 0, 0), repeat=1, warmup=0)
         sampling.update(wall_s=s["wall_s"], cpu_s=s["cpu_s"])
     plan = make_plan(OUTPUTS, render_mode="direct", threads=1)
-    w0 = time.perf_counter()
-    sample = render_plan(scene, plan)
-    first_s = time.perf_counter() - w0
+    with Timer() as first:
+        sample = render_plan(scene, plan)
+    first_s = first.wall_s
     plans = {"full": plan, "no rgb": make_plan(NO_RGB, threads=1), "passes": make_plan(PASSES, threads=1)}
     fs_all = time_round_robin({k: (lambda p=p: render_plan(scene, p)) for k, p in plans.items()}, repeat=repeat,
                               warmup=1)

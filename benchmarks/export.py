@@ -17,15 +17,14 @@ import os
 import shutil
 import sys
 import tempfile
-import time
 from collections import defaultdict
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine_info, print_table, time_round_robin, write_json
+from _common import EXPORT_OUTPUTS, EXPORT_SAMPLE, Timer, machine_info, print_table, time_round_robin, write_json
 
-OUTPUTS = ["rgb", "depth", "normals", "flow_fw", "flow_bw", "occ_fw", "instance", "box2d_visible"]
+OUTPUTS = list(EXPORT_OUTPUTS)
 
 
 def main() -> None:
@@ -37,16 +36,16 @@ def main() -> None:
 
     W, H = (256, 192) if args.quick else (512, 384)
     num = 12 if args.quick else 32
-    cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, render_mode="direct")
+    cfg = fs.BouncingThingsConfig(width=W, height=H, **EXPORT_SAMPLE)
     rows, sizes = [], defaultdict(list)
     tmp = Path(tempfile.mkdtemp(prefix="fs-export-bench-"))
     try:
         export(cfg, tmp / "warm", 1, outputs=OUTPUTS, progress=False)  # compile / load kernels once
         for workers in (1, 2):
             out = tmp / f"w{workers}"
-            t = time.perf_counter()
-            export(cfg, out, num, outputs=OUTPUTS, workers=workers, progress=False, seed=workers)
-            dt = time.perf_counter() - t
+            with Timer() as tm:
+                export(cfg, out, num, outputs=OUTPUTS, workers=workers, progress=False, seed=workers)
+            dt = tm.wall_s
             rows.append({"workers": workers, "samples": num, "seconds": dt, "samples/s": num / dt})
             if workers == 1:
                 for f in out.glob("[0-9]*/*"):

@@ -36,9 +36,9 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import machine_info, print_table, write_json
+from _common import EXPORT_OUTPUTS, EXPORT_SAMPLE, machine_info, print_table, write_json
 
-OUTPUTS = ["rgb", "depth", "normals", "flow_fw", "flow_bw", "occ_fw", "instance", "box2d_visible"]
+OUTPUTS = list(EXPORT_OUTPUTS)
 _ONE_SAMPLE = """
 import json, sys, time
 t = time.perf_counter()
@@ -132,7 +132,7 @@ def main() -> None:
 
     W, H = (256, 192) if args.quick else (512, 384)
     lengths = [int(x) for x in (args.lengths or ("16,64" if args.quick else "16,48")).split(",")]
-    cfg_dict = dict(width=W, height=H, num_frames=2, render_mode="direct")
+    cfg_dict = dict(width=W, height=H, **EXPORT_SAMPLE)
     load = [os.getloadavg()]
     tmp = Path(tempfile.mkdtemp(prefix="fs-ray-bench-"))
     # a private copy of the kernel cache: what these runs compile is then theirs, not another process's

@@ -44,13 +44,28 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]  # _common, and flowsynth from this checkout when not installed
-from _common import machine_info, pin_single_core, print_table, save_plot, time_round_robin, write_json
+from _common import (
+    RAYCAST_FOV_DEG,
+    RAYCAST_HEIGHT,
+    RAYCAST_SPHERES,
+    RAYCAST_WIDTH,
+    RAYCAST_Z_RANGE,
+    Timer,
+    machine_info,
+    pin_single_core,
+    print_table,
+    raycast_scene,
+    save_plot,
+    time_round_robin,
+    write_json,
+)
 
-PINNING = pin_single_core()
+# One core and one thread per library, set before numpy and torch load, and only when run as a script: a script
+# that imports this module must not find its own process pinned (scaling.py did, and undid it by hand).
+PINNING = pin_single_core() if __name__ == "__main__" else None
 
 import numpy as np
 import torch
-import trimesh
 
 import flowsynth as fs
 from flowsynth import blas
@@ -60,36 +75,11 @@ from flowsynth.plan import make_plan
 from flowsynth.gbuffer import cast_gbuffer, scene_arrays
 from flowsynth.renderer import gbuffer_outputs
 
-WIDTH, HEIGHT, FOV_DEG = 640, 480, 60.0
-NUM_SPHERES, SUBDIVISIONS, RADIUS = 30, 4, 1.0
-Z_RANGE = (4.0, 12.0)  # sphere centre depth [m]
+WIDTH, HEIGHT, FOV_DEG = RAYCAST_WIDTH, RAYCAST_HEIGHT, RAYCAST_FOV_DEG
 OUTPUTS = ["depth", "instance", "normals"]
 NEWTON_NO_HIT = 0xFFFFFFFF
 # Agreement target for depth between engines where both hit the same object (float32 ray casts).
 DEPTH_REL_TOL = 1e-5
-
-
-def make_scene(seed: int = 0) -> fs.Scene:
-    """30 unit icospheres at random rotations and non-overlapping positions inside the view frustum."""
-    rng = np.random.default_rng(seed)
-    camera = fs.Camera.from_fov(WIDTH, HEIGHT, FOV_DEG)
-    scene = fs.Scene(camera, num_frames=1)
-    mesh = trimesh.creation.icosphere(subdivisions=SUBDIVISIONS, radius=RADIUS)
-    half_x = np.tan(np.radians(FOV_DEG) / 2)
-    half_y = half_x * HEIGHT / WIDTH
-    centres: list[np.ndarray] = []
-    while len(centres) < NUM_SPHERES:
-        z = rng.uniform(*Z_RANGE)
-        c = np.array([rng.uniform(-1, 1) * half_x * z * 0.85, rng.uniform(-1, 1) * half_y * z * 0.85, z])
-        if all(np.linalg.norm(c - p) > 2.02 * RADIUS for p in centres):
-            centres.append(c)
-    for c in centres:
-        pose = np.eye(4)
-        q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-        pose[:3, :3] = q * np.sign(np.diag(r)) * np.sign(np.linalg.det(q * np.sign(np.diag(r))))
-        pose[:3, 3] = c
-        scene.add_object(mesh, pose)
-    return scene
 
 
 def pixel_dirs(camera: fs.Camera) -> np.ndarray:
@@ -126,9 +116,9 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
     from flowsynth.kernels.raycast import primary_kernel
 
     wp = wp_runtime()
-    t0 = time.perf_counter()
-    out = fs.render(scene, OUTPUTS)
-    first = time.perf_counter() - t0
+    with Timer() as tm:
+        out = fs.render(scene, OUTPUTS)
+    first = tm.wall_s
     meshes, cam_T_world, world_T_obj = scene_arrays(scene)
     accel = SceneAccel(meshes, cam_T_world, world_T_obj)
     cam = scene.camera
@@ -170,11 +160,11 @@ def setup_embree(scene: fs.Scene, dirs: np.ndarray) -> Engine:
     V32 = V.astype(np.float32)
     origins = np.zeros((len(dirs), 3), np.float32)
     d32 = np.ascontiguousarray(dirs, dtype=np.float32)
-    t0 = time.perf_counter()
-    esc = rtcore_scene.EmbreeScene()
-    TriangleMesh(esc, V32, F)
-    hit = esc.run(origins, d32, output=1)
-    first = time.perf_counter() - t0
+    with Timer() as tm:
+        esc = rtcore_scene.EmbreeScene()
+        TriangleMesh(esc, V32, F)
+        hit = esc.run(origins, d32, output=1)
+    first = tm.wall_s
 
     def post(h: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """G-buffer from Embree's hits: depth [m], instance (-1 = none), unit camera-facing face normal."""
@@ -280,9 +270,9 @@ def setup_newton(scene: fs.Scene, dirs: np.ndarray) -> Engine:
     def update():
         sensor.update(state, cam_tf, rays, depth_image=depth, shape_index_image=shape, normal_image=normal)
 
-    t0 = time.perf_counter()
-    update()
-    first = time.perf_counter() - t0
+    with Timer() as tm:
+        update()
+    first = tm.wall_s
     sid = shape.numpy().reshape(-1)
     ok = sid != NEWTON_NO_HIT
     dist = depth.numpy().reshape(-1).astype(np.float64)
@@ -377,7 +367,7 @@ def main() -> None:
         atexit.register(shutil.rmtree, warp.config.kernel_cache_dir, ignore_errors=True)
     repeat = 3 if args.quick else 9
     t_start = time.perf_counter()
-    scene = make_scene()
+    scene = raycast_scene()
     dirs = pixel_dirs(scene.camera)
     engines, rows, errors = {}, [], {}
     setups = {"flowsynth": lambda: setup_flowsynth(scene), "embree": lambda: setup_embree(scene, dirs),
@@ -420,7 +410,7 @@ def main() -> None:
     hit_frac = float((ours.result["instance"] >= 0).mean()) if ours else float("nan")
 
     info = machine_info(extra_packages=("embreex", "mitsuba"))
-    print(f"G-buffer cast (depth + instance + normals): {NUM_SPHERES} icospheres x "
+    print(f"G-buffer cast (depth + instance + normals): {RAYCAST_SPHERES} icospheres x "
           f"{len(scene.objects[0].mesh.faces)} faces, {WIDTH}x{HEIGHT} = {WIDTH * HEIGHT} rays, "
           f"hit fraction {hit_frac:.3f}; medians of {repeat} round-robin rounds; Mrays/s from process CPU time")
     print(f"{info['cpu_model']} ({info['cpu_count']} CPUs), affinity {PINNING['affinity']}, torch threads "
@@ -440,8 +430,8 @@ def main() -> None:
     path = write_json("raycast", {
         "machine": info, "pinning": PINNING, "torch_threads": torch.get_num_threads(),
         "setup": {"width": WIDTH, "height": HEIGHT, "fov_deg": FOV_DEG, "K": scene.camera.K,
-                  "spheres": NUM_SPHERES, "faces_per_sphere": len(scene.objects[0].mesh.faces),
-                  "z_range_m": Z_RANGE, "hit_fraction": hit_frac, "repeat": repeat, "quick": args.quick,
+                  "spheres": RAYCAST_SPHERES, "faces_per_sphere": len(scene.objects[0].mesh.faces),
+                  "z_range_m": RAYCAST_Z_RANGE, "hit_fraction": hit_frac, "repeat": repeat, "quick": args.quick,
                   "cold_cache": args.cold_cache, "rate_clock": "process CPU time (median)"},
         "rows": rows, "ratios": ratios, "details": {k: e.info for k, e in engines.items()}, "errors": errors,
         "agreement": agreement, "timings": times, "total_s": total, "all_cores": multi,

@@ -21,12 +21,11 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]  # _common, and flowsynth from this checkout when not installed
-from _common import RESULTS_DIR, machine_info, pin_single_core, print_table, write_json
+from _common import RESULTS_DIR, Timer, machine_info, pin_single_core, print_table, write_json
 
 MODES = ("flat", "direct", "path")
 EDGE_SPP = 4  # BouncingThingsConfig's default edge_spp
@@ -82,30 +81,30 @@ def main() -> None:
     time_res, err_res, ref_half, spps = ((256, 192), (96, 72), 128, (1, 4, 16)) if args.quick else \
         ((512, 384), (128, 96), 256, (1, 4, 16, 64))
     scene_t, scene_e = room_scene(*time_res), room_scene(*err_res)
-    t0 = time.perf_counter()
-    for mode in MODES:  # compile every kernel variant outside the timings
-        render_rgb(room_scene(16, 12), mode, 2)
-        render_rgb(room_scene(16, 12, num_frames=2), mode, 2, shutter=0.5)
-    compile_s = time.perf_counter() - t0
+    with Timer() as tm:
+        for mode in MODES:  # compile every kernel variant outside the timings
+            render_rgb(room_scene(16, 12), mode, 2)
+            render_rgb(room_scene(16, 12, num_frames=2), mode, 2, shutter=0.5)
+    compile_s = tm.wall_s
 
     import flowsynth as fs
 
-    t0 = time.perf_counter()
-    fs.render(scene_t, ["depth"])
-    gbuffer_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    ref_a = render_rgb(scene_e, "path", ref_half, seed=1001)
-    ref_b = render_rgb(scene_e, "path", ref_half, seed=1002)
-    ref_s = time.perf_counter() - t0
+    with Timer() as tm:
+        fs.render(scene_t, ["depth"])
+    gbuffer_s = tm.wall_s
+    with Timer() as tm:
+        ref_a = render_rgb(scene_e, "path", ref_half, seed=1001)
+        ref_b = render_rgb(scene_e, "path", ref_half, seed=1002)
+    ref_s = tm.wall_s
     ref = 0.5 * (ref_a + ref_b)
     ref_noise = float(np.sqrt(np.mean((ref_a - ref_b) ** 2)) / 2.0)
 
     own = {mode: render_rgb(scene_e, mode, 2 * ref_half, seed=1003) for mode in MODES if mode != "path"}
     own["path"] = ref
     def row(mode: str, spp: int, edge_spp: int = 1) -> dict:
-        t0 = time.perf_counter()
-        render_rgb(scene_t, mode, spp, edge_spp=edge_spp)
-        seconds = time.perf_counter() - t0
+        with Timer() as tm:
+            render_rgb(scene_t, mode, spp, edge_spp=edge_spp)
+        seconds = tm.wall_s
         img = render_rgb(scene_e, mode, spp, edge_spp=edge_spp)
         rmse = float(np.sqrt(np.mean((img - ref) ** 2)))
         print(f"{mode:6s} spp {spp:3d} edge_spp {edge_spp:2d}: {seconds:8.3f} s/frame, rmse {rmse:.4f}", flush=True)
@@ -129,9 +128,9 @@ def main() -> None:
     two = room_scene(*time_res, num_frames=2)
     blur = {}
     for shutter in (0.0, 0.5):
-        t0 = time.perf_counter()
-        render_rgb(two, "direct", blur_spp, shutter=shutter)
-        blur[f"shutter_{shutter}"] = (time.perf_counter() - t0) / 2
+        with Timer() as tm:
+            render_rgb(two, "direct", blur_spp, shutter=shutter)
+        blur[f"shutter_{shutter}"] = tm.wall_s / 2
 
     print(f"\nRGB at {time_res[0]}x{time_res[1]}, errors at {err_res[0]}x{err_res[1]} against path "
           f"{2 * ref_half} spp (reference noise ~{ref_noise:.4f} rms); G-buffer alone {gbuffer_s:.3f} s/frame")

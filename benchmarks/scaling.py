@@ -8,13 +8,15 @@ this process may use:
 
 - the primary G-buffer cast alone (``cast_gbuffer``, depth + instance + normals) of benchmarks/raycast.py's
   scene (30 icospheres x 5120 faces, 640x480): Mrays/s;
-- the issue-13 full sample: ``BouncingThings`` 512x384, T=2, 20 objects, physics, direct RGB, with depth,
-  normals, instance, flow and occlusion both ways (scene sampling and physics included): samples/s.
+- the issue-13 full sample (``_common.full_sample_config``: ``BouncingThings`` 512x384, T=2, 20 objects, physics,
+  direct RGB, a static camera, with ``_common.FULL_SAMPLE_OUTPUTS``: depth, normals, instance, flow, validity and
+  occlusion both ways; scene sampling and physics included): samples/s. Until issue 41 this part used a moving
+  camera and no validity masks, part 1b a static camera.
 
 Part 1b, processes against threads: the same full sample streamed from fresh indices (as a training loop reads
 it) by one process at 1 thread, by one process at all cores (threads), and by as many DataLoader worker processes
 (1 thread each): samples/s and the CPU seconds each sample cost. ``--streams`` runs only this part, ``--rounds``
-times, and prints the medians (``--default-config``: the default config with rgb and flow instead).
+times, and prints the medians (``--default-config``: ``_common.default_stream()`` instead).
 
 ``--stages`` runs only a breakdown of that full sample at 1 thread and all cores (``--rounds`` alternated rounds of
 12 fresh samples): wall and CPU ms a sample of the scene (layout, materials, physics) and of each render stage, each
@@ -44,10 +46,22 @@ sys.path[:0] = [str(HERE), str(HERE.parent)]
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
     os.environ[_var] = "1"
 
-from _common import fit_exponent, machine_info, plot_curves, print_table, time_round_robin, write_json
+from _common import (
+    FULL_SAMPLE_OUTPUTS,
+    Timer,
+    default_stream,
+    fit_exponent,
+    full_sample_config,
+    machine_info,
+    plot_curves,
+    print_table,
+    raycast_scene,
+    time_round_robin,
+    write_json,
+)
 
 OUTPUTS = ["depth", "flow_fw", "occ_fw", "instance"]
-FULL_OUTPUTS = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "occ_fw", "occ_bw"]
+FULL_OUTPUTS = list(FULL_SAMPLE_OUTPUTS)
 
 
 def load() -> str:
@@ -87,18 +101,13 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
     from flowsynth.accel import SceneAccel
     from flowsynth.gbuffer import cast_gbuffer, scene_arrays
 
-    allowed = os.sched_getaffinity(0)
-    from raycast import make_scene as raycast_scene  # importing raycast pins this process to one core: undo
-
-    os.sched_setaffinity(0, allowed)
     torch.set_num_threads(1)
     scene = raycast_scene()
     accel = SceneAccel(*scene_arrays(scene))
     cam = scene.camera
     fns = {("cast", k): (lambda k=k: cast_gbuffer(accel, cam, want_normals=True, want_points=False, threads=k))
            for k in counts}
-    cfg = fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
-                                  max_objects=32)
+    cfg = full_sample_config()
     sets = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in counts}
     index = {k: iter(range(10**6)) for k in counts}
 
@@ -201,25 +210,11 @@ def stream_rate(cfg, n: int, start: int, threads: int | None, workers: int, outp
     return n / dt, (cpu_s() - cpu0) / n
 
 
-def stream_config():
-    """The issue-13 full sample's config as parts 1b and ``--stages`` stream it (512x384, T=2, 20 objects, direct
-    RGB, a static camera)."""
-    import flowsynth as fs
-
-    return fs.BouncingThingsConfig(width=512, height=384, num_frames=2, render_mode="direct", num_objects=(20, 20),
-                                   camera_motion="static")
-
-
 def processes_vs_threads(cpus: int, n: int, default: bool = False) -> list[dict]:
     """The full sample streamed (fresh scenes, as in training) with 1 thread, with all cores as threads of one
     process, and with all cores as DataLoader worker processes; each setting streams the same indices.
     ``default``: the default config (320x240, T=24) with rgb, flow_fw, valid_fw and occ_fw instead."""
-    import flowsynth as fs
-
-    cfg = stream_config()
-    outputs = None
-    if default:
-        cfg, outputs = fs.BouncingThingsConfig(), ["rgb", "flow_fw", "valid_fw", "occ_fw"]
+    cfg, outputs = default_stream() if default else (full_sample_config(), None)
     rows = []
     for name, threads, workers in (("1 process, 1 thread", 1, 0), (f"1 process, {cpus} threads", cpus, 0),
                                    (f"{cpus} worker processes, 1 thread each", None, cpus)):
@@ -268,7 +263,6 @@ def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:
     """Wall and CPU ms a sample of each stage of the issue-13 full sample (512x384, T=2, 20 objects, direct RGB)
     streamed from fresh indices, at each thread count; the counts alternate round by round on the same indices."""
     import importlib
-    import time
     from collections import defaultdict
 
     import flowsynth as fs
@@ -280,12 +274,13 @@ def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:
 
     def timed(fn, label):
         def run(*a, **kw):
-            t, c = time.perf_counter(), time.process_time()
+            t = Timer()
             try:
-                return fn(*a, **kw)
+                with t:
+                    return fn(*a, **kw)
             finally:
-                wall[current["k"], label] += time.perf_counter() - t
-                cpu[current["k"], label] += time.process_time() - c
+                wall[current["k"], label] += t.wall_s
+                cpu[current["k"], label] += t.cpu_s
         return run
 
     saved = []
@@ -294,7 +289,7 @@ def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:
         saved.append((mod, attr, getattr(mod, attr)))
         setattr(mod, attr, timed(getattr(mod, attr), label))
     try:
-        cfg = stream_config()
+        cfg = full_sample_config()
         sets = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in counts}
         for k in counts:  # caches of a long stream filled, kernels loaded
             current["k"] = k
@@ -306,13 +301,14 @@ def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:
             for k in (counts if r % 2 == 0 else counts[::-1]):
                 current["k"] = k
                 for i in range(5000 + r * n, 5000 + (r + 1) * n):
-                    t, c = time.perf_counter(), time.process_time()
-                    scene = sets[k].scene(i)
-                    wall[k, "scene"] += time.perf_counter() - t
-                    cpu[k, "scene"] += time.process_time() - c
-                    render_plan(scene, sets[k].plan)
-                    wall[k, "sample"] += time.perf_counter() - t
-                    cpu[k, "sample"] += time.process_time() - c
+                    with Timer() as whole:
+                        with Timer() as part:
+                            scene = sets[k].scene(i)
+                        render_plan(scene, sets[k].plan)
+                    wall[k, "scene"] += part.wall_s
+                    cpu[k, "scene"] += part.cpu_s
+                    wall[k, "sample"] += whole.wall_s
+                    cpu[k, "sample"] += whole.cpu_s
     finally:
         for mod, attr, fn in saved:
             setattr(mod, attr, fn)

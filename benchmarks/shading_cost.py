@@ -38,7 +38,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import machine_info, pin_single_core, print_table, time_round_robin, write_json
+from _common import full_sample_config, machine_info, pin_single_core, print_table, time_round_robin, write_json
 
 PINNING = pin_single_core()
 
@@ -155,8 +155,7 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
     streams = {}
     for name, fam in sets.items():
         kw = {} if fam is None else {"texture_families": fam}
-        cfg = fs.BouncingThingsConfig(width=width, height=height, num_frames=2, render_mode="flat", edge_spp=1,
-                                      num_objects=(20, 20), max_objects=32, **kw)
+        cfg = full_sample_config(width=width, height=height, render_mode="flat", edge_spp=1, **kw)
         streams[name] = fs.datasets.BouncingThings(cfg, outputs=["rgb"], seed=0, threads=1)
     default = fs.datasets.BouncingThings(fs.BouncingThingsConfig(), seed=0, threads=1)
     streams["default config, whole sample"] = default
@@ -218,10 +217,9 @@ def camera_rays(samples: int, rounds: int, quick: bool) -> list[dict]:
 
     torch.set_num_threads(1)
     W, H = (256, 192) if quick else (512, 384)
-    full = dict(width=W, height=H, num_frames=2, render_mode="direct", num_objects=(20, 20), max_objects=32)
     settings = {"default config (flat, edge_spp 4)": fs.BouncingThingsConfig(),
-                f"full sample {W}x{H} direct, edge_spp 4": fs.BouncingThingsConfig(**full),
-                f"full sample {W}x{H} direct, spp 4": fs.BouncingThingsConfig(**full, spp=4)}
+                f"full sample {W}x{H} direct, edge_spp 4": full_sample_config(width=W, height=H),
+                f"full sample {W}x{H} direct, spp 4": full_sample_config(width=W, height=H, spp=4)}
     rows = []
     for name, cfg in settings.items():
         ds = fs.datasets.BouncingThings(cfg, outputs=["rgb"], seed=0, threads=1)

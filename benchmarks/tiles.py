@@ -18,8 +18,9 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import machine_info, print_table, time_round_robin, write_json
-from raycast import PINNING, make_scene
+from _common import machine_info, pin_single_core, print_table, raycast_scene, time_round_robin, write_json
+
+PINNING = pin_single_core()  # one core and one thread per library, before numpy and Warp load
 
 import numpy as np
 
@@ -36,7 +37,7 @@ def main() -> None:
     args = ap.parse_args()
     default_tile = accel_mod.TILE
     load_before = os.getloadavg()
-    scene = make_scene()
+    scene = raycast_scene()
     cam = scene.camera
     meshes, cam_T_world, world_T_obj = scene_arrays(scene)
     fns, items = {}, {}

@@ -9,9 +9,9 @@ sample after one warm-up sample (kernel load), and wall time.
 
 Three settings per revision:
 
-- ``fixed``: issue 13's profile settings, given explicitly so both revisions render the same kind of scene:
-  512x384, T=2, direct RGB, 20 objects, static camera; outputs rgb, depth, normals, instance, flow, valid and
-  occlusion both ways;
+- ``fixed``: issue 13's full sample (``_common.FULL_SAMPLE``), given explicitly so both revisions render the same
+  kind of scene: 512x384, T=2, direct RGB, 20 objects, static camera; outputs ``_common.FULL_SAMPLE_OUTPUTS`` (rgb,
+  depth, normals, instance, flow, valid and occlusion both ways);
 - ``default``: that revision's own default config at 512x384, T=2, same outputs;
 - ``stream``: what ``BouncingThings()`` streams with no arguments in that revision: its default config as it
   is (320x240, 24 frames at the time of writing) and its default outputs (rgb and forward flow).
@@ -32,7 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine_info, print_table, write_json
+from _common import FULL_SAMPLE, FULL_SAMPLE_OUTPUTS, machine_info, print_table, write_json
 
 REPO = Path(__file__).resolve().parents[1]
 MODES = ("fixed", "default", "stream")
@@ -42,11 +42,11 @@ import inspect, json, sys, time
 import torch
 torch.set_num_threads(1)
 import flowsynth as fs
-n, mode = int(sys.argv[1]), sys.argv[2]
-kw = dict(width=512, height=384, num_frames=2) if mode != "stream" else {}
-if mode == "fixed":
-    kw.update(render_mode="direct", num_objects=(20, 20), camera_motion="static")
-outs = ["rgb", "depth", "normals", "instance", "flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw"]
+n, mode, work = int(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
+full = {k: tuple(v) if isinstance(v, list) else v for k, v in work["full"].items()}
+size = {k: full[k] for k in ("width", "height", "num_frames")}
+kw = {"fixed": full, "default": size, "stream": {}}[mode]
+outs = work["outputs"]
 extra = {"threads": 1} if "threads" in inspect.signature(fs.datasets.BouncingThings).parameters else {}
 if mode != "stream":
     extra["outputs"] = outs
@@ -62,7 +62,8 @@ print(json.dumps({"file": fs.__file__, "cpu_s": cpu, "wall_s": wall}))
 
 def run_child(tree: Path, n: int, mode: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree))
-    out = subprocess.run([sys.executable, "-c", CHILD, str(n), mode], cwd=tree, env=env, capture_output=True,
+    work = json.dumps({"full": FULL_SAMPLE, "outputs": FULL_SAMPLE_OUTPUTS})
+    out = subprocess.run([sys.executable, "-c", CHILD, str(n), mode, work], cwd=tree, env=env, capture_output=True,
                          text=True, check=True).stdout.strip().splitlines()[-1]
     res = json.loads(out)
     if not res["file"].startswith(str(tree)):  # the revision under test, not an installed flowsynth
