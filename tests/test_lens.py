@@ -281,3 +281,188 @@ def test_cli_flags(tmp_path, capsys):
                                    "--camera-dist-max", "0.0,0.02,0,0"])
     cfg = cli.build_config(ns)
     assert cfg.camera_model == "brown_conrady" and cfg.camera_dist_max == (0.0, 0.02, 0.0, 0.0)
+
+
+# --- RGB through the lens (flowsynth/kernels/shade.py's lens variant) ---------------------------------------------
+
+# How far a sub-pixel sample's ray (the renormalised bilinear blend of its four surrounding centres' rays,
+# kernels/shade.lens_ray) may project from its image point through OpenCV, at W x H with a 100 deg field of view
+# [px]: measured 0.018 (BC), 0.007 (BC8), 0.009 (KB); near the fold of the strong lenses the unprojection's slope
+# grows without bound and so does the blend's error (0.073 and 0.048). At 640 x 480 each is ~10x smaller.
+SUBPIXEL_TOL = {BC: 0.03, BC8: 0.03, KB: 0.03, STRONG_BC: 0.15, STRONG_KB: 0.15}
+
+
+def _subpixel_rays(cam: fs.Camera, uv: np.ndarray) -> np.ndarray:
+    """kernels/shade.lens_ray at image points uv (P, 2), on the ray grid the shading kernel reads."""
+    import warp as wp
+
+    from flowsynth.accel import pinhole
+    from flowsynth.kernels import wp_runtime
+    from flowsynth.kernels.shade import lens_ray
+    from flowsynth.shading import LENS_RAY_PAD
+
+    wp_runtime()
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def rays_at(uv: wp.array[wp.vec2], rays: wp.array2d[wp.vec3], pad: wp.int32, out: wp.array[wp.vec3]):
+        k = wp.tid()
+        out[k] = lens_ray(uv[k][1], uv[k][0], rays, pad)
+
+    out = wp.empty(len(uv), dtype=wp.vec3, device="cpu")
+    wp.launch(rays_at, len(uv), [wp.array(uv.astype(np.float32), dtype=wp.vec2, device="cpu"),
+                                 pinhole(cam, "cpu", pad=LENS_RAY_PAD).rays, LENS_RAY_PAD], [out], device="cpu")
+    return out.numpy().astype(np.float64)
+
+
+@pytest.mark.parametrize("lens", LENSES)
+def test_subpixel_rays_project_back_through_opencv(lens):
+    """A sub-pixel sample's ray projects back onto its image point through OpenCV within SUBPIXEL_TOL; it is
+    uncovered (0, 0, -1) exactly when one of the four pixel centres around it is."""
+    model, dist = lens
+    cam = fs.Camera.from_fov(W, H, 100.0, model=model, dist=dist)
+    rng = np.random.default_rng(3)
+    uv = np.stack([rng.uniform(-0.5, W - 0.5, 4000), rng.uniform(-0.5, H - 0.5, 4000)], 1)
+    uv[:4] = [[-0.5, -0.5], [W - 0.501, H - 0.501], [cam.cx, cam.cy], [0.0, 0.0]]  # corners, the axis, a centre
+    rays = _subpixel_rays(cam, uv)
+    assert np.isfinite(rays).all()
+    grid = cam.ray_grid(2)[..., 2] > 0  # rows and columns -2 .. H + 1
+    i0, j0 = np.floor(uv[:, 1]).astype(int) + 2, np.floor(uv[:, 0]).astype(int) + 2
+    four = grid[i0, j0] & grid[i0 + 1, j0] & grid[i0, j0 + 1] & grid[i0 + 1, j0 + 1]
+    ok = rays[:, 2] > 0
+    np.testing.assert_array_equal(ok, four)
+    assert (rays[~ok] == [0.0, 0.0, -1.0]).all()
+    assert ok.mean() > 0.2
+    np.testing.assert_allclose(np.linalg.norm(rays[ok], axis=1), 1.0, atol=1e-6)
+    err = np.abs(cv_project(model, dist, cam.K, rays[ok]) - uv[ok]).max()
+    assert err < SUBPIXEL_TOL[lens], err
+    # a pixel centre's blend is its own ray (float32)
+    c = np.array([[W // 2 + 3.0, H // 2 - 2.0]])
+    np.testing.assert_allclose(_subpixel_rays(cam, c)[0], cam.pixel_rays_numpy()[H // 2 - 2, W // 2 + 3], atol=1e-6)
+
+
+@pytest.mark.parametrize("lens", [STRONG_BC, STRONG_KB])
+def test_rgb_uncovered_black_and_finite(lens):
+    """rgb of a lens camera: finite, exactly 0 at uncovered pixels, lit elsewhere; the same with spp > 1,
+    edge_spp > 1 and motion blur, and rgb_final; stereo stays refused."""
+    scene = make_scene(*lens)
+    cov = scene.camera.covered
+    assert (~cov).any()
+    runs = [dict(), dict(edge_spp=8), dict(spp=4, edge_spp=16, shutter=0.5), dict(spp=2, render_mode="direct")]
+    for kw in runs:
+        out = fs.render(scene, ["rgb", "instance"], **kw)
+        rgb = out["rgb"].numpy()
+        assert np.isfinite(rgb).all() and rgb.min() >= 0 and rgb.max() <= 1, kw
+        assert (rgb[:, :, ~cov] == 0).all(), kw
+        assert (rgb[:, :, cov].max(1) > 0.02).mean() > 0.95, kw  # the wall fills the covered view
+    fin = fs.render(scene, ["rgb_final"])["rgb_final"].numpy()
+    assert np.isfinite(fin).all() and fin.max() > 0
+    with pytest.raises(ConfigError, match="not available"):
+        fs.render(scene, ["depth_right"], stereo_baseline=0.1)
+
+
+def _textured_scene(cam: fs.Camera) -> fs.Scene:
+    """One frame of make_scene's wall, sphere and box, textured with smooth one-octave value noise (no grain, no
+    specular) under a white sky only: a pixel's colour is the albedo at its surface point, the same seen through
+    any camera (flat shading)."""
+    scene = fs.Scene(camera=cam, num_frames=1)
+    scene.set_camera_poses(np.eye(4)[None])
+    for mesh, pos, scale in ((trimesh.creation.box((200.0, 200.0, 0.2)), (0.0, 0.0, 4.0), 0.35),
+                             (trimesh.creation.icosphere(4, 0.6), (0.3, 0.1, 2.5), 1.5),
+                             (trimesh.creation.box((0.5, 0.5, 0.5)), (-1.0, -0.4, 3.0), 1.0)):
+        P = np.eye(4)
+        P[:3, 3] = pos
+        scene.add_object(mesh, poses=P[None], material={
+            "texture": "value", "octaves": 1, "scale": scale, "specular": 0.0,
+            "colors": [[0.95, 0.75, 0.1], [0.1, 0.25, 0.9]]})
+    scene.lights = [{"kind": "ambient", "color": (1.0, 1.0, 1.0), "intensity": 1.0}]
+    return scene
+
+
+def _oracle_pinhole(width: int = 384, height: int = 288) -> fs.Camera:
+    """A pinhole camera that sees every ray within ORACLE_DEG of the axis (2 px inside its edges)."""
+    f = (height / 2 - 2) / np.tan(np.radians(ORACLE_DEG))
+    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return fs.Camera(K, width, height)
+
+
+# The rgb comparison covers the rays within this angle of the axis [deg]: farther out the wall is seen so obliquely
+# that a lens pixel's texture footprint spans a good part of a texture period, and the texture filter (which
+# fades octaves by footprint, kernels/texture.py) blurs differently in the two cameras.
+ORACLE_DEG = 50.0
+
+
+def _interior(inst: np.ndarray) -> np.ndarray:
+    """(H, W) pixels whose 8 neighbours see the same instance (away from silhouettes), image border excluded."""
+    m = np.zeros(inst.shape, bool)
+    c = inst[1:-1, 1:-1]
+    m[1:-1, 1:-1] = np.all([inst[1 + di:inst.shape[0] - 1 + di, 1 + dj:inst.shape[1] - 1 + dj] == c
+                            for di in (-1, 0, 1) for dj in (-1, 0, 1)], axis=0)
+    return m & (inst > 0)
+
+
+@pytest.mark.parametrize("lens", [BC, KB])
+def test_rgb_is_the_distorted_pinhole_image(lens):
+    """The lens render is the pinhole render warped by the lens model.
+
+    Oracle 1: cv2.remap of a finer pinhole render of the same scene by OpenCV's undistortion of each lens pixel
+    (cv2.undistortPoints / cv2.fisheye.undistortPoints, 200 iterations, into the pinhole's pixels). Oracle 2
+    (hit consistency): where the lens render's instance map says object k, the pinhole render sees object k at
+    the projection of the lens pixel's surface point (G-buffer position) and has its colour there. Both over
+    pixels away from silhouettes and within ORACLE_DEG of the axis.
+
+    Tolerance: the colour is the albedo of a smooth texture (one octave, >= ~8 lens pixel footprints per
+    period), so the residual is the bilinear interpolation of the ~4x finer pinhole image and the texture
+    filter's different footprints: 0.02 (sRGB, [0, 1]) at the worst pixel and 0.001 on average (measured 0.008
+    and 4e-5); a warp that ignores the distortion is ~1000x worse on average, asserted 20x (the check can fail).
+    With spp 16 the lens pixel is box-filtered, the oracle point-sampled: 0.06 and 0.003 (measured 0.032 and
+    6e-4)."""
+    model, dist = lens
+    cam = fs.Camera.from_fov(W, H, 100.0, model=model, dist=dist)
+    pin = _oracle_pinhole()
+    keys = ["rgb", "instance", "position"]
+    lens_out = fs.render(_textured_scene(cam), keys, render_mode="flat")
+    pin_out = fs.render(_textured_scene(pin), keys, render_mode="flat")
+    rgb = lens_out["rgb"][0].numpy().transpose(1, 2, 0)
+    inst = lens_out["instance"][0, 0].numpy()
+    prgb = np.ascontiguousarray(pin_out["rgb"][0].numpy().transpose(1, 2, 0))
+    pinst = pin_out["instance"][0, 0].numpy()
+    u, v = pixel_grid()
+    src = np.stack([u.ravel(), v.ravel()], 1)[:, None].astype(np.float64)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    if model == "brown_conrady":
+        und = cv2.undistortPoints(src, cam.K, np.asarray(dist), R=np.eye(3), P=pin.K, criteria=crit)
+    else:
+        und = cv2.fisheye.undistortPoints(src, cam.K, np.asarray(dist), R=np.eye(3), P=pin.K, criteria=crit)
+    mx, my = (und.reshape(H, W, 2)[..., c].astype(np.float32) for c in (0, 1))
+
+    def warp(img, interp=cv2.INTER_LINEAR):
+        return cv2.remap(img, mx, my, interp, borderMode=cv2.BORDER_REPLICATE)
+
+    # pixels inside objects on both sides: the warped pinhole instance map agrees around the sample point
+    same = np.all([cv2.remap(pinst.astype(np.float32), mx + dx, my + dy, cv2.INTER_NEAREST) == inst
+                   for dx in (-1.5, 0, 1.5) for dy in (-1.5, 0, 1.5)], axis=0)
+    rays = cam.pixel_rays_numpy()
+    mask = _interior(inst) & same & (rays[..., 2] > np.cos(np.radians(ORACLE_DEG - 1)))
+    assert mask.sum() > 0.3 * W * H and len(np.unique(inst[mask])) == 3
+    err = np.abs(rgb - warp(prgb))[mask]
+    assert err.max() < 0.02 and err.mean() < 0.001, (err.max(), err.mean())
+    # a pinhole of the lens's own K (the distortion ignored) is far off: the comparison sees the lens
+    plain = np.stack([u * pin.fx / cam.fx + pin.cx - cam.cx * pin.fx / cam.fx,
+                      v * pin.fy / cam.fy + pin.cy - cam.cy * pin.fy / cam.fy], -1).astype(np.float32)
+    wrong = np.abs(rgb - cv2.remap(prgb, plain[..., 0], plain[..., 1], cv2.INTER_LINEAR))[mask]
+    assert wrong.mean() > 20 * err.mean(), (wrong.mean(), err.mean())
+
+    # oracle 2: the surface point of each lens pixel, seen by the pinhole
+    X = lens_out["position"][0].numpy().transpose(1, 2, 0).astype(np.float64)  # camera = world here
+    hit = inst > 0
+    uvp = np.zeros((H, W, 2), np.float32)
+    uvp[hit] = (X[hit] @ pin.K.T)[:, :2] / X[hit][:, 2:]
+    near = cv2.remap(pinst.astype(np.float32), uvp[..., 0], uvp[..., 1], cv2.INTER_NEAREST)
+    inner = _interior(inst) & (rays[..., 2] > np.cos(np.radians(ORACLE_DEG - 1)))
+    assert (near[inner] == inst[inner]).all()
+    err2 = np.abs(rgb - cv2.remap(prgb, uvp[..., 0], uvp[..., 1], cv2.INTER_LINEAR))[mask]
+    assert err2.max() < 0.02 and err2.mean() < 0.001, (err2.max(), err2.mean())
+    # and with sub-pixel samples (spp 16 box-filters each lens pixel: a smooth texture barely changes)
+    blur = fs.render(_textured_scene(cam), ["rgb"], render_mode="flat", spp=16)["rgb"][0].numpy().transpose(1, 2, 0)
+    err3 = np.abs(blur - warp(prgb))[mask]
+    assert err3.max() < 0.06 and err3.mean() < 0.003, (err3.max(), err3.mean())
