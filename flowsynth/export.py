@@ -298,6 +298,17 @@ def _note(text: str) -> None:
     tqdm.write(f"flowsynth export: {text}", file=sys.stderr)
 
 
+def _kill_for_tests(placed: int) -> None:
+    """Kill-and-resume tests: with FLOWSYNTH_TEST_KILL_AFTER=N in the environment this process SIGKILLs itself once
+    N samples of this run are journaled and placed: a crash at a known point, not one timed by a sleep
+    (tests/test_resume.py). Unset, it does nothing."""
+    after = os.environ.get("FLOWSYNTH_TEST_KILL_AFTER")
+    if after and placed >= int(after):
+        import signal
+
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 def _run(todo: list[range], root, writer: ExportWriter, workers, progress, identity, num, samples, engine,
          address) -> None:
     bar = tqdm(total=num, initial=num - sum(len(u) for u in todo), unit="sample", disable=not progress,
@@ -335,6 +346,7 @@ def _run(todo: list[range], root, writer: ExportWriter, workers, progress, ident
                 samples[i] = files
                 records.append((i, st))
             bar.update(len(indices))
+            _kill_for_tests(len(records))
             placed, before = placed + len(indices), placed
             if placed // _MANIFEST_EVERY != before // _MANIFEST_EVERY:
                 _write_manifest(root, identity, num, samples)

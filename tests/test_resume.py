@@ -10,6 +10,7 @@ import json
 import os
 import stat
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -113,6 +114,31 @@ def test_resume_checks_every_file_and_repairs(tmp_path, capsys):
     assert sha(inst3) == expected[inst3.relative_to(out).as_posix()]
     assert (out / "00000" / "extra.txt").read_text() == "also mine"
     assert no_temporaries(out)
+
+
+def test_killed_at_a_known_sample_resumes_to_the_same_bytes(tmp_path):
+    """The export kills itself (SIGKILL) right after its second sample is journaled and placed
+    (FLOWSYNTH_TEST_KILL_AFTER, a hook in flowsynth/export.py): a crash at a known point, whatever the machine's
+    speed, where a kill timed by polling could come after the export had finished. Resume keeps the two samples
+    (their files are not written again), makes the rest, and the result equals an uninterrupted export's bytes."""
+    ref, out = tmp_path / "ref", tmp_path / "ds"
+    assert export(ref, 6) == 0
+    cmd = [sys.executable, "-m", "flowsynth.cli", "export", "--out", str(out), "--num", "6", "--no-progress", *OUTS,
+           *SMALL]
+    env = {k: v for k, v in os.environ.items() if k != "FLOWSYNTH_TEST_KILL_AFTER"}
+    killed = subprocess.run(cmd, env=dict(env, FLOWSYNTH_TEST_KILL_AFTER="2"), capture_output=True, text=True,
+                            timeout=600)
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    done = sorted(p.name for p in out.iterdir() if p.name.isdigit())
+    assert done == ["00000", "00001"]
+    assert (out / ".journal.jsonl").exists() and (out / "manifest.json").exists()
+    mtimes = {p: p.stat().st_mtime_ns for n in done for p in (out / n).iterdir()}
+    resumed = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert all(p.stat().st_mtime_ns == m for p, m in mtimes.items())  # kept, not made again
+    assert tree(out) == tree(ref)
+    assert sorted(manifest(out)["samples"]) == [f"{i:05d}" for i in range(6)]
+    assert not (out / ".journal.jsonl").exists() and no_temporaries(out)
 
 
 def test_stray_folder_where_a_sample_belongs_is_not_a_sample(tmp_path, capsys):
