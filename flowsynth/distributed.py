@@ -9,7 +9,8 @@ DataLoader or export worker process: actors x threads never exceed the CPUs Ray 
 ``ray.data.from_items`` (the sample indices, held in the driver), not from ``ray.data.range``: a
 ``range`` read task needs a CPU of its own, and on a cluster whose every CPU is held by an actor it
 never runs (measured with Ray 2.60 on ``ray.init(num_cpus=2)``: an actor pool of 2 behind
-``range(8)`` never finishes; behind ``from_items`` it returns all rows). Its actors are Ray Data's,
+``range(8)`` never finishes; behind ``from_items`` it returns all rows;
+docs/decisions/0018-ray-export.md). Its actors are Ray Data's,
 created with ``max_restarts=-1`` and ``max_task_retries=-1``
 (``ray/data/_internal/execution/operators/actor_pool_map_operator.py``), so an actor that dies is
 restarted and its batch runs again.

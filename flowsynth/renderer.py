@@ -31,7 +31,7 @@ def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, d
         outputs: keys from ``flowsynth.plan.OUTPUTS`` (see docs/conventions.md for shapes and units).
         device: Warp device for the kernels ("cpu", or "cuda" where available). Results are CPU tensors.
         occlusion: "exact" (visibility rays) or "depth" (cheaper depth-buffer comparison; benchmarks/accuracy.py
-            measures what each costs and how often each is wrong).
+            measures what each costs and how often each is wrong: docs/decisions/0003-exact-occlusion.md).
         options: further ``flowsynth.plan.make_plan`` options, e.g. ``threads`` (ray-launch threads; None =
             every core the process may use, 1 inside DataLoader and export workers; see flowsynth.parallel).
 
