@@ -127,14 +127,13 @@ def test_readme_preview_shows_the_current_defaults():
     assert _png_config(REPO / "docs" / "preview.png") == json.loads(json.dumps(fs.BouncingThingsConfig().to_dict()))
 
 
-def test_preview_script_writes_the_config_it_used(tmp_path, small_flags):
+def test_preview_script_writes_the_config_it_used(tmp_path, small_flags, small_config):
     out = tmp_path / "p.png"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     r = subprocess.run([sys.executable, str(REPO / "scripts" / "make_preview.py"), "--out", str(out), *small_flags],
                        capture_output=True, text=True, cwd=tmp_path, env=env)
     assert r.returncode == 0, r.stderr
-    cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
-                                  max_objects=4)
+    cfg = small_config  # what small_flags say
     assert _png_config(out) == json.loads(json.dumps(cfg.to_dict()))
 
 
