@@ -40,8 +40,17 @@ LENS_MODELS = {"pinhole": (0,), "brown_conrady": (4, 5, 8), "kannala_brandt": (4
 # (1e-10 x a focal length of 1e4 px = 1e-6 px).
 NEWTON_TOL = 1e-10
 _NEWTON_STEPS = 60
+# A point stops iterating once the model maps it back within this [normalised units] (NEWTON_TOL / 1000).
+_DONE_TOL = 1e-13
+# Fixed-point steps of kornia's undistort_points giving Newton's start (Brown-Conrady; kornia's default). Newton
+# finishes the job; more steps of kornia's cost most of an unprojection (cProfile) and change no ray beyond 1e-13.
+_KORNIA_ITERS = 5
+# Kannala-Brandt's theta depends on the distorted radius alone: kornia's start on this many radii, interpolated.
+_KB_START_RADII = 257
 # Brown-Conrady's domain is searched for a fold up to this normalised radius (an 89.4 deg half-angle).
 _R_SEARCH = 100.0
+# lens_limit scans its grid of radii in chunks of this many points (the same grid, the same first fold).
+_R_CHUNK = 20000
 
 
 class Camera:
@@ -257,17 +266,31 @@ def lens_limit(model: str, dist: tuple) -> float:
             lo, hi = (mid, hi) if _kb_poly(k, np.array(mid))[1] > 0 else (lo, mid)
         return float(lo)
     k = _bc(dist)
-    r = np.linspace(0.0, _R_SEARCH, 1000001)
-    N, D, g = _bc_radial(k, r * r)
-    bad = np.nonzero(~((D > 0) & (g > 0)))[0]
-    if len(bad) == 0:
+    r = _r_grid()
+    first = None
+    for c0 in range(0, len(r), _R_CHUNK):  # outwards chunk by chunk: a fold near the axis ends the scan early
+        rc = r[c0:c0 + _R_CHUNK]
+        _, D, g = _bc_radial(k, rc * rc)
+        bad = np.nonzero(~((D > 0) & (g > 0)))[0]
+        if len(bad):
+            first = c0 + int(bad[0])
+            break
+    if first is None:
         return math.inf
-    lo, hi = r[bad[0] - 1], r[bad[0]]
+    lo, hi = r[first - 1], r[first]
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         _, Dm, gm = _bc_radial(k, np.array(mid * mid))
         lo, hi = (mid, hi) if (Dm > 0 and gm > 0) else (lo, mid)
     return float(lo * lo)
+
+
+@functools.cache
+def _r_grid() -> np.ndarray:
+    """lens_limit's grid of radii: 1,000,001 points on [0, _R_SEARCH] (read-only)."""
+    r = np.linspace(0.0, _R_SEARCH, 1000001)
+    r.setflags(write=False)
+    return r
 
 
 def in_domain(model: str, limit: float, ab: np.ndarray) -> np.ndarray:
@@ -342,25 +365,32 @@ def unproject_lens(model: str, dist: tuple, limit: float, K: np.ndarray,
     k = _bc(dist)
     with torch.no_grad():
         guess = undistort_points(torch.from_numpy(np.ascontiguousarray(uv, np.float64))[None],
-                                 torch.from_numpy(K.copy())[None], torch.from_numpy(k)[None], num_iters=20)[0].numpy()
+                                 torch.from_numpy(K.copy())[None], torch.from_numpy(k)[None],
+                                 num_iters=_KORNIA_ITERS)[0].numpy()
     a = (guess[:, 0] - K[0, 2]) / K[0, 0]
     b = (guess[:, 1] - K[1, 2]) / K[1, 1]
     bad = ~(np.isfinite(a) & np.isfinite(b)) | ~in_domain(model, limit, np.stack([a, b], 1))
     a = np.where(bad, ad, a)  # kornia's fixed point left the domain: start from the distorted point itself
     b = np.where(bad, bd, b)
     with np.errstate(all="ignore"):
+        act = np.arange(P)  # points still iterating: a point leaves once solved to _DONE_TOL
         for _ in range(_NEWTON_STEPS):
-            fa, fb, j00, j01, j10, j11 = _bc_forward(k, a, b)
-            ea, eb = fa - ad, fb - bd
+            fa, fb, j00, j01, j10, j11 = _bc_forward(k, a[act], b[act])
+            ea, eb = fa - ad[act], fb - bd[act]
+            more = ~(np.hypot(ea, eb) <= _DONE_TOL)
+            if not more.any():
+                break
+            act, ea, eb, j00, j01, j10, j11 = (x[more] for x in (act, ea, eb, j00, j01, j10, j11))
+            aa, bb = a[act], b[act]
             det = j00 * j11 - j01 * j10
             da = np.where(det != 0, (j11 * ea - j01 * eb) / det, 0.0)
             db = np.where(det != 0, (j00 * eb - j10 * ea) / det, 0.0)
             # damped: a step never more than doubles or halves the radius (keeps Newton on the domain's branch)
-            r = np.hypot(a, b) + 1e-12
+            r = np.hypot(aa, bb) + 1e-12
             step = np.hypot(da, db)
             sc = np.minimum(1.0, 0.5 * r / np.maximum(step, 1e-300))
             sc = np.where(r < 1e-6, 1.0, sc)
-            a, b = a - sc * da, b - sc * db
+            a[act], b[act] = aa - sc * da, bb - sc * db
         fa, fb = _bc_forward(k, a, b)[:2]
         ok = np.isfinite(a) & np.isfinite(b) & (np.hypot(fa - ad, fb - bd) <= NEWTON_TOL)
     ok &= in_domain(model, limit, np.stack([np.where(ok, a, 0.0), np.where(ok, b, 0.0)], 1))
@@ -376,19 +406,28 @@ def _kb_theta(k: np.ndarray, rd: np.ndarray, limit: float) -> np.ndarray:
     from kornia.geometry.camera import undistort_points_kannala_brandt
 
     params = torch.tensor([1.0, 1.0, 0.0, 0.0, *k], dtype=torch.float64)
-    pts = torch.from_numpy(np.stack([rd, np.zeros_like(rd)], 1))
+    # theta depends on rd alone: kornia's start on _KB_START_RADII radii up to the largest, interpolated
+    radii = np.linspace(0.0, float(rd.max(initial=0.0)), _KB_START_RADII)
+    pts = torch.from_numpy(np.stack([radii, np.zeros_like(radii)], 1))
     with torch.no_grad():
         a = undistort_points_kannala_brandt(pts, params)[:, 0].numpy()
-    th = np.arctan(np.where(np.isfinite(a), np.abs(a), 0.0))
+    th = np.interp(rd, radii, np.arctan(np.where(np.isfinite(a), np.abs(a), 0.0)))
     lo, hi = np.zeros_like(rd), np.full_like(rd, limit)
     th = np.clip(th, lo, hi)
+    act = np.arange(len(rd))  # radii still iterating: one leaves once solved to _DONE_TOL
     for _ in range(_NEWTON_STEPS):
-        f, df = _kb_poly(k, th)
-        e = f - rd
-        lo = np.where(e < 0, th, lo)
-        hi = np.where(e > 0, th, hi)
-        nxt = th - e / np.where(df > 0, df, 1.0)
-        th = np.where((nxt > lo) & (nxt < hi) & (df > 0), nxt, 0.5 * (lo + hi))
+        t, lo_a, hi_a = th[act], lo[act], hi[act]
+        f, df = _kb_poly(k, t)
+        e = f - rd[act]
+        more = ~(np.abs(e) <= _DONE_TOL)
+        if not more.any():
+            break
+        act, t, lo_a, hi_a, e, df = (x[more] for x in (act, t, lo_a, hi_a, e, df))
+        lo_a = np.where(e < 0, t, lo_a)
+        hi_a = np.where(e > 0, t, hi_a)
+        nxt = t - e / np.where(df > 0, df, 1.0)
+        th[act] = np.where((nxt > lo_a) & (nxt < hi_a) & (df > 0), nxt, 0.5 * (lo_a + hi_a))
+        lo[act], hi[act] = lo_a, hi_a
     return th
 
 

@@ -51,7 +51,7 @@ class BouncingThingsConfig:
     """Horizontal field of view [deg], in (0, 180) (of the pinhole part when a lens model is set)."""
     camera_model: str = "pinhole"
     """Lens model: "pinhole", "brown_conrady" or "kannala_brandt" (equations: flowsynth/camera.py,
-    docs/conventions.md; OpenCV's conventions). A lens model allows no rgb or stereo outputs yet."""
+    docs/conventions.md; OpenCV's conventions). A lens model allows no stereo outputs."""
     camera_dist: tuple[float, ...] = ()
     """Lens coefficients in OpenCV's order: (k1, k2, p1, p2[, k3[, k4, k5, k6]]) for brown_conrady, (k1, k2, k3,
     k4) for kannala_brandt, empty for pinhole; with ``camera_dist_max``, the lower ends of their ranges. On the
