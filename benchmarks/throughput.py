@@ -11,10 +11,11 @@ Writes benchmarks/results/throughput.json. Times are wall-clock on this machine 
 256x192 and 512x384, flat and direct rgb: the same indices with edge_spp 1 and the default, alternated in one
 process; writes benchmarks/results/throughput_edge.json.
 
-``--lens`` runs only the cost of a lens model: the stream of every geometric output a lens camera allows
-(depth, flow fw/bw, valid, occ, oof, instance, tracks, boxes; no rgb or stereo) with camera_model pinhole,
-brown_conrady and kannala_brandt on the same indices, alternated in one process, timed by process CPU time
-(and wall); 128x96 with --quick, else 256x192; writes benchmarks/results/throughput_lens.json.
+``--lens`` runs only the cost of a lens model: the stream of every output a lens camera allows (depth, flow
+fw/bw, valid, occ, oof, instance, tracks, boxes, rgb; no stereo) with camera_model pinhole, brown_conrady and
+kannala_brandt (fixed coefficients, and drawn per sample: "drawn") on the same indices, alternated in one
+process, timed by process CPU time (and wall); 128x96 with --quick, else 256x192; writes
+benchmarks/results/throughput_lens.json.
 
 ``--ratio`` runs only issue 13's "skipping pays" check (goal: depth-only >= 4x faster than the full stream at
 256x192, T=2): depth-only and full samples of the same indices, alternated in one process after a warm-up
@@ -171,8 +172,12 @@ def memory_curve(cfg, n: int) -> list[dict]:
 
 LENS_SETTINGS = {"pinhole": (), "brown_conrady": (-0.25, 0.05, -0.001, -0.001, 0.0),
                  "kannala_brandt": (0.05, -0.01, 0.002, -0.0005)}
+# Rows whose coefficients are drawn per sample (camera_dist .. camera_dist_max): each sample unprojects its own
+# pixel rays and finds its lens_limit, which a fixed lens does once (cached).
+LENS_DRAWN = {"brown_conrady": ((-0.3, 0.0, -0.002, -0.002, 0.0), (-0.1, 0.1, 0.002, 0.002, 0.0)),
+              "kannala_brandt": ((0.0, -0.02, 0.0, -0.001), (0.1, 0.0, 0.004, 0.0))}
 LENS_OUTPUTS = ["depth", "instance", "flow_fw", "flow_bw", "valid_fw", "occ_fw", "oof_fw", "target_points",
-                "occluded", "query_points", "box2d_amodal", "box2d_visible", "visible_pixels"]
+                "occluded", "query_points", "box2d_amodal", "box2d_visible", "visible_pixels", "rgb"]
 
 
 def lens_cost(n: int, size: tuple[int, int]) -> dict:
@@ -186,6 +191,10 @@ def lens_cost(n: int, size: tuple[int, int]) -> dict:
     for model, dist in LENS_SETTINGS.items():
         cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, camera_model=model, camera_dist=dist)
         streams[model] = fs.datasets.BouncingThings(cfg, outputs=LENS_OUTPUTS, seed=0)
+    for model, (lo, hi) in LENS_DRAWN.items():
+        cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, camera_model=model, camera_dist=lo,
+                                      camera_dist_max=hi)
+        streams[model + " drawn"] = fs.datasets.BouncingThings(cfg, outputs=LENS_OUTPUTS, seed=0)
     for ds in streams.values():
         ds.sample(0)  # warm-up: kernels compiled, caches filled
     cpu = dict.fromkeys(streams, 0.0)
@@ -199,7 +208,8 @@ def lens_cost(n: int, size: tuple[int, int]) -> dict:
             wall[model] += time.perf_counter() - t
     rows = [{"camera_model": m, "cpu s/sample": cpu[m] / n, "wall s/sample": wall[m] / n,
              "vs pinhole": cpu[m] / cpu["pinhole"]} for m in streams]
-    return {"size": [W, H], "samples": n, "outputs": LENS_OUTPUTS, "settings": LENS_SETTINGS, "rows": rows,
+    return {"size": [W, H], "samples": n, "outputs": LENS_OUTPUTS, "settings": LENS_SETTINGS, "drawn": LENS_DRAWN,
+            "rows": rows,
             "load_average": [load0[0], os.getloadavg()[0]]}
 
 
@@ -211,7 +221,7 @@ def main() -> None:
     p.add_argument("--edge", action="store_true",
                    help="only the full stream with edge_spp 1 vs the default, 256x192 and 512x384 (process CPU time)")
     p.add_argument("--lens", action="store_true",
-                   help="only pinhole vs brown_conrady vs kannala_brandt, geometric outputs (process CPU time)")
+                   help="only pinhole vs brown_conrady vs kannala_brandt (fixed and drawn), process CPU time")
     args = p.parse_args()
     if args.lens:
         r = lens_cost(args.samples or (4 if args.quick else 16), (128, 96) if args.quick else (256, 192))

@@ -45,6 +45,9 @@ _DONE_TOL = 1e-13
 # Fixed-point steps of kornia's undistort_points giving Newton's start (Brown-Conrady; kornia's default). Newton
 # finishes the job; more steps of kornia's cost most of an unprojection (cProfile) and change no ray beyond 1e-13.
 _KORNIA_ITERS = 5
+# Points per kornia call: elementwise torch ops on more than 32768 elements go to torch's intra-op thread pool,
+# which cost up to 100x the CPU time of the same work in chunks on a loaded machine (same values either way).
+_KORNIA_CHUNK = 8192
 # Kannala-Brandt's theta depends on the distorted radius alone: kornia's start on this many radii, interpolated.
 _KB_START_RADII = 257
 # Brown-Conrady's domain is searched for a fold up to this normalised radius (an 89.4 deg half-angle).
@@ -363,10 +366,12 @@ def unproject_lens(model: str, dist: tuple, limit: float, K: np.ndarray,
         rays = np.stack([s * ad, s * bd, np.cos(th)], 1)
         return np.where(ok[:, None], rays, 0.0), ok
     k = _bc(dist)
-    with torch.no_grad():
-        guess = undistort_points(torch.from_numpy(np.ascontiguousarray(uv, np.float64))[None],
-                                 torch.from_numpy(K.copy())[None], torch.from_numpy(k)[None],
-                                 num_iters=_KORNIA_ITERS)[0].numpy()
+    pts, Kt, kt = torch.from_numpy(np.ascontiguousarray(uv, np.float64))[None], torch.from_numpy(K.copy())[None], \
+        torch.from_numpy(k)[None]
+    with torch.no_grad():  # in chunks below torch's parallel grain: its intra-op threads spun on a loaded machine
+        guess = np.concatenate([np.zeros((0, 2))] + [
+            undistort_points(pts[:, c:c + _KORNIA_CHUNK], Kt, kt, num_iters=_KORNIA_ITERS)[0].numpy()
+            for c in range(0, P, _KORNIA_CHUNK)])
     a = (guess[:, 0] - K[0, 2]) / K[0, 0]
     b = (guess[:, 1] - K[1, 2]) / K[1, 1]
     bad = ~(np.isfinite(a) & np.isfinite(b)) | ~in_domain(model, limit, np.stack([a, b], 1))
