@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -76,6 +77,15 @@ nothing, but XPBD still runs a joint pass per iteration for it (a zero correctio
 trajectories differ by float32 round-off, tests/test_motion.py), and joints slow the model build and every
 substep (with the one-substep capture: Newton 0.099 -> 0.059 s per 2-frame 256x192 sample,
 docs/decisions/0006-newton-graph-replay.md). True only in tests comparing the two."""
+SCENE_REUSE = True
+"""Keep each finished :class:`NewtonScene` (model, collision pipeline, solver, captured substep) per process and run a
+later clip with the same key on it, its arrays reset, instead of building and capturing another: the key is the
+simulation's config, substeps, contact capacity and the assets (name, size, collider) in order, everything but the
+initial state, so the trajectory is the fresh scene's bit for bit (tests/test_scene_reuse.py;
+docs/decisions/0020-newton-scene-reuse.md). False builds every clip afresh."""
+SCENE_CACHE_SIZE = 16
+"""Most Newton scenes kept for reuse per process [count], least recently used dropped first."""
+_SCENES: OrderedDict = register("motion.newton_scenes", OrderedDict())  # key -> idle NewtonScene
 
 
 @dataclass(frozen=True)
@@ -212,7 +222,10 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
     n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
     for contact_max in (_contact_capacity(N), None):  # None: Newton's estimate, after an overflow
-        sim = NewtonScene(cfg, assets, initial, n_sub, contact_max)
+        key = _scene_key(cfg, assets, n_sub, contact_max)
+        sim = _SCENES.pop(key, None) if SCENE_REUSE else None  # popped: never two clips on one scene at once
+        if sim is None or not sim.reset(initial):
+            sim = NewtonScene(cfg, assets, initial, n_sub, contact_max)
         poses = np.empty((num_frames, N, 4, 4))
         vel = np.empty((num_frames, N, 3))
         ang = np.empty((num_frames, N, 3))
@@ -220,9 +233,22 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
             if k > 0:
                 sim.advance_frame()
             poses[k], vel[k], ang[k] = sim.read()
+        if SCENE_REUSE:
+            _SCENES[key] = sim
+            while len(_SCENES) > SCENE_CACHE_SIZE:
+                _SCENES.popitem(last=False)
         if sim.contact_max is None or not sim.overflowed():  # Newton's estimate already, or nothing dropped
             break
     return Trajectory(poses, vel, ang, n_sub)
+
+
+def _scene_key(cfg: BouncingThingsConfig, assets: Sequence[Asset], substeps: int, contact_max: int | None) -> tuple:
+    """Everything a :class:`NewtonScene` is built from but the initial state: the whole config (hashable, frozen),
+    substeps, contact capacity, whether bodies get free joints, and per asset its name, size and collider (a
+    convex collider's Newton hull is the per-process one of its name)."""
+    shapes = tuple((a.name, float(a.size), a.collider.kind, tuple(float(x) for x in a.collider.params))
+                   for a in assets)
+    return cfg, int(substeps), contact_max, _FREE_JOINTS, shapes
 
 
 def _contact_capacity(num_objects: int) -> int:
@@ -282,22 +308,18 @@ class NewtonScene:
         for p, h in wall_boxes(cfg, s_max):
             b.add_shape_box(-1, xform=wp.transform(wp.vec3(*p), wp.quat_identity()),
                             hx=float(h[0]), hy=float(h[1]), hz=float(h[2]), cfg=wall_cfg)
-        quats = _rotation_to_quat_xyzw(initial.rotation)
-        for i, asset in enumerate(assets):
+        for i, (asset, xform) in enumerate(zip(assets, _body_xforms(initial))):
             hull = asset.collider.hull
             mass = DENSITY * float(hull.volume)
             inertia = DENSITY * np.asarray(hull.moment_inertia_frame(np.eye(4)), dtype=np.float64)
             body = (b.add_body if _FREE_JOINTS else b.add_link)(
-                xform=wp.transform(wp.vec3(*initial.position[i]), wp.quat(*quats[i])), com=wp.vec3(0.0, 0.0, 0.0),
+                xform=xform, com=wp.vec3(0.0, 0.0, 0.0),
                 mass=mass, inertia=wp.mat33(*inertia.ravel()), lock_inertia=True, label=f"object_{i}")
             _add_collider(b, body, asset, shape_cfg)
         self.model = b.finalize(device="cpu")
         self.state0, self.state1 = self.model.state(), self.model.state()
         self.control = self.model.control()
-        qd = self.state0.body_qd.numpy()
-        qd[:, :3] = initial.velocity
-        qd[:, 3:] = initial.angular_velocity
-        self.state0.body_qd.assign(qd)
+        self._set_velocities(initial)
         # rigid-contact capacity: contact_max slots (None: Newton's estimate); self.peak holds the most contacts
         # any substep counted, so that overflowed() can tell when some may have been dropped
         if contact_max is not None and contact_max >= _newton_contact_estimate(self.model):
@@ -313,6 +335,35 @@ class NewtonScene:
         self.last_axis = wp.array(_unit_or(initial.angular_velocity, [0.0, 0.0, 1.0]), dtype=wp.vec3,
                                   device="cpu")
         self.graph = None
+        self._snapshot: list[tuple[np.ndarray, np.ndarray]] | None = None  # see reset()
+
+    def _set_velocities(self, initial: InitialState) -> None:
+        qd = self.state0.body_qd.numpy()  # a view of the CPU array: written in place
+        qd[:, :3] = initial.velocity
+        qd[:, 3:] = initial.angular_velocity
+
+    def reset(self, initial: InitialState) -> bool:
+        """Make this scene what a fresh one of the same key (:func:`_scene_key`) built for ``initial`` would be
+        after its capture: every memory region the captured substep reads or writes gets back the content it had
+        right after this scene's own capture, then the arrays that depend on the initial state (the model's and both
+        states' poses, state0's velocities, the last directions) are written as ``__init__`` writes them, and Newton's
+        ray-query shape BVH is refitted to the new poses. Returns False, changing nothing, when there is no capture
+        to reuse."""
+        import warp as wp
+
+        if self._snapshot is None or len(initial.position) != self.model.body_count:
+            return False
+        for view, saved in self._snapshot:
+            np.copyto(view, saved)
+        q = wp.array(_body_xforms(initial), dtype=wp.transform, device="cpu").numpy()
+        for arr in (self.model.body_q, self.state0.body_q, self.state1.body_q):
+            arr.numpy()[...] = q
+        self._set_velocities(initial)
+        self.last_dir.numpy()[...] = _unit_or(initial.velocity, [1.0, 0.0, 0.0])
+        self.last_axis.numpy()[...] = _unit_or(initial.angular_velocity, [0.0, 0.0, 1.0])
+        if getattr(self.model, "bvh_shapes", None) is not None:  # Newton's ray-query BVH (finalize builds it at the
+            self.model.bvh_refit_shapes(self.state0)  # initial poses; no substep reads it): at the new poses
+        return True
 
     def advance_frame(self) -> None:
         """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
@@ -325,6 +376,8 @@ class NewtonScene:
             with wp.ScopedCapture(device="cpu") as capture:
                 self.substep()
             self.graph = capture.graph
+            if SCENE_REUSE:
+                self._snapshot = _graph_memory_snapshot(self.graph)
         for _ in range(self.substeps):
             wp.capture_launch(self.graph)
 
@@ -441,6 +494,34 @@ def _newton_contact_estimate(model) -> int:
     from newton._src.sim.collide import _estimate_rigid_contact_max
 
     return int(_estimate_rigid_contact_max(model))
+
+
+def _graph_memory_snapshot(graph) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """(numpy view, copy) of every memory region a captured Warp CPU graph touches: each array its launches were
+    given, and the scratch arrays Newton allocated while it was captured (the graph keeps those alive; no attribute
+    of the scene reaches them). None, and so no reuse, where a region cannot be read back. Private Warp API
+    (``Graph._apic_capture._regions``): tests/test_scene_reuse.py fails, naming this function, when it moves."""
+    regions = getattr(getattr(graph, "_apic_capture", None), "_regions", None)
+    if not isinstance(regions, dict) or not regions:
+        return None
+    out = []
+    for key, region in regions.items():
+        base = region[3] if isinstance(region, tuple) and len(region) == 4 else None
+        if key[0] != "warp" or base is None or not hasattr(base, "numpy") or base.ptr is None:
+            return None
+        if not base.is_contiguous:
+            return None
+        view = base.numpy()
+        out.append((view, view.copy()))
+    return out
+
+
+def _body_xforms(initial: InitialState) -> list:
+    """The bodies' initial poses as Warp transforms (float32), as the model builder is given them."""
+    import warp as wp
+
+    quats = _rotation_to_quat_xyzw(initial.rotation)
+    return [wp.transform(wp.vec3(*p), wp.quat(*q)) for p, q in zip(initial.position, quats)]
 
 
 def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:

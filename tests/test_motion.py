@@ -160,6 +160,7 @@ def test_contact_capacity_never_changes_a_trajectory(monkeypatch, name, cfg, ind
             sims.append(self)
 
     monkeypatch.setattr(motion, "NewtonScene", Spy)
+    monkeypatch.setattr(motion, "SCENE_REUSE", False)  # each simulation on a scene of its own
     got = simulate(cfg, layout.assets, layout.initial)
     monkeypatch.setattr(motion, "_contact_capacity", lambda n: None)
     ref = simulate(cfg, layout.assets, layout.initial)
