@@ -41,6 +41,7 @@ from _common import (
     RAYCAST_FOV_DEG,
     RAYCAST_HEIGHT,
     RAYCAST_WIDTH,
+    Timer,
     machine_info,
     pin_single_core,
     plot_curves,
@@ -154,9 +155,9 @@ def build_times(make, repeat: int) -> float:
     """Median process CPU time of one ``make()`` [s], excluding the destruction of the result."""
     times, keep = [], []
     for _ in range(repeat):
-        c0 = time.process_time()
-        keep.append(make())
-        times.append(time.process_time() - c0)
+        with Timer() as tm:
+            keep.append(make())
+        times.append(tm.cpu_s)
     return float(np.median(times))
 
 

@@ -43,7 +43,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent), str(HERE.parent / "tests")]  # _common, flowsynth, oracle
-from _common import machine_info, pin_single_core, plot_curves, print_table, write_json
+from _common import Timer, machine_info, pin_single_core, plot_curves, print_table, write_json
 
 PINNING = pin_single_core()
 
@@ -162,20 +162,18 @@ class BulletScene:
 def run(engine: str, cfg: BouncingThingsConfig, seed: int, steps: int) -> dict:
     """Simulate cfg.num_frames frames of layout (cfg, seed) with one engine; times and accuracy."""
     layout = sample_layout(cfg, seed, 0)
-    t0 = time.perf_counter()
-    sim = (NewtonScene if engine == "flowsynth" else BulletScene)(cfg, layout.assets, layout.initial, steps)
-    frames = [sim.read()]
-    sim.advance_frame()  # frame 1, in setup: Newton captures its substep graph here
-    frames.append(sim.read())
-    setup = time.perf_counter() - t0
-    timed = cfg.num_frames - 2
-    c0 = time.process_time()
-    t0 = time.perf_counter()
-    for _ in range(timed):
-        sim.advance_frame()
+    with Timer() as tm:
+        sim = (NewtonScene if engine == "flowsynth" else BulletScene)(cfg, layout.assets, layout.initial, steps)
+        frames = [sim.read()]
+        sim.advance_frame()  # frame 1, in setup: Newton captures its substep graph here
         frames.append(sim.read())
-    wall = (time.perf_counter() - t0) / timed
-    cpu = (time.process_time() - c0) / timed
+    setup = tm.wall_s
+    timed = cfg.num_frames - 2
+    with Timer() as tm:
+        for _ in range(timed):
+            sim.advance_frame()
+            frames.append(sim.read())
+    wall, cpu = tm.wall_s / timed, tm.cpu_s / timed
     if engine != "flowsynth":
         sim.close()
     poses = np.stack([f[0] for f in frames])

@@ -25,12 +25,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import RESULTS_DIR, machine_info, pin_single_core, print_table, timeit, write_json
+from _common import RESULTS_DIR, Timer, machine_info, pin_single_core, print_table, timeit, write_json
 
 PINNING = pin_single_core()
 
@@ -76,16 +75,16 @@ def check(cfg: BouncingThingsConfig, assets, poses: np.ndarray) -> tuple[float, 
 
 def run_physics(cfg: BouncingThingsConfig, seed: int, substeps: int) -> dict:
     layout = sample_layout(cfg, seed, 0)
-    t0 = time.perf_counter()
-    sim = NewtonScene(cfg, layout.assets, layout.initial, substeps)
-    sim.advance_frame()  # builds the captured graph
-    setup = time.perf_counter() - t0
+    with Timer() as tm:
+        sim = NewtonScene(cfg, layout.assets, layout.initial, substeps)
+        sim.advance_frame()  # builds the captured graph
+    setup = tm.wall_s
     poses = [sim.read()[0]]
-    t0 = time.perf_counter()
-    for _ in range(cfg.num_frames - 1):
-        sim.advance_frame()
-        poses.append(sim.read()[0])
-    step = (time.perf_counter() - t0) / max(cfg.num_frames - 1, 1)
+    with Timer() as tm:
+        for _ in range(cfg.num_frames - 1):
+            sim.advance_frame()
+            poses.append(sim.read()[0])
+    step = tm.wall_s / max(cfg.num_frames - 1, 1)
     pen, wall = check(cfg, layout.assets, np.stack(poses))
     sizes = [a.size for a in layout.assets]
     approach = 2 * cfg.max_speed + cfg.angular_speed[1] * max(sizes)
@@ -179,9 +178,9 @@ def main() -> None:
         layout = sample_layout(cfg, 0, 0)
         kin = make_cfg(n, SETS["primitives"] + SETS["hulls"], T, motion="kinematic")
         t_kin = timeit(lambda kin=kin, layout=layout: simulate(kin, layout.assets, layout.initial), repeat=5)
-        t0 = time.perf_counter()
-        traj = simulate(cfg, layout.assets, layout.initial)
-        t_phys = time.perf_counter() - t0
+        with Timer() as tm:
+            traj = simulate(cfg, layout.assets, layout.initial)
+        t_phys = tm.wall_s
         motion_rows.append({"n": n, "kinematic_ms_per_frame": 1e3 * t_kin / T,
                             "physics_ms_per_frame": 1e3 * t_phys / T, "physics_substeps": traj.substeps})
     print("\nScene sampling (sample_layout: draws, placement, asset lookup; no motion)")

@@ -16,12 +16,11 @@ import argparse
 import os
 import statistics
 import sys
-import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import machine_info, pin_single_core, print_table, write_json
+from _common import Timer, machine_info, pin_single_core, print_table, write_json
 
 PINNING = pin_single_core()
 
@@ -38,13 +37,13 @@ def frame_times(sim: NewtonScene, frames: int, replay: bool) -> tuple[list[float
     """Per-frame wall times [s] of ``frames`` frames and the final (N, 7) body state."""
     times = []
     for _ in range(frames):
-        t0 = time.perf_counter()
-        if replay:
-            sim.advance_frame()
-        else:
-            for _ in range(sim.substeps):
-                sim.substep()
-        times.append(time.perf_counter() - t0)
+        with Timer() as tm:
+            if replay:
+                sim.advance_frame()
+            else:
+                for _ in range(sim.substeps):
+                    sim.substep()
+        times.append(tm.wall_s)
     return times, sim.state0.body_q.numpy().copy()
 
 

@@ -36,7 +36,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import EXPORT_OUTPUTS, EXPORT_SAMPLE, machine_info, print_table, write_json
+from _common import EXPORT_OUTPUTS, EXPORT_SAMPLE, Timer, machine_info, print_table, write_json
 
 OUTPUTS = list(EXPORT_OUTPUTS)
 _ONE_SAMPLE = """
@@ -161,12 +161,12 @@ def main() -> None:
         ds.sample(0)
         setup, total = [], []
         for i in range(1, 5):
-            t = time.perf_counter()
-            ds.scene(i)
-            setup.append(time.perf_counter() - t)
-            t = time.perf_counter()
-            ds.sample(i)
-            total.append(time.perf_counter() - t)
+            with Timer() as tm:
+                ds.scene(i)
+            setup.append(tm.wall_s)
+            with Timer() as tm:
+                ds.sample(i)
+            total.append(tm.wall_s)
         warm = _first_sample_s(cfg_dict, cache)
         cold = _first_sample_s(cfg_dict, tmp / "empty-warp-cache") if args.cold else None
     finally:

@@ -38,7 +38,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import full_sample_config, machine_info, pin_single_core, print_table, time_round_robin, write_json
+from _common import Timer, full_sample_config, machine_info, pin_single_core, print_table, time_round_robin, write_json
 
 PINNING = pin_single_core()
 
@@ -133,9 +133,9 @@ def radiance_timer():
     spent = {"s": 0.0}
 
     def timed(*a, **k):
-        c = time.process_time()
-        out = orig(*a, **k)
-        spent["s"] += time.process_time() - c
+        with Timer() as tm:
+            out = orig(*a, **k)
+        spent["s"] += tm.cpu_s
         return out
 
     shading.render_radiance = timed
@@ -163,10 +163,10 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
     def run(name, spent):
         def go():
             spent["s"] = 0.0
-            c = time.process_time()
-            for i in range(samples):
-                streams[name].sample(i)
-            go.sample_s.append((time.process_time() - c) / samples)
+            with Timer() as tm:
+                for i in range(samples):
+                    streams[name].sample(i)
+            go.sample_s.append(tm.cpu_s / samples)
             go.radiance_s.append(spent["s"] / samples)
         go.sample_s, go.radiance_s = [], []
         return go

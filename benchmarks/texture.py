@@ -15,12 +15,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine_info, print_table, write_json
+from _common import Timer, machine_info, print_table, write_json
 
 MODES = ("flat", "direct", "path")
 PHOTOS = ("chelsea", "coffee", "astronaut")
@@ -50,14 +49,15 @@ def mode_row(mode: str, W: int, H: int, n: int) -> dict:
 
     cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, render_mode=mode)
     ds = fs.datasets.BouncingThings(cfg, outputs=["rgb"], seed=0)
-    flat, grey, t = [], [], time.perf_counter()
-    for i in range(n):
-        rgb = ds.sample(i)["rgb"]
-        flat.append(textureless_fraction(rgb))
-        grey.append(float(rgb.mean()))
+    flat, grey = [], []
+    with Timer() as tm:
+        for i in range(n):
+            rgb = ds.sample(i)["rgb"]
+            flat.append(textureless_fraction(rgb))
+            grey.append(float(rgb.mean()))
     return {"source": f"flowsynth default, {mode}", "textureless": float(np.mean(flat)),
             "textureless worst sample": float(np.max(flat)), "mean grey": float(np.mean(grey)),
-            "s/sample": (time.perf_counter() - t) / n}
+            "s/sample": tm.wall_s / n}
 
 
 def main() -> None:
