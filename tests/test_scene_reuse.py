@@ -48,7 +48,7 @@ def _count_builds(monkeypatch) -> list:
 
 
 def _clips(cfg, order, reuse: bool, monkeypatch, render: bool) -> tuple[dict, int]:
-    """{index: (poses (n, T, 4, 4), substeps, outputs)} of ``order``'s samples, and how many Newton scenes were built."""
+    """{index: (poses (n, T, 4, 4), substeps, outputs)} of ``order``'s samples, and the Newton scenes built."""
     fs.clear_caches()
     monkeypatch.setattr(motion, "SCENE_REUSE", reuse)
     built = _count_builds(monkeypatch)
