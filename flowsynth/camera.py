@@ -288,6 +288,7 @@ def lens_limit(model: str, dist: tuple) -> float:
     return float(lo * lo)
 
 
+@register("camera.radius_grid")
 @functools.cache
 def _r_grid() -> np.ndarray:
     """lens_limit's grid of radii: 1,000,001 points on [0, _R_SEARCH] (read-only)."""
