@@ -81,11 +81,15 @@ SCENE_REUSE = True
 """Keep each finished :class:`NewtonScene` (model, collision pipeline, solver, captured substep) per process and run a
 later clip with the same key on it, its arrays reset, instead of building and capturing another: the key is the
 simulation's config, substeps, contact capacity and the assets (name, size, collider) in order, everything but the
-initial state, so the trajectory is the fresh scene's bit for bit (tests/test_scene_reuse.py;
-docs/decisions/0020-newton-scene-reuse.md). False builds every clip afresh."""
+initial state (a scene is kept from a key's second clip on), so the trajectory is the fresh scene's bit for bit
+(tests/test_scene_reuse.py; docs/decisions/0020-newton-scene-reuse.md). False builds every clip afresh."""
 SCENE_CACHE_SIZE = 16
 """Most Newton scenes kept for reuse per process [count], least recently used dropped first."""
 _SCENES: OrderedDict = register("motion.newton_scenes", OrderedDict())  # key -> idle NewtonScene
+# keys of the last SCENE_KEYS_SEEN clips: a scene is kept (and pays the snapshot of its captured memory, ~2% of a
+# default depth-only sample's profile) only when its key came before, so a dataset whose keys never repeat pays nothing
+_SEEN: OrderedDict = register("motion.newton_scene_keys", OrderedDict())  # key -> None
+SCENE_KEYS_SEEN = 256
 
 
 @dataclass(frozen=True)
@@ -226,6 +230,12 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
         sim = _SCENES.pop(key, None) if SCENE_REUSE else None  # popped: never two clips on one scene at once
         if sim is None or not sim.reset(initial):
             sim = NewtonScene(cfg, assets, initial, n_sub, contact_max)
+            sim.reusable = SCENE_REUSE and key in _SEEN
+        if SCENE_REUSE:
+            _SEEN[key] = None
+            _SEEN.move_to_end(key)
+            while len(_SEEN) > SCENE_KEYS_SEEN:
+                _SEEN.popitem(last=False)
         poses = np.empty((num_frames, N, 4, 4))
         vel = np.empty((num_frames, N, 3))
         ang = np.empty((num_frames, N, 3))
@@ -233,7 +243,7 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
             if k > 0:
                 sim.advance_frame()
             poses[k], vel[k], ang[k] = sim.read()
-        if SCENE_REUSE:
+        if SCENE_REUSE and sim.reusable and sim._snapshot is not None:
             _SCENES[key] = sim
             while len(_SCENES) > SCENE_CACHE_SIZE:
                 _SCENES.popitem(last=False)
@@ -335,7 +345,8 @@ class NewtonScene:
         self.last_axis = wp.array(_unit_or(initial.angular_velocity, [0.0, 0.0, 1.0]), dtype=wp.vec3,
                                   device="cpu")
         self.graph = None
-        self._snapshot: list[tuple[np.ndarray, np.ndarray]] | None = None  # see reset()
+        self.reusable = False  # snapshot the captured substep's memory at capture, for reset()
+        self._snapshot: list[tuple[np.ndarray, np.ndarray]] | None = None
 
     def _set_velocities(self, initial: InitialState) -> None:
         qd = self.state0.body_qd.numpy()  # a view of the CPU array: written in place
@@ -348,7 +359,7 @@ class NewtonScene:
         right after this scene's own capture, then the arrays that depend on the initial state (the model's and both
         states' poses, state0's velocities, the last directions) are written as ``__init__`` writes them, and Newton's
         ray-query shape BVH is refitted to the new poses. Returns False, changing nothing, when there is no capture
-        to reuse."""
+        to reuse (``reusable`` was False at the capture)."""
         import warp as wp
 
         if self._snapshot is None or len(initial.position) != self.model.body_count:
@@ -376,7 +387,7 @@ class NewtonScene:
             with wp.ScopedCapture(device="cpu") as capture:
                 self.substep()
             self.graph = capture.graph
-            if SCENE_REUSE:
+            if self.reusable:
                 self._snapshot = _graph_memory_snapshot(self.graph)
         for _ in range(self.substeps):
             wp.capture_launch(self.graph)
