@@ -12,8 +12,9 @@ Geometry helpers (poses, rotations, a quad mesh, brute-force flow) are plain fun
 
 Hypothesis runs derandomized by default (profile ``ci``: every run tries the same examples, so a failure
 reproduces, and hypothesis then keeps no example database). ``HYPOTHESIS_PROFILE=dev`` turns the randomness back on
-for a local search for new counterexamples, with the database that replays them under the repository's ignored
-``.cache/hypothesis``, as scripts/test.sh says of every cache (never ``.hypothesis/`` in the working directory).
+for a local search for new counterexamples, with the database that replays them. Whatever hypothesis stores lives
+under the repository's ignored ``.cache/hypothesis``, as scripts/test.sh says of every cache (never ``.hypothesis/``
+in the working directory).
 """
 
 from __future__ import annotations
@@ -23,12 +24,16 @@ from pathlib import Path
 
 import pytest
 from hypothesis import settings
+from hypothesis.configuration import set_hypothesis_home_dir
 from hypothesis.database import DirectoryBasedExampleDatabase
 
 import flowsynth as fs
 
 ROOT = Path(__file__).resolve().parents[1]
-_DATABASE = DirectoryBasedExampleDatabase(str(ROOT / ".cache" / "hypothesis"))
+# Everything hypothesis stores (its example database, and the constants it collects from the code under test) goes to
+# .cache/hypothesis instead of a .hypothesis/ folder in the working directory.
+set_hypothesis_home_dir(ROOT / ".cache" / "hypothesis")
+_DATABASE = DirectoryBasedExampleDatabase(str(ROOT / ".cache" / "hypothesis" / "examples"))
 
 # deadline None: a derandomized example must not fail because a shared 2-core machine ran it slowly
 settings.register_profile("ci", derandomize=True, database=None, deadline=None)

@@ -110,3 +110,6 @@ def test_test_script_keeps_hypothesis_cache_under_dot_cache():
     assert isinstance(db, DirectoryBasedExampleDatabase)
     assert Path(db.path).resolve().is_relative_to(ROOT / ".cache")
     assert settings().derandomize or "HYPOTHESIS_PROFILE" in __import__("os").environ
+    from hypothesis.configuration import storage_directory
+
+    assert Path(storage_directory(intent_to_write=False).path).resolve().is_relative_to(ROOT / ".cache")
