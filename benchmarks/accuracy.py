@@ -178,7 +178,7 @@ def bench_precision(width: int, height: int, repeat: int) -> list[dict]:
         _, cam_T_w, w_T_o = scene_arrays(scene)
         accel = SceneAccel(meshes, cam_T_w, w_T_o)
         gb = cast_gbuffer(accel, scene.camera, want_normals=False, want_points=True)
-        p_local = gb.point[0, i, j].astype(np.float64)
+        p_local = gb.host().point[0, i, j].astype(np.float64)
         M = np.einsum("ij,pjk->pik", cam_T_w[1], w_T_o[1, n])
         t64 = timeit(partial(reproject, p_local, M, K), repeat=repeat)
         t32 = timeit(partial(float32_world_flow, pos, n, i, j, world_T_obj_s, cam_T_world, K), repeat=repeat)

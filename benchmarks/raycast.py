@@ -148,7 +148,7 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
     result = {"depth": out["depth"][0, 0].numpy().astype(np.float64).reshape(-1),
               "instance": out["instance"][0, 0].numpy().reshape(-1).astype(np.int64) - 1,
               "normal": out["normals"][0].numpy().reshape(3, -1).T.astype(np.float64),
-              "dist": gb.dist.reshape(-1).astype(np.float64)}
+              "dist": gb.host().dist.reshape(-1).astype(np.float64)}
     return Engine(fns, rows, {"first_call_s": first}, result)
 
 

@@ -14,7 +14,7 @@ or 1, one layer; the families table run at the revision before and after shows w
      ``cells_per_improvement`` (the form before 2026-11-24, in this file: the value hashed every time a nearer
      feature is found); the outputs must be identical;
    - ``wp.noise`` (Perlin, the "noise" family) and ``value_noise`` for scale.
-2. **Shading** (``families``): process CPU of ``flowsynth.shading.render_radiance`` per 2-frame 512x384
+2. **Shading** (``families``): process CPU of ``flowsynth.shading.shade_radiance`` per 2-frame 512x384
    sample (flat mode, 20 objects, edge_spp 1, seed 0) with every object and wall given one texture family,
    beside "solid" (x_solid: its time over solid's, the cost of the texture), and the default mix; and the
    default config's whole sample with the radiance share.
@@ -125,11 +125,11 @@ def lookups(n: int, rounds: int) -> list[dict]:
 
 @contextmanager
 def radiance_timer():
-    """Wraps ``flowsynth.shading.render_radiance`` (which ``render_rgb`` calls) for the ``with`` block: yields a
+    """Wraps ``flowsynth.shading.shade_radiance`` (which ``render_rgb`` calls) for the ``with`` block: yields a
     dict whose "s" the wrapper adds each call's process CPU time to; the original is put back on exit."""
     from flowsynth import shading
 
-    orig = shading.render_radiance
+    orig = shading.shade_radiance
     spent = {"s": 0.0}
 
     def timed(*a, **k):
@@ -138,11 +138,11 @@ def radiance_timer():
         spent["s"] += tm.cpu_s
         return out
 
-    shading.render_radiance = timed
+    shading.shade_radiance = timed
     try:
         yield spent
     finally:
-        shading.render_radiance = orig
+        shading.shade_radiance = orig
 
 
 def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:

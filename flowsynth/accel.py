@@ -19,6 +19,7 @@ from trimesh.convex import QHULL_DEFAULT
 
 from flowsynth.blas import atlas
 from flowsynth.caches import register
+from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
 from flowsynth.meshes import freeze
 
@@ -28,7 +29,7 @@ ORDERED_MAX = 64
 # 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits; docs/decisions/0002-screen-tiles-16px.md).
 TILE = 16  # a power of two: the kernels find a pixel's tile by a shift
 
-__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "pinhole"]
+__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "pinhole", "resolve_device"]
 
 # Maximum number of per-mesh hulls and face planes kept per process (least recently used are dropped).
 MESH_CACHE_SIZE = 512
@@ -44,6 +45,20 @@ FACE_PLANES_BUDGET = 2e7
 BOX_PAD_REL = 1e-4
 
 _KEYS: weakref.WeakKeyDictionary = register("accel.mesh_keys", weakref.WeakKeyDictionary())
+
+
+def resolve_device(device) -> str:
+    """The Warp device ``device`` names ("cpu", "cuda", "cuda:1", or a ``warp.Device``) as Warp's alias
+    ("cpu", "cuda:0", ...). Raises ConfigError naming the device and the devices Warp finds when it has none such
+    (e.g. "cuda" on a machine without a CUDA driver)."""
+    wp = wp_runtime()
+    try:
+        return wp.get_device(device).alias
+    except (RuntimeError, ValueError, TypeError) as e:
+        found = [d.alias for d in wp.get_devices()]
+        raise ConfigError(f"device {device!r} is not available: Warp finds {found} "
+                          f"({wp.get_cuda_device_count()} CUDA device(s); {e}). Use device='cpu' or one of "
+                          f"those") from None
 
 
 def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
@@ -79,7 +94,8 @@ class SceneAccel:
         meshes: N object-frame meshes (instances may share a mesh).
         cam_T_world: (F, 4, 4) float64.
         world_T_obj: (F, N, 4, 4) float64.
-        device: Warp device, "cpu" (default) or "cuda".
+        device: Warp device ("cpu", the default; "cuda", "cuda:1", ... where Warp finds one: ``resolve_device``).
+            Every array of the accel lives there.
     """
 
     def __init__(self, meshes: list[trimesh.Trimesh], cam_T_world: np.ndarray, world_T_obj: np.ndarray,
@@ -88,6 +104,7 @@ class SceneAccel:
         wp = wp_runtime()
         F = cam_T_world.shape[0]
         N = len(meshes)
+        device = resolve_device(device)
         self.F, self.N, self.device = F, N, device
         self.empty = N == 0
         if self.empty:
@@ -122,7 +139,7 @@ class SceneAccel:
         self.lowers = wp.array(lowers, dtype=wp.vec3, device=device)  # (F * N,) padded instance boxes, camera frame
         self.uppers = wp.array(uppers, dtype=wp.vec3, device=device)
         self._groups = wp.array(groups, dtype=wp.int32, device=device)
-        self.bvh = wp.Bvh(self.lowers, self.uppers, constructor="sah" if device == "cpu" else None,
+        self.bvh = wp.Bvh(self.lowers, self.uppers, constructor="sah" if wp.get_device(device).is_cpu else None,
                           groups=self._groups)
         roots = _group_roots(self.bvh, F, device)
         self.roots = roots
@@ -176,7 +193,7 @@ class SceneAccel:
             from flowsynth.kernels.raycast import Culling
 
             wp = wp_runtime()
-            bounds = [_face_planes(m, threads) for m in self._meshes]
+            bounds = [_face_planes(m, threads, self.device) for m in self._meshes]
             planes, slabs = [b["planes"] for b in bounds], [b["slab"] for b in bounds]
             offsets = np.cumsum([0] + [len(p) for p in planes])[:-1]
             flat = np.array([s is not None for s in slabs])
@@ -312,12 +329,12 @@ def _silhouette_planes(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray) -> 
 _PLANES: OrderedDict = register("accel.face_planes", OrderedDict())
 
 
-def _face_planes(mesh: trimesh.Trimesh, threads: int | None = None) -> dict:
+def _face_planes(mesh: trimesh.Trimesh, threads: int | None = None, device: str = "cpu") -> dict:
     """Exact bounds of a mesh for culling visibility rays, float64 from the float32 vertices the mesh
     queries use; cached per process like the asset BVHs. Keys:
 
     - ``planes`` (faces, 4): per face (unit normal n, e) with every vertex v in n . v <= e
-      (``face_planes_kernel``, on the CPU: e the max; above ``FACE_PLANES_BUDGET`` faces x vertices the
+      (``face_planes_kernel``, on the accel's device: e the max; above ``FACE_PLANES_BUDGET`` faces x vertices the
       bounding sphere's n . c + r); a degenerate face gets n = 0, e = 1e30 (never culls);
     - ``slab``: (n, lo, hi) with every vertex in lo <= n . v <= hi when the mesh is flat (``FLAT_REL``), else None;
     - ``sphere``: (centre, radius) holding every vertex;
@@ -326,12 +343,12 @@ def _face_planes(mesh: trimesh.Trimesh, threads: int | None = None) -> dict:
       solid is then the intersection of the face half-spaces, and the ball the largest one in it, less
       the vertices' worst excess over their face planes).
     """
-    return _cached(_PLANES, _mesh_key(mesh), lambda: _face_planes_of(mesh, threads))
+    return _cached(_PLANES, (str(device), _mesh_key(mesh)), lambda: _face_planes_of(mesh, threads, device))
 
 
-def _face_planes_of(mesh: trimesh.Trimesh, threads: int | None = None) -> dict:
-    """``_face_planes``, computed (not cached); the face planes' kernel runs in bands over ``threads`` threads
-    (bit-identical for any count, ``flowsynth.parallel``)."""
+def _face_planes_of(mesh: trimesh.Trimesh, threads: int | None = None, device: str = "cpu") -> dict:
+    """``_face_planes``, computed (not cached); the face planes' kernel runs on ``device`` in bands over ``threads``
+    threads (bit-identical for any count, ``flowsynth.parallel``); the planes come back to the host (numpy)."""
     from flowsynth.kernels.raycast import face_planes_kernel
     from flowsynth.parallel import BAND0, launch_bands
 
@@ -344,10 +361,10 @@ def _face_planes_of(mesh: trimesh.Trimesh, threads: int | None = None) -> dict:
     nrm = np.cross(V64[fc[:, 1]] - V64[fc[:, 0]], V64[fc[:, 2]] - V64[fc[:, 0]])
     area = np.linalg.norm(nrm, axis=1)
     if len(fc) * len(V) <= FACE_PLANES_BUDGET:
-        out = wp.empty(len(fc), dtype=wp.vec4d, device="cpu")
+        out = wp.empty(len(fc), dtype=wp.vec4d, device=device)
         if len(fc):
-            launch_bands(face_planes_kernel, (len(fc),), 0, [wp.array(V, dtype=wp.vec3, device="cpu"),
-                         wp.array(fc.reshape(-1), dtype=wp.int32, device="cpu"), BAND0], [out], "cpu", threads,
+            launch_bands(face_planes_kernel, (len(fc),), 0, [wp.array(V, dtype=wp.vec3, device=device),
+                         wp.array(fc.reshape(-1), dtype=wp.int32, device=device), BAND0], [out], device, threads,
                          cost=len(V))
         planes = out.numpy()
     else:  # the sphere's bound n . c + r >= n . v for every vertex: looser (fewer culls), as exact
@@ -593,8 +610,28 @@ def pinhole(camera, device: str = "cpu", pad: int = 0):
     p = Pinhole()
     p.intr = wp.vec4(K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     p.skew = float(K[0, 1])
-    if not camera.is_pinhole:  # a lens model's rays; uncovered pixels get (0, 0, -1): no hit
-        rays = camera.ray_grid(pad).astype(np.float32)
-        rays[rays[..., 2] <= 0] = (0.0, 0.0, -1.0)
-        p.rays = wp.array(rays, dtype=wp.vec3, device=device)
+    if not camera.is_pinhole:  # a lens model's rays, uploaded once per camera, pad and device (cached)
+        key = (str(device), K.tobytes(), camera.width, camera.height, camera.model, camera.dist, int(pad))
+        rays = _RAYS.get(key)
+        if rays is None:
+            rays = _RAYS[key] = _ray_array(camera, device, pad)
+            while len(_RAYS) > RAY_CACHE_SIZE:
+                _RAYS.popitem(last=False)
+        _RAYS.move_to_end(key)
+        p.rays = rays
     return p
+
+
+# Lens cameras' ray arrays kept per process (per camera, pad and device; least recently used dropped), as
+# flowsynth.camera keeps their numpy rays.
+RAY_CACHE_SIZE = 16
+_RAYS: OrderedDict = register("accel.lens_ray_arrays", OrderedDict())
+
+
+def _ray_array(camera, device: str, pad: int):
+    """A lens camera's ``ray_grid(pad)`` as a float32 vec3 Warp array on ``device``; uncovered pixels get
+    (0, 0, -1): no hit."""
+    wp = wp_runtime()
+    rays = camera.ray_grid(pad).astype(np.float32)
+    rays[rays[..., 2] <= 0] = (0.0, 0.0, -1.0)
+    return wp.array(rays, dtype=wp.vec3, device=device)

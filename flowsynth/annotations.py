@@ -71,7 +71,7 @@ def _clip_box(uv: np.ndarray, W: int, H: int) -> np.ndarray:
 
 def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
     """Padded object tables (see module docstring) for the keys the plan asks for."""
-    T, H, W = gb.dist.shape
+    T, H, W = gb.shape
     rows = [n for n, o in enumerate(scene.objects) if not o.background]  # table row r <- scene object rows[r]
     objects = [scene.objects[n] for n in rows]
     N = len(rows)
@@ -111,7 +111,7 @@ def object_tables(scene, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndar
     if "box2d_visible" in want or "visible_pixels" in want:
         row_of = np.full(len(scene.objects) + 1, -1)  # scene object index -> table row, -1 -> -1
         row_of[rows] = np.arange(N)
-        out["box2d_visible"], out["visible_pixels"] = _visible(row_of[gb.instance_index], Nmax)
+        out["box2d_visible"], out["visible_pixels"] = _visible(row_of[gb.host().instance_index], Nmax)  # on the host
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items() if k in want}
 
 

@@ -110,10 +110,11 @@ def coc_px(depth: np.ndarray, aperture: float, focus: float, f_px: float, f_m: f
 
 
 def apply_dof(radiance: np.ndarray, depth: np.ndarray, aperture: float, focus: float, f_px: float, f_m: float,
-              max_coc: float, threads: int | None = None) -> np.ndarray:
+              max_coc: float, threads: int | None = None, device: str = "cpu") -> np.ndarray:
     """Depth of field of (T, H, W, 3) linear ``radiance`` with (T, H, W) planar ``depth`` [m] (0 = no hit):
     per-pixel CoC from ``coc_px`` clamped to ``max_coc`` [px], gathered by ``flowsynth.kernels.dof`` (its module
-    docstring states the weights). ``focus`` must exceed the focal length ``f_m``. Returns float32 (T, H, W, 3)."""
+    docstring states the weights) on Warp ``device``. ``focus`` must exceed the focal length ``f_m``. Returns float32
+    (T, H, W, 3) numpy."""
     from flowsynth.kernels import wp_runtime
     from flowsynth.parallel import BAND0, launch_bands
 
@@ -128,11 +129,11 @@ def apply_dof(radiance: np.ndarray, depth: np.ndarray, aperture: float, focus: f
 
     T, H, W = radius.shape
     z = np.where(np.asarray(depth) > 0, depth, SKY_DEPTH).astype(np.float32)
-    src = wp.array(np.ascontiguousarray(radiance, np.float32), dtype=wp.vec3, device="cpu")
-    dst = wp.empty((T, H, W), dtype=wp.vec3, device="cpu")
+    src = wp.array(np.ascontiguousarray(radiance, np.float32), dtype=wp.vec3, device=device)
+    dst = wp.empty((T, H, W), dtype=wp.vec3, device=device)
     launch_bands(dof_gather_kernel, (T, H, W), 1,
-                 [src, wp.array(radius, dtype=wp.float32, device="cpu"), wp.array(z, dtype=wp.float32, device="cpu"),
-                  search, BAND0], [dst], "cpu", threads, row_loop=True, cost=(2 * search + 1) ** 2)
+                 [src, wp.array(radius, dtype=wp.float32, device=device), wp.array(z, dtype=wp.float32, device=device),
+                  search, BAND0], [dst], device, threads, row_loop=True, cost=(2 * search + 1) ** 2)
     return dst.numpy()
 
 
@@ -177,10 +178,11 @@ def render_final(scene, accel, gb, plan: Plan, device: str = "cpu") -> torch.Ten
     radiance = render_radiance(scene, accel, gb, plan, device=device)
     T, H, W = radiance.shape[:3]
     dz = scene.camera.pixel_rays_numpy()[..., 2]
-    hit = gb.item >= 0
-    depth = np.where(hit, gb.dist.astype(np.float64) * dz, 0.0)
-    distance = np.where(hit, gb.dist, 0.0)
-    idx = gb.instance_index[T // 2]
+    host = gb.host()  # the final pass's draws, fog, gains and noise compute on the host
+    hit = host.hit
+    depth = np.where(hit, host.dist.astype(np.float64) * dz, 0.0)
+    distance = np.where(hit, host.dist, 0.0)
+    idx = host.instance_index[T // 2]
     objects = np.array([not o.background for o in scene.objects] + [False])
     draw = draw_final(seed, fp, depth[T // 2], objects[idx], T)
     if fp.fog_density > 0:
@@ -189,7 +191,7 @@ def render_final(scene, accel, gb, plan: Plan, device: str = "cpu") -> torch.Ten
         f_px = float(scene.camera.K[0, 0])
         f_m = SENSOR_WIDTH * f_px / W
         radiance = apply_dof(radiance, depth, draw.aperture, max(draw.focus, 2.0 * f_m), f_px, f_m, fp.max_coc,
-                             plan.threads)
+                             plan.threads, device=device)
     if fp.exposure_jitter > 0 or fp.wb_jitter > 0:
         radiance = (radiance * draw.gains[:, None, None, :]).astype(np.float32)
     if (draw.shot_noise > 0 or draw.read_noise > 0) and plan.exposure > 0:
@@ -197,4 +199,4 @@ def render_final(scene, accel, gb, plan: Plan, device: str = "cpu") -> torch.Ten
         x = apply_noise(plan.exposure * np.asarray(radiance, np.float64), draw.shot_noise, draw.read_noise, rng)
         radiance = (np.maximum(x, 0.0) / plan.exposure).astype(np.float32)
     return torch.from_numpy(tonemap_frames(np.ascontiguousarray(radiance, np.float32), plan.tonemap, plan.exposure,
-                                           plan.threads))
+                                           plan.threads, device=device))

@@ -91,12 +91,12 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     from flowsynth.kernels.raycast import Culling, Instances, TileLists
     from flowsynth.kernels.reproject import LENS_CODES, OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
 
-    F, H, W = gb.item.shape
+    F, H, W = gb.shape
     want_dc = fB is not None
     want_sf = scene_flow_T is not None
     occ_mode = {None: OCC_NONE, "exact": OCC_EXACT, "depth": OCC_DEPTH}[occlusion]
     N = gb.num_instances
-    if P <= 0 or N == 0 or not gb.hit.any():
+    if P <= 0 or N == 0:  # (a G-buffer without hits needs no shortcut: the kernel writes 0 at every miss)
         res = {"valid": np.zeros((P, 1, H, W), bool), "oof": np.zeros((P, 1, H, W), bool)}
         if flow:
             res["flow"] = np.zeros((P, 2, H, W), np.float32)
@@ -108,18 +108,15 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
             res["scene_flow"] = np.zeros((P, 3, H, W), np.float32)
         return res
     wp = wp_runtime()
-    dev = accel.device if accel is not None and not accel.empty else "cpu"
-    cpu = dev == "cpu"
-    item = wp.array(np.ascontiguousarray(gb.item, np.int32), dtype=wp.int32, device=dev, copy=not cpu)
-    point = wp.array(np.ascontiguousarray(gb.point, np.float32), dtype=wp.vec3, device=dev, copy=not cpu)
-    face = wp.array(np.ascontiguousarray(gb.face, np.int32), dtype=wp.int32, device=dev, copy=not cpu)
+    dev = gb.device
+    item, point, face = gb.item, gb.point, gb.face  # the G-buffer's own arrays, on its device
     M = wp.array(np.ascontiguousarray(cam_T_obj, np.float64), dtype=wp.mat44d, device=dev)
     inst, tiles, cull = Instances(), TileLists(), Culling()
     if occ_mode == OCC_EXACT:
         cull = accel.culling(threads)
         inst, tiles = accel.instances(), accel.tile_lists(camera, flat=False, threads=threads)
     one = (1, 1, 1)
-    dist = wp.array(gb.dist, dtype=wp.float32, device=dev) if occ_mode == OCC_DEPTH else wp.empty(one, wp.float32, dev)
+    dist = gb.dist if occ_mode == OCC_DEPTH else wp.empty(one, wp.float32, dev)
     dz = wp.array(np.ascontiguousarray(camera.pixel_rays_numpy()[..., 2]) if occ_mode == OCC_DEPTH
                   else np.zeros((1, 1)), dtype=wp.float64, device=dev)
     shape = (P, H, W)
@@ -158,7 +155,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
     """Every flow-family key the plan asks for: per (direction, gap k) of ``plan.pair_jobs``, tensors of shape
     (max(T-k, 0), C, H, W) whose index t is the pair (t, t+k); ``motion`` (T-1, 1, H, W); and stereo's
     ``disparity_change`` when asked for beside a key of the fw gap-1 pass (same pairs, same kernel launch)."""
-    T, H, W = gb.dist.shape
+    T, H, W = gb.shape
     want = set(plan.outputs)
     out: dict[str, torch.Tensor] = {}
     cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)  # (T, N, 4, 4), once per frame and object
@@ -211,20 +208,19 @@ def world_points(gb, world_T_obj: np.ndarray, *, moved: bool, threads: int | Non
     """The G-buffer's hit points in the world frame, (T, H, W, 3) float64 (0 where not hit), and with ``moved``
     the ``motion`` flags (T-1, H, W) bool of frames 0 .. T-2 (else None): one ``world_points_kernel`` launch in
     row bands (flowsynth/kernels/reproject.py), no per-pixel gather of matrices."""
-    T, H, W = gb.dist.shape
-    if gb.num_instances == 0 or not gb.hit.any():
+    T, H, W = gb.shape
+    if gb.num_instances == 0:  # (no hit needs no shortcut: the kernel writes 0 at every miss)
         return np.zeros((T, H, W, 3)), (np.zeros((T - 1, H, W), bool) if moved else None)
     wp = wp_runtime()
     from flowsynth.kernels.reproject import world_points_kernel
 
-    world = wp.empty((T, H, W), dtype=wp.vec3d)  # the kernel writes every pixel
-    flags = wp.empty((T - 1, H, W) if moved and T > 1 else (1, 1, 1), dtype=wp.uint8)
+    dev = gb.device
+    world = wp.empty((T, H, W), dtype=wp.vec3d, device=dev)  # the kernel writes every pixel
+    flags = wp.empty((T - 1, H, W) if moved and T > 1 else (1, 1, 1), dtype=wp.uint8, device=dev)
     launch_bands(world_points_kernel, (T, H, W), 1,
-                 [wp.array(np.ascontiguousarray(gb.item, np.int32), dtype=wp.int32, copy=False),
-                  wp.array(np.ascontiguousarray(gb.point, np.float32), dtype=wp.vec3, copy=False),
-                  wp.array(np.ascontiguousarray(world_T_obj, np.float64), dtype=wp.mat44d), int(moved),
-                  MOTION_TOL, BAND0],
-                 [world, flags], "cpu", threads, row_loop=True)
+                 [gb.item, gb.point, wp.array(np.ascontiguousarray(world_T_obj, np.float64), dtype=wp.mat44d,
+                                              device=dev), int(moved), MOTION_TOL, BAND0],
+                 [world, flags], dev, threads, row_loop=True)
     if not moved:
         return world.numpy(), None
     return world.numpy(), (flags.numpy().astype(bool) if T > 1 else np.zeros((0, H, W), bool))

@@ -2,29 +2,33 @@
 
 ``fs.render`` (``flowsynth.renderer``) casts it once per clip; the right camera of ``flowsynth.stereo`` casts it
 again. It sits below both, so neither imports the other (docs/architecture.md).
+
+The G-buffer stays in Warp arrays on the accel's device: the stages that run kernels (flow, position and motion,
+shading) read those arrays. ``GBuffer.host()`` is the one hand-over to numpy, made at most once per G-buffer (no
+copy on the CPU), for the stages that compute on the host: the renderer's per-pixel outputs, tracks, object
+tables, stereo disparity, the final pass's depth and the lights' scale. ``to_torch`` is the edge where a stage's
+Warp output becomes a CPU tensor.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import torch
 
 from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.scene import Scene
 
-__all__ = ["GBuffer", "cast_gbuffer", "scene_arrays"]
+__all__ = ["GBuffer", "HostGBuffer", "cast_gbuffer", "scene_arrays", "to_torch"]
 
 
 @dataclass
-class GBuffer:
-    """Raw per-pixel result of the primary cast for F frames (numpy, (F, H, W, ...)).
-
-    ``item`` is -1 where the ray hits nothing, else ``f * N + n`` for instance n (0-based);
-    ``dist`` ray length [m]; ``point`` object-frame hit point [m]; ``normal`` camera frame.
-    """
+class HostGBuffer:
+    """The G-buffer's arrays in numpy, (F, H, W, ...): what ``GBuffer.host()`` returns (fields as there)."""
 
     dist: np.ndarray
     item: np.ndarray
@@ -43,33 +47,73 @@ class GBuffer:
         return np.where(self.item >= 0, self.item % max(self.num_instances, 1), -1)
 
 
+@dataclass
+class GBuffer:
+    """Raw per-pixel result of the primary cast for F frames: Warp arrays (F, H, W) on ``device``.
+
+    ``item`` int32 is -1 where the ray hits nothing, else ``f * N + n`` for instance n (0-based); ``dist``
+    float32 ray length [m] (0 where no hit); ``face`` int32 the hit face (-1 where no hit); ``point`` vec3
+    object-frame hit point [m] and ``normal`` vec3 camera-frame normal, or None when not cast. ``host()``: the
+    same in numpy.
+    """
+
+    dist: Any
+    item: Any
+    face: Any
+    point: Any | None
+    normal: Any | None
+    num_instances: int
+    device: str
+    _host: HostGBuffer | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(F, H, W)."""
+        return tuple(self.dist.shape)
+
+    def host(self) -> HostGBuffer:
+        """The G-buffer in numpy: made on the first call (a view on the CPU, one copy from another device), the
+        same object after. The hand-over of the stages that compute on the host."""
+        if self._host is None:
+            self._host = HostGBuffer(self.dist.numpy(), self.item.numpy(), self.face.numpy(),
+                                     None if self.point is None else self.point.numpy(),
+                                     None if self.normal is None else self.normal.numpy(), self.num_instances)
+        return self._host
+
+
+def to_torch(a) -> torch.Tensor:
+    """A Warp array as a CPU tensor: ``wp.to_torch`` (shares the memory on the CPU), copied to the host from
+    another device. The edge where a stage's output leaves Warp."""
+    return wp_runtime().to_torch(a).cpu()
+
+
 def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: bool,
                  max_dist: float = 1e9, threads: int | None = None) -> GBuffer:
     """One primary ray per pixel centre for each of the accel's F frames: one kernel launch, cut into row
-    bands over ``threads`` threads (``flowsynth.parallel``; None = all cores)."""
+    bands over ``threads`` threads (``flowsynth.parallel``; None = all cores), on the accel's device."""
     F, H, W = accel.F, camera.height, camera.width
-    if accel.empty:
-        return GBuffer(np.zeros((F, H, W), np.float32), np.full((F, H, W), -1, np.int32),
-                       np.full((F, H, W), -1, np.int32),
-                       np.zeros((F, H, W, 3), np.float32) if want_points else None,
-                       np.zeros((F, H, W, 3), np.float32) if want_normals else None, 0)
     wp = wp_runtime()
+    dev = accel.device
+    if accel.empty:
+        return GBuffer(wp.zeros((F, H, W), dtype=wp.float32, device=dev),
+                       wp.full((F, H, W), -1, dtype=wp.int32, device=dev),
+                       wp.full((F, H, W), -1, dtype=wp.int32, device=dev),
+                       wp.zeros((F, H, W), dtype=wp.vec3, device=dev) if want_points else None,
+                       wp.zeros((F, H, W), dtype=wp.vec3, device=dev) if want_normals else None, 0, dev)
     from flowsynth.kernels.raycast import primary_kernel
 
-    dev = accel.device
     dist = wp.empty((F, H, W), dtype=wp.float32, device=dev)  # the kernel writes every pixel
     item = wp.empty((F, H, W), dtype=wp.int32, device=dev)
     face = wp.empty((F, H, W), dtype=wp.int32, device=dev)
-    shape3 = (F, H, W) if want_points else (1, 1, 1)
-    point = wp.empty(shape3, dtype=wp.vec3, device=dev)
+    point = wp.empty((F, H, W) if want_points else (1, 1, 1), dtype=wp.vec3, device=dev)
     normal = wp.empty((F, H, W) if want_normals else (1, 1, 1), dtype=wp.vec3, device=dev)
     launch_bands(
         primary_kernel(want_normals, want_points, not camera.is_pinhole), (F, H, W), 1,
         [accel.instances(), accel.tile_lists(camera), pinhole(camera, dev), float(max_dist), BAND0],
         [dist, item, face, point, normal], dev, threads, row_loop=True,
     )
-    return GBuffer(dist.numpy(), item.numpy(), face.numpy(), point.numpy() if want_points else None,
-                   normal.numpy() if want_normals else None, accel.N)
+    return GBuffer(dist, item, face, point if want_points else None, normal if want_normals else None, accel.N,
+                   dev)
 
 
 def scene_arrays(scene: Scene) -> tuple[list, np.ndarray, np.ndarray]:

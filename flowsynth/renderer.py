@@ -13,13 +13,16 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from flowsynth.accel import SceneAccel
+from flowsynth.accel import SceneAccel, resolve_device
 from flowsynth.camera import check_lens_outputs
 from flowsynth.gbuffer import GBuffer, cast_gbuffer, scene_arrays
 from flowsynth.plan import Plan, make_plan
 from flowsynth.scene import Scene
 
-__all__ = ["gbuffer_outputs", "render", "render_plan"]
+__all__ = ["HOST_KEYS", "gbuffer_outputs", "render", "render_plan"]
+
+# The G-buffer outputs computed on the host from ``GBuffer.host()`` (elementwise, where the sample leaves Warp).
+HOST_KEYS = frozenset({"distance", "depth", "normals", "instance", "category", "asset"})
 
 
 def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, device: str = "cpu",
@@ -29,7 +32,9 @@ def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, d
     Args:
         scene: camera path and objects.
         outputs: keys from ``flowsynth.plan.OUTPUTS`` (see docs/conventions.md for shapes and units).
-        device: Warp device for the kernels ("cpu", or "cuda" where available). Results are CPU tensors.
+        device: Warp device of every stage ("cpu", the default; "cuda", "cuda:1", ... where Warp finds one, else
+            a ConfigError naming the device and what Warp found). Written for any Warp device; tested on the CPU
+            only (docs/architecture.md, Devices). Results are CPU tensors.
         occlusion: "exact" (visibility rays) or "depth" (cheaper depth-buffer comparison; benchmarks/accuracy.py
             measures what each costs and how often each is wrong: docs/decisions/0003-exact-occlusion.md).
         options: further ``flowsynth.plan.make_plan`` options, e.g. ``threads`` (ray-launch threads; None =
@@ -46,9 +51,13 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
     """Run the stages of ``plan`` (``flowsynth.plan.make_plan``, or ``fs.make_plan``) on ``scene``: what
     ``fs.render`` does after making the plan, and what the datasets call with the plan they made once.
 
+    ``device``: as ``render``'s. The G-buffer stays in Warp arrays on it between the stages; ``GBuffer.host()``
+    hands it to the stages that compute on the host (docs/architecture.md, Devices).
+
     Returns:
         dict mapping each key of ``plan.outputs`` to a CPU tensor (docs/conventions.md).
     """
+    device = resolve_device(device)  # one device for every stage (ConfigError where Warp has none such)
     if plan.seed is None:  # the renderer's noise seed: the scene's unless the plan sets one
         plan = replace(plan, seed=int(scene.render_seed))
     check_lens_outputs(scene.camera, plan.outputs)
@@ -92,19 +101,22 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
     """depth, distance, normals, position, instance, category, asset from the raw G-buffer."""
     out = {}
     want = set(plan.outputs)
-    idx = gb.instance_index
-    if "distance" in want:
-        out["distance"] = torch.from_numpy(gb.dist[:, None].copy())
-    if "depth" in want:
-        dz = scene.camera.pixel_rays_numpy()[..., 2]
-        out["depth"] = torch.from_numpy((gb.dist.astype(np.float64) * dz).astype(np.float32)[:, None])
-    if "normals" in want:
-        out["normals"] = torch.from_numpy(np.ascontiguousarray(gb.normal.transpose(0, 3, 1, 2)))
-    if "position" in want:
+    if "position" in want:  # world points on the G-buffer's device (flowsynth.flow.world_points)
         from flowsynth.flow import world_points
 
         pos = world_points(gb, world_T_obj, moved=False, threads=plan.threads)[0]
         out["position"] = torch.from_numpy(np.ascontiguousarray(pos.astype(np.float32).transpose(0, 3, 1, 2)))
+    if not want & HOST_KEYS:
+        return out
+    host = gb.host()  # the hand-over: these outputs are computed on the host
+    idx = host.instance_index
+    if "distance" in want:
+        out["distance"] = torch.from_numpy(host.dist[:, None].copy())
+    if "depth" in want:
+        dz = scene.camera.pixel_rays_numpy()[..., 2]
+        out["depth"] = torch.from_numpy((host.dist.astype(np.float64) * dz).astype(np.float32)[:, None])
+    if "normals" in want:
+        out["normals"] = torch.from_numpy(np.ascontiguousarray(host.normal.transpose(0, 3, 1, 2)))
     lut = {
         "instance": np.array([o.instance for o in scene.objects], np.int32),
         "category": np.array([o.category for o in scene.objects], np.int32),

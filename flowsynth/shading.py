@@ -22,14 +22,16 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from flowsynth.accel import SceneAccel, pinhole
+from flowsynth.caches import register
 from flowsynth.errors import ConfigError
+from flowsynth.gbuffer import to_torch
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.materials import mip_pyramid, resolve_lights, resolve_material, srgb_to_linear
 from flowsynth.plan import TONEMAPS
 
-__all__ = ["MAX_TIME_SLICES", "pack_materials", "poses_at", "render_radiance", "render_rgb", "shutter_times",
-           "tonemap_frames", "tonemap_srgb"]
+__all__ = ["MAX_TIME_SLICES", "median_hit_distance", "pack_materials", "poses_at", "render_radiance", "render_rgb",
+           "shade_radiance", "shutter_times", "srgb_tables", "tonemap_array", "tonemap_frames", "tonemap_srgb"]
 
 # White point of the extended Reinhard operator: linear radiance that maps to 1.
 REINHARD_WHITE = 4.0
@@ -45,53 +47,91 @@ CAMERA_RAY_TILES = True
 # (``Camera.ray_grid``): a sub-pixel sample blends its four surrounding centres' rays.
 LENS_RAY_PAD = 2
 
+# The sRGB tables of the tone-mapping kernel per Warp device (``srgb_tables``).
+_SRGB_TABLES: dict = register("shading.srgb_pow_tables", {})
+
 
 def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch.Tensor:
-    """Render ``rgb``: (T, 3, H, W) float32 sRGB-encoded colour in [0, 1].
+    """Render ``rgb``: (T, 3, H, W) float32 sRGB-encoded colour in [0, 1] (a CPU tensor).
 
     Args:
         scene: the scene (objects' ``material`` dicts, ``lights``; empty means defaults).
         accel: the G-buffer's acceleration structure (one group per frame).
-        gb: the G-buffer of the pixel-centre rays; reused as the primary hit when spp == 1 and shutter == 0.
+        gb: the G-buffer of the pixel-centre rays (``flowsynth.gbuffer.GBuffer``, on ``device``); reused as the
+            primary hit when spp == 1 and shutter == 0.
         plan: a validated ``flowsynth.plan.Plan``: ``render_mode``, ``spp``, ``shutter``, ``seed``, ``bounces``,
             ``tonemap``, ``exposure``.
-        device: Warp device.
+        device: Warp device of the shading and the tone mapping (the G-buffer's).
     """
     _check_tonemap(plan.tonemap, plan.exposure)
-    radiance = render_radiance(scene, accel, gb, plan, device=device)
-    return torch.from_numpy(tonemap_frames(radiance, plan.tonemap, plan.exposure, plan.threads))
+    radiance = shade_radiance(scene, accel, gb, plan, device=device)
+    return to_torch(tonemap_array(radiance, plan.tonemap, plan.exposure, plan.threads))
 
 
 def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float = 1.0,
-                   threads: int | None = None) -> np.ndarray:
-    """``tonemap_srgb`` of (T, H, W, 3) float32 radiance into (T, 3, H, W) float32, the same float64 steps in one
-    Warp kernel pass over rows (``flowsynth.kernels.shade.tonemap_kernel``); the numpy form took 0.81 s of CPU
-    per T=24 view at 512x384 (docs/decisions/0013-tonemap-kernel.md)."""
-    from flowsynth.kernels.shade import srgb_pow_tables, tonemap_kernel
+                   threads: int | None = None, device: str = "cpu") -> np.ndarray:
+    """``tonemap_array`` of host (T, H, W, 3) float32 radiance: (T, 3, H, W) float32 in numpy."""
+    wp = wp_runtime()
+    src = wp.array(np.ascontiguousarray(radiance, np.float32), dtype=wp.vec3, device=device,
+                   copy=not wp.get_device(device).is_cpu)  # a view on the CPU
+    return tonemap_array(src, method, exposure, threads).numpy()
+
+
+def tonemap_array(radiance, method: str = "clamp", exposure: float = 1.0, threads: int | None = None):
+    """``tonemap_srgb`` of a (T, H, W) vec3 Warp array of linear radiance into a (T, 3, H, W) float32 Warp array on
+    the same device, the same float64 steps in one Warp kernel pass over rows
+    (``flowsynth.kernels.shade.tonemap_kernel``); the numpy form took 0.81 s of CPU per T=24 view at 512x384
+    (docs/decisions/0013-tonemap-kernel.md)."""
+    from flowsynth.kernels.shade import tonemap_kernel
 
     _check_tonemap(method, exposure)
     wp = wp_runtime()
-    T, H, W, _ = radiance.shape
-    rgb = wp.empty((T, 3, H, W), dtype=wp.float32, device="cpu")
-    src = wp.array(np.ascontiguousarray(radiance, np.float32), dtype=wp.vec3, device="cpu", copy=False)
-    launch_bands(tonemap_kernel, (T, H, W), 1, [src, float(exposure), int(method == "reinhard"), REINHARD_WHITE**2,
-                                                srgb_pow_tables(), BAND0], [rgb], "cpu", threads, row_loop=True)
-    return rgb.numpy()
+    dev = str(radiance.device)
+    T, H, W = radiance.shape
+    rgb = wp.empty((T, 3, H, W), dtype=wp.float32, device=dev)
+    launch_bands(tonemap_kernel, (T, H, W), 1, [radiance, float(exposure), int(method == "reinhard"),
+                                                REINHARD_WHITE**2, srgb_tables(dev), BAND0], [rgb], dev, threads,
+                 row_loop=True)
+    return rgb
+
+
+def srgb_tables(device: str = "cpu"):
+    """``flowsynth.kernels.shade.srgb_pow_tables`` on ``device``, built once per process and device (the
+    registered cache ``shading.srgb_pow_tables``)."""
+    from flowsynth.kernels.shade import srgb_pow_tables
+
+    tab = _SRGB_TABLES.get(device)
+    if tab is None:
+        tab = _SRGB_TABLES[device] = srgb_pow_tables(device)
+    return tab
+
+
+def median_hit_distance(gb) -> float:
+    """Median ray length [m] of the hit pixels of frame 0 (1 when none): the default lights' scale
+    (``flowsynth.materials.resolve_lights``), computed on the host (``GBuffer.host()``)."""
+    host = gb.host()
+    hits = host.dist[0][host.item[0] >= 0]
+    return float(np.median(hits)) if hits.size else 1.0
 
 
 def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> np.ndarray:
-    """Linear radiance of every pixel, (T, H, W, 3) float32, finite and >= 0 (before tone mapping)."""
+    """``shade_radiance`` handed to the host: (T, H, W, 3) float32 numpy."""
+    return shade_radiance(scene, accel, gb, plan, device=device).numpy()
+
+
+def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
+    """Linear radiance of every pixel, a (T, H, W) vec3 Warp array on ``device``, finite and >= 0 (before tone
+    mapping)."""
     wp = wp_runtime()
     from flowsynth.kernels.raycast import TileLists
     from flowsynth.kernels.shade import ShadeScene, shade_kernel
     from flowsynth.kernels.texture import layer_trig_kernel
 
     T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
-    hits = gb.dist[0][gb.item[0] >= 0]
-    lights = resolve_lights(scene.lights, scene.world_T_cam[0], float(np.median(hits)) if hits.size else 1.0)
+    lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
     sky = sum((np.asarray(x.color) * x.intensity for x in lights if x.kind == "ambient"), np.zeros(3))
     if accel.empty:
-        return np.broadcast_to(sky.astype(np.float32), (T, H, W, 3)).copy()
+        return wp.array(np.broadcast_to(sky.astype(np.float32), (T, H, W, 3)).copy(), dtype=wp.vec3, device=device)
 
     spp, shutter = int(plan.spp), float(plan.shutter)
     slices = min(spp, MAX_TIME_SLICES) if shutter > 0 else 1
@@ -128,20 +168,18 @@ def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> 
 
     edge_spp = int(plan.edge_spp) if plan.edge_spp > spp else 0  # 0: no pixel gets extra samples
 
-    def gbuf(a, dtype, fill, needed=False):
-        if reuse or needed:
-            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=device != "cpu")
-        return wp.full((1, 1, 1), fill, dtype=dtype, device=device)
+    def gbuf(a, dtype, fill, needed=False):  # the G-buffer's own array where the kernel reads it, else a dummy
+        return a if reuse or needed else wp.full((1, 1, 1), fill, dtype=dtype, device=device)
 
     radiance = wp.empty((T, H, W), dtype=wp.vec3, device=device)  # the kernel writes every pixel
     lens = not scene.camera.is_pinhole  # sub-pixel rays blend the ray grid's centres (kernels/shade.lens_ray)
-    cam = pinhole(scene.camera, device, pad=LENS_RAY_PAD) if lens else pinhole(scene.camera)
+    cam = pinhole(scene.camera, device, pad=LENS_RAY_PAD if lens else 0)
     launch_bands(shade_kernel(plan.render_mode, lens), (T, H, W), 1, [
         sc, gbuf(gb.item, wp.int32, -1, edge_spp > 0), gbuf(gb.face, wp.int32, -1),
         gbuf(gb.dist, wp.float32, 0.0), gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), cam, spp,
         edge_spp, slices, _seed32(plan.seed),
         int(plan.bounces), BAND0], [radiance], device, plan.threads, row_loop=True)
-    return radiance.numpy()  # finite and >= 0: the kernel clamps each value (kernels/shade.finite_nonneg)
+    return radiance  # finite and >= 0: the kernel clamps each value (kernels/shade.finite_nonneg)
 
 
 def _light_tables(delta: list, cam_T_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

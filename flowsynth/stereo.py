@@ -42,7 +42,7 @@ def right_poses(world_T_cam: np.ndarray, baseline: float) -> np.ndarray:
 
 def _occlusion(camera, accel, gb, cam_T_obj_target: np.ndarray, threads) -> np.ndarray:
     """(T, 1, H, W) bool: hit pixels of ``gb`` whose point is not visible from the target view (same frame)."""
-    return reproject_pixels(gb, cam_T_obj_target, camera.K, 0, 0, gb.dist.shape[0], accel=accel, camera=camera,
+    return reproject_pixels(gb, cam_T_obj_target, camera.K, 0, 0, gb.shape[0], accel=accel, camera=camera,
                             occlusion="exact", threads=threads)["occ"]
 
 
@@ -63,7 +63,7 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
         out["disparity"] = _disparity(gb, dz, fB)
     if "disparity_change" in want:
         cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
-        out["disparity_change"] = reproject_pixels(gb, cam_T_obj, cam.K, 0, 1, max(gb.dist.shape[0] - 1, 0), fB=fB,
+        out["disparity_change"] = reproject_pixels(gb, cam_T_obj, cam.K, 0, 1, max(gb.shape[0] - 1, 0), fB=fB,
                                                    threads=plan.threads)["dc"]
     right_keys = {"rgb_right", "depth_right", "disparity_right", "disparity_occ", "disparity_occ_right"}
     if want & right_keys:
@@ -74,7 +74,7 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
         gb_r = cast_gbuffer(accel_r, cam, want_normals="rgb_right" in want, want_points=need_points,
                             threads=plan.threads)
         if "depth_right" in want:
-            out["depth_right"] = (gb_r.dist * dz).astype(np.float32)[:, None]  # dist is 0 where no hit
+            out["depth_right"] = (gb_r.host().dist * dz).astype(np.float32)[:, None]  # dist is 0 where no hit
         if "disparity_right" in want:
             out["disparity_right"] = _disparity(gb_r, dz, fB)
         if "disparity_occ" in want:
@@ -92,18 +92,18 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
 def _disparity(gb, dz: np.ndarray, fB: float) -> np.ndarray:
     """(T, 1, H, W) float32 fB / z of a view, z = dist * dz its planar depth in float64 (rounded once); 0 where
     no hit."""
-    d = np.zeros(gb.dist.shape, np.float32)
-    np.divide(fB, gb.dist * dz, out=d, where=gb.hit)
+    host = gb.host()  # computed on the host
+    d = np.zeros(host.dist.shape, np.float32)
+    np.divide(fB, host.dist * dz, out=d, where=host.hit)
     return d[:, None]
 
 
 def _rgb_right(scene, accel_r, gb, gb_r, plan, world_T_cam_r: np.ndarray, device: str) -> torch.Tensor:
     """The right view shaded with exactly the left view's lights (defaults are placed from the left view)."""
     from flowsynth.materials import resolve_lights
-    from flowsynth.shading import render_rgb
+    from flowsynth.shading import median_hit_distance, render_rgb
 
-    hits = gb.dist[0][gb.item[0] >= 0]
     right = copy.copy(scene)
-    right.lights = resolve_lights(scene.lights, scene.world_T_cam[0], float(np.median(hits)) if hits.size else 1.0)
+    right.lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
     right.world_T_cam = world_T_cam_r
     return render_rgb(right, accel_r, gb_r, plan, device=device)

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from flowsynth.flow import reproject, visibility
+from flowsynth.gbuffer import HostGBuffer
 
 __all__ = ["EDGE_REL_DEPTH", "track_outputs"]
 
@@ -40,7 +41,7 @@ __all__ = ["EDGE_REL_DEPTH", "track_outputs"]
 EDGE_REL_DEPTH = 0.05
 
 
-def _edge_mask(gb, dz: np.ndarray) -> np.ndarray:
+def _edge_mask(gb: HostGBuffer, dz: np.ndarray) -> np.ndarray:
     """(T, H, W) True where a hit pixel's 3x3 neighbourhood holds another instance, a miss or a depth step."""
     idx = gb.instance_index
     depth = gb.dist.astype(np.float64) * dz
@@ -55,7 +56,7 @@ def _edge_mask(gb, dz: np.ndarray) -> np.ndarray:
     return edge & gb.hit
 
 
-def _pool(scene, gb, sampling: str) -> np.ndarray:
+def _pool(scene, gb: HostGBuffer, sampling: str) -> np.ndarray:
     """(P, 3) candidate (frame, row, column) of the sampling rule (uniform when the rule finds none)."""
     hit = gb.hit
     if sampling == "objects":
@@ -73,9 +74,10 @@ def _pool(scene, gb, sampling: str) -> np.ndarray:
 def track_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
     """``target_points`` (Q, T, 2) float32 [px], ``occluded`` (Q, T) bool, ``query_points`` (Q, 3) float32
     (t, y, x) for the plan's ``num_tracks`` Q and ``track_sampling``, seeded by ``plan.seed``."""
-    T, H, W = gb.dist.shape
+    T, H, W = gb.shape
     Q = plan.num_tracks
-    pool = _pool(scene, gb, plan.track_sampling)
+    host = gb.host()  # the hand-over: tracks are sampled and reprojected on the host (sparse points)
+    pool = _pool(scene, host, plan.track_sampling)
     target = np.zeros((Q, T, 2), np.float32)
     occluded = np.ones((Q, T), bool)
     query = np.zeros((Q, 3), np.float32)
@@ -83,8 +85,8 @@ def track_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: 
         rng = np.random.default_rng([plan.seed, 17])
         pick = pool[rng.choice(len(pool), Q, replace=len(pool) < Q)]
         fq, i, j = pick[:, 0], pick[:, 1], pick[:, 2]
-        n = gb.instance_index[fq, i, j]
-        p = np.repeat(gb.point[fq, i, j].astype(np.float64), T, axis=0)  # (Q*T, 3), track-major
+        n = host.instance_index[fq, i, j]
+        p = np.repeat(host.point[fq, i, j].astype(np.float64), T, axis=0)  # (Q*T, 3), track-major
         f = np.tile(np.arange(T), Q)
         M = np.matmul(cam_T_world[f], world_T_obj[f, np.repeat(n, T)])
         X, uv = reproject(p, M, scene.camera.K)

@@ -29,7 +29,6 @@ NOT_CACHES = {
     "flowsynth.kernels.raycast._PRIMARY": "compiled Warp kernels per specialisation (not data)",
     "flowsynth.kernels.reproject._PAIR": "compiled Warp kernels per specialisation (not data)",
     "flowsynth.kernels.shade._SHADE": "compiled Warp kernels per render mode (not data)",
-    "flowsynth.kernels.shade.srgb_pow_tables": "constant tables, built once (no argument)",
     "flowsynth.motion._clamp_kernel": "a compiled Warp kernel (no argument)",
     "flowsynth.motion.memoise_newton_kernel_factories": "runs once: patches Newton (issue 41 item 5)",
     "flowsynth._flags.field_docs": "the config's field docstrings, read once from the source (no argument)",

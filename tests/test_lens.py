@@ -514,7 +514,7 @@ def test_lens_tile_lists_match_brute_force(lens, monkeypatch):
             got[brute] = (gb, out, len(acc.tile_lists(scene.camera).items.numpy()))
         (g0, o0, n0), (g1, o1, n1) = got[False], got[True]
         for name in ("dist", "item", "face", "point", "normal"):
-            np.testing.assert_array_equal(getattr(g0, name), getattr(g1, name), err_msg=name)
+            np.testing.assert_array_equal(getattr(g0.host(), name), getattr(g1.host(), name), err_msg=name)
         for k in keys:
             assert torch.equal(o0[k], o1[k]), k
         assert n0 < n1

@@ -47,6 +47,7 @@ def scene_arrays():
 def numpy_pairs(gb, cam_T_obj, src0, step, P, K=K):
     """float64 numpy: per hit pixel of frames src0 .. src0 + P - 1, X in the target frame, (u', v') by the full
     K, flow, valid, inside; plus the pixel coordinates (f, i, j) and target frames r."""
+    gb = gb.host()
     H, W = gb.item.shape[1:]
     src = np.arange(P) + src0
     f, i, j = np.nonzero(gb.hit[src])
@@ -86,9 +87,10 @@ def test_world_points_and_motion_equal_numpy(setup, threads):
     scene, _, gb, _ = setup
     world_T_obj = render_mod.scene_arrays(scene)[2]
     world, moved = world_points(gb, world_T_obj, moved=True, threads=threads)
-    f, i, j = np.nonzero(gb.hit)
-    p = gb.point[f, i, j].astype(np.float64)
-    n = gb.instance_index[f, i, j]
+    h = gb.host()
+    f, i, j = np.nonzero(h.hit)
+    p = h.point[f, i, j].astype(np.float64)
+    n = h.instance_index[f, i, j]
 
     def apply(M):
         return (M[:, :3, :3] @ p[:, :, None])[:, :, 0] + M[:, :3, 3]
@@ -97,7 +99,7 @@ def test_world_points_and_motion_equal_numpy(setup, threads):
     expect[f, i, j] = apply(world_T_obj[f, n])
     assert world.shape == (T, H, W, 3) and world.dtype == np.float64
     np.testing.assert_allclose(world, expect, rtol=0, atol=1e-12)
-    assert not world[~gb.hit].any()
+    assert not world[~h.hit].any()
     nxt = f < T - 1
     xa = expect[f, i, j][nxt]
     disp = np.linalg.norm(apply(world_T_obj[np.minimum(f + 1, T - 1), n])[nxt] - xa, axis=1)
@@ -108,7 +110,7 @@ def test_world_points_and_motion_equal_numpy(setup, threads):
     clear[f[nxt], i[nxt], j[nxt]] = np.abs(disp - bound) > 1e-9
     assert moved.shape == (T - 1, H, W) and moved.dtype == bool
     assert (moved == truth)[clear].all() and clear.mean() > 0.99
-    assert 0.05 < truth[gb.hit[:-1]].mean() < 0.95, "both flag values must occur"
+    assert 0.05 < truth[h.hit[:-1]].mean() < 0.95, "both flag values must occur"
     assert world_points(gb, world_T_obj, moved=False, threads=threads)[1] is None
 
 
@@ -144,7 +146,8 @@ def test_kernel_equals_numpy_reprojection(setup, gap, direction):
     jj = np.clip(np.rint(uv[inside, 0]).astype(np.int64), 0, W - 1)
     ii = np.clip(np.rint(uv[inside, 1]).astype(np.int64), 0, H - 1)
     ri = r[inside]
-    depth_blocked = ~gb.hit[ri, ii, jj] | (X[inside, 2] > gb.dist[ri, ii, jj] * dz[ii, jj] * (1 + DEPTH_TEST_REL_TOL))
+    h = gb.host()
+    depth_blocked = ~h.hit[ri, ii, jj] | (X[inside, 2] > h.dist[ri, ii, jj] * dz[ii, jj] * (1 + DEPTH_TEST_REL_TOL))
     occ_d = np.zeros((P, 1, H, W), bool)
     hidden = ~inside
     hidden[inside] = depth_blocked
@@ -163,8 +166,8 @@ def test_disparity_change_equals_numpy(setup):
     scene, accel, gb, cam_T_obj = setup
     fB = K[0, 0] * 0.1
     flow, masks, (f, i, j, r, X, uv, inside) = numpy_pairs(gb, cam_T_obj, 0, 1, T - 1)
-    p = gb.point[f, i, j].astype(np.float64)
-    M0 = cam_T_obj[f, gb.instance_index[f, i, j]]
+    p = gb.host().point[f, i, j].astype(np.float64)
+    M0 = cam_T_obj[f, gb.host().instance_index[f, i, j]]
     z0 = (M0[:, 2, :3] * p).sum(-1) + M0[:, 2, 3]
     front = X[:, 2] > 0
     dc = np.zeros((T - 1, 1, H, W))
@@ -182,10 +185,10 @@ def test_scene_flow_equals_numpy(setup, step):
     src0 = max(-step, 0)
     P = T - abs(step)
     src = np.arange(P) + src0
-    f, i, j = np.nonzero(gb.hit[src])
+    f, i, j = np.nonzero(gb.host().hit[src])
     s = src[f]
-    n = gb.instance_index[s, i, j]
-    p = gb.point[s, i, j].astype(np.float64)
+    n = gb.host().instance_index[s, i, j]
+    p = gb.host().point[s, i, j].astype(np.float64)
     xa = (world_T_obj[s, n, :3, :3] @ p[:, :, None])[:, :, 0] + world_T_obj[s, n, :3, 3]
     xb = (world_T_obj[s + step, n, :3, :3] @ p[:, :, None])[:, :, 0] + world_T_obj[s + step, n, :3, 3]
     sf = np.zeros((P, 3, H, W))
@@ -194,7 +197,7 @@ def test_scene_flow_equals_numpy(setup, step):
     got = reproject_pixels(gb, cam_T_obj, K, src0, step, P, scene_flow_T=sfT, threads=1)
     assert got["scene_flow"].dtype == np.float32
     np.testing.assert_allclose(got["scene_flow"], sf, rtol=1e-6, atol=1e-6)
-    assert np.abs(sf).max() > 0.5 and (~got["valid"] & gb.hit[src][:, None]).any()
+    assert np.abs(sf).max() > 0.5 and (~got["valid"] & gb.host().hit[src][:, None]).any()
 
 
 def test_culling_bounds_hold_against_brute_force():

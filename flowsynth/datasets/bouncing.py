@@ -54,7 +54,10 @@ class BouncingThings(IterableDataset):
         length: samples per epoch, or None for an endless stream.
         start: first index of the stream.
         occlusion: "exact" or "depth" (see flowsynth.flow).
-        device: Warp device for the kernels ("cpu"; "cuda" where available).
+        device: Warp device of the renderer's stages ("cpu", the default; "cuda" or "cuda:N" where Warp finds one,
+            else a ConfigError from the first sample, in the process that renders it: Warp is not initialised
+            before DataLoader workers fork). Written for any Warp device; tested on the CPU only. Physics runs on
+            the CPU whatever the device (a sample's scene does not depend on it).
         threads: threads of each ray launch (None = every core the process may use, and 1 inside a
             DataLoader worker, so workers x threads never exceed the cores; see flowsynth.parallel).
 
@@ -104,10 +107,12 @@ class BouncingThings(IterableDataset):
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
         """Sample ``i``: exactly the item the stream yields for index ``i``."""
+        from flowsynth.accel import resolve_device
         from flowsynth.renderer import render_plan
 
         if not isinstance(i, (int, np.integer)) or i < 0:
             raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
+        resolve_device(self.device)  # before the physics: a device Warp does not find fails first
         scene = self.scene(i)
         out = render_plan(scene, self.plan, device=self.device)
         out["index"] = torch.tensor(int(i), dtype=torch.int64)

@@ -21,7 +21,6 @@ background and, in flat/direct modes, an unshadowed ambient term sky * ((1 - s) 
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
@@ -519,14 +518,14 @@ def tonemap_kernel(radiance: wp.array3d[wp.vec3], exposure: wp.float64, reinhard
             rgb[t, k, i, j] = srgb_encode(c[k], exposure, reinhard, white2, tab)
 
 
-@functools.cache
-def srgb_pow_tables() -> SrgbPow:
-    """The tables of ``srgb_pow`` (built once per process): Taylor coefficients binom(a, n) c^(a - n), n = 0 .. 4,
-    of m^a, a = 1/2.4, about each bin centre c, and 2^(-k a) for k = 0 .. 10."""
+def srgb_pow_tables(device: str = "cpu") -> SrgbPow:
+    """The tables of ``srgb_pow`` on ``device`` (flowsynth.shading.srgb_tables keeps one per device): Taylor
+    coefficients binom(a, n) c^(a - n), n = 0 .. 4, of m^a, a = 1/2.4, about each bin centre c, and 2^(-k a) for
+    k = 0 .. 10."""
     a = 1.0 / 2.4
     c = (2 * SRGB_POW_BINS + 1 + 2 * np.arange(SRGB_POW_BINS)) / (2 * SRGB_POW_BINS)
     coef = np.stack([math.prod(a - j for j in range(n)) / math.factorial(n) * c ** (a - n) for n in range(5)], 1)
     tab = SrgbPow()
-    tab.coef = wp.array(coef, dtype=wp.float64, device="cpu")
-    tab.scale = wp.array(2.0 ** (-a * np.arange(11)), dtype=wp.float64, device="cpu")
+    tab.coef = wp.array(coef, dtype=wp.float64, device=device)
+    tab.scale = wp.array(2.0 ** (-a * np.arange(11)), dtype=wp.float64, device=device)
     return tab
