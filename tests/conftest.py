@@ -21,13 +21,15 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 from hypothesis import settings
 from hypothesis.configuration import set_hypothesis_home_dir
 from hypothesis.database import DirectoryBasedExampleDatabase
 
-import flowsynth as fs
+if TYPE_CHECKING:  # flowsynth is imported by the fixtures: a broken library must not stop test collection
+    import flowsynth as fs
 
 ROOT = Path(__file__).resolve().parents[1]
 # Everything hypothesis stores (its example database, and the constants it collects from the code under test) goes to
@@ -53,6 +55,8 @@ def small_flags() -> list[str]:
 @pytest.fixture
 def small_config() -> fs.BouncingThingsConfig:
     """The small scene of ``small_flags`` as a config: 32x24, 2 frames, kinematic, 2-3 objects (at most 4)."""
+    import flowsynth as fs
+
     return fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
                                    max_objects=4)
 
@@ -60,5 +64,7 @@ def small_config() -> fs.BouncingThingsConfig:
 @pytest.fixture
 def layout_config() -> fs.BouncingThingsConfig:
     """48x32, 3 frames, kinematic, 3-4 objects at 2-3 m/s: the export layouts' round-trip scene."""
+    import flowsynth as fs
+
     return fs.BouncingThingsConfig(width=48, height=32, num_frames=3, motion="kinematic", num_objects=(3, 4),
                                    max_objects=4, min_speed=2.0, max_speed=3.0)
