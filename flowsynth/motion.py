@@ -16,11 +16,14 @@ and is also its centre of mass in the physics, so "speed" is the speed of the or
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
+import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -293,13 +296,19 @@ class NewtonScene:
     (public for benchmarks/physics*.py: ``advance_frame`` replays a captured ``substep``; ``read`` the state)."""
 
     def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
-                 substeps: int, contact_max: int | None = None) -> None:
+                 substeps: int, contact_max: int | None = None, device: str = "cpu") -> None:
         wp_runtime()  # quiet Warp initialisation before Newton's import initialises it loudly
         import newton
         import warp as wp
 
-        memoise_newton_kernel_factories()
-        self.cfg, self.substeps = cfg, substeps
+        try:
+            on_cpu = wp.get_device(device).is_cpu
+        except (RuntimeError, ValueError):  # a device Warp does not find
+            on_cpu = False
+        if not on_cpu:  # the state is read and reset through numpy views of its arrays
+            raise ConfigError(f"physics runs on a CPU device only (NewtonScene writes its state through numpy "
+                              f"views), got device {device!r}")
+        self.cfg, self.substeps, self.device = cfg, substeps, device
         self.dt = 1.0 / (cfg.fps * substeps)
         s_min = min(a.size for a in assets)
         s_max = max(a.size for a in assets)
@@ -326,7 +335,8 @@ class NewtonScene:
                 xform=xform, com=wp.vec3(0.0, 0.0, 0.0),
                 mass=mass, inertia=wp.mat33(*inertia.ravel()), lock_inertia=True, label=f"object_{i}")
             _add_collider(b, body, asset, shape_cfg)
-        self.model = b.finalize(device="cpu")
+        with memoise_newton_kernel_factories():  # Newton's factories memoised for flowsynth's own calls only
+            self.model = b.finalize(device=self.device)
         self.state0, self.state1 = self.model.state(), self.model.state()
         self.control = self.model.control()
         self._set_velocities(initial)
@@ -335,15 +345,16 @@ class NewtonScene:
         if contact_max is not None and contact_max >= _newton_contact_estimate(self.model):
             contact_max = None
         self.contact_max = contact_max
-        self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap", rigid_contact_max=contact_max)
-        self.peak = wp.zeros(1, dtype=wp.int32, device="cpu")
+        with memoise_newton_kernel_factories():
+            self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap", rigid_contact_max=contact_max)
+        self.peak = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.contacts = self.pipeline.contacts()
         self.solver = newton.solvers.SolverXPBD(self.model, iterations=XPBD_ITERATIONS,
                                                 enable_restitution=True)
         # Last direction of motion / rotation axis, used when a speed must be raised from zero.
-        self.last_dir = wp.array(_unit_or(initial.velocity, [1.0, 0.0, 0.0]), dtype=wp.vec3, device="cpu")
+        self.last_dir = wp.array(_unit_or(initial.velocity, [1.0, 0.0, 0.0]), dtype=wp.vec3, device=self.device)
         self.last_axis = wp.array(_unit_or(initial.angular_velocity, [0.0, 0.0, 1.0]), dtype=wp.vec3,
-                                  device="cpu")
+                                  device=self.device)
         self.graph = None
         self.reusable = False  # snapshot the captured substep's memory at capture, for reset()
         self._snapshot: list[tuple[np.ndarray, np.ndarray]] | None = None
@@ -366,7 +377,7 @@ class NewtonScene:
             return False
         for view, saved in self._snapshot:
             np.copyto(view, saved)
-        q = wp.array(_body_xforms(initial), dtype=wp.transform, device="cpu").numpy()
+        q = wp.array(_body_xforms(initial), dtype=wp.transform, device=self.device).numpy()
         for arr in (self.model.body_q, self.state0.body_q, self.state1.body_q):
             arr.numpy()[...] = q
         self._set_velocities(initial)
@@ -384,7 +395,7 @@ class NewtonScene:
         import warp as wp
 
         if self.graph is None:
-            with wp.ScopedCapture(device="cpu") as capture:
+            with wp.ScopedCapture(device=self.device) as capture:
                 self.substep()
             self.graph = capture.graph
             if self.reusable:
@@ -400,7 +411,7 @@ class NewtonScene:
         self.pipeline.collide(self.state0, self.contacts)
         self.solver.step(self.state0, self.state1, self.control, self.contacts, self.dt)
         cfg = self.cfg
-        wp.launch(_clamp_kernel(), dim=self.model.body_count, device="cpu",
+        wp.launch(_clamp_kernel(), dim=self.model.body_count, device=self.device,
                   inputs=[cfg.min_speed, cfg.max_speed, cfg.angular_speed[0], cfg.angular_speed[1],
                           self.state1.body_q, self.state1.body_qd, self.contacts.rigid_contact_count],
                   outputs=[self.state0.body_q, self.state0.body_qd, self.last_dir, self.last_axis, self.peak])
@@ -481,22 +492,70 @@ _NEWTON_KERNEL_FACTORIES = ("create_narrow_phase_primitive_kernel", "create_narr
 # a hull), a pure function of the hull; the hulls are the per-process newton.Mesh objects of
 # _newton_unit_hull, so one result per hull serves every model (benchmarks/physics.py, "memoisation").
 _NEWTON_BUILDER_FUNCTIONS = ("_convex_hull_adjacency",)
+# (module name, function name) -> the memoised wrapper of Newton's function (it holds the kernels / adjacencies);
+# kept across the windows of memoise_newton_kernel_factories, so that every scene of the process shares them
+_NEWTON_MEMOS: dict = register("motion.newton_memos", {})
 
 
-@functools.cache
-def memoise_newton_kernel_factories() -> None:
-    """Cache Newton's narrow-phase kernel factories and hull adjacency per process. Private Newton API:
-    tests/test_newton_internals.py fails, naming this function, when Newton renames them or stops looking
-    them up in those modules."""
+class _NewtonPatch:
+    """The state of memoise_newton_kernel_factories' windows: how many are open (all threads together) and what the
+    first one replaced. ``lock`` guards both, and every install and restore."""
+
+    lock: ClassVar[threading.Lock] = threading.Lock()
+    depth: ClassVar[int] = 0
+    replaced: ClassVar[list] = []  # [(module, name, Newton's function, its memoised wrapper)] while depth > 0
+
+
+def _newton_targets() -> list:
     from newton._src.geometry import narrow_phase
     from newton._src.sim import builder
 
-    for module, names, wrap in ((narrow_phase, _NEWTON_KERNEL_FACTORIES, functools.cache),
-                                (builder, _NEWTON_BUILDER_FUNCTIONS, functools.lru_cache(maxsize=1024))):
-        for name in names:
-            fn = getattr(module, name, None)
-            if callable(fn) and not hasattr(fn, "cache_info"):
-                setattr(module, name, wrap(fn))
+    return ([(narrow_phase, name, functools.cache) for name in _NEWTON_KERNEL_FACTORIES]
+            + [(builder, name, functools.lru_cache(maxsize=1024)) for name in _NEWTON_BUILDER_FUNCTIONS])
+
+
+@contextlib.contextmanager
+def memoise_newton_kernel_factories() -> Iterator[None]:
+    """While open, Newton's narrow-phase kernel factories and hull adjacency are memoised (one kernel per argument
+    tuple, one adjacency per hull; the memos last for the process); on leaving the last open one, Newton's module
+    attributes are its own functions again (identity). :class:`NewtonScene` builds its model and its collision
+    pipeline inside one, so flowsynth's scenes share the kernels while no other Newton user of the process sees a
+    patch outside flowsynth's calls. Re-entrant and thread-safe: a lock and a count of the open windows of all
+    threads. While one is open, another thread calling those Newton functions directly gets the memoised ones,
+    which return what the originals would (pure functions). Private Newton API: tests/test_newton_internals.py
+    fails, naming this function, when Newton renames them or stops looking them up in those modules. Why, and the
+    public hook that would replace it: docs/decisions/0007-newton-memoisation.md."""
+    _enter_newton_patch()
+    try:
+        yield
+    finally:
+        _leave_newton_patch()
+
+
+def _enter_newton_patch() -> None:
+    with _NewtonPatch.lock:
+        if _NewtonPatch.depth == 0:
+            for module, name, wrap in _newton_targets():
+                fn = getattr(module, name, None)
+                if not callable(fn):
+                    continue
+                key = (module.__name__, name)
+                memo = _NEWTON_MEMOS.get(key)
+                if memo is None or memo.__wrapped__ is not fn:  # the first window, or Newton's function changed
+                    memo = _NEWTON_MEMOS[key] = wrap(fn)
+                setattr(module, name, memo)
+                _NewtonPatch.replaced.append((module, name, fn, memo))
+        _NewtonPatch.depth += 1
+
+
+def _leave_newton_patch() -> None:
+    with _NewtonPatch.lock:
+        _NewtonPatch.depth -= 1
+        if _NewtonPatch.depth == 0:
+            for module, name, fn, memo in _NewtonPatch.replaced:
+                if getattr(module, name, None) is memo:  # what someone else put there since stays
+                    setattr(module, name, fn)
+            _NewtonPatch.replaced.clear()
 
 
 def _newton_contact_estimate(model) -> int:

@@ -228,7 +228,7 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
 
 
 STAGES = ["gbuffer", "renderer", "flow", "shading", "finalpass", "accel", "blas", "stereo", "tracks",
-          "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/dof"]
+          "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/dof", "motion"]
 
 
 @pytest.mark.parametrize("module", STAGES)
@@ -260,3 +260,12 @@ def test_resolved_devices_are_warps_aliases(twin):
     assert resolve_device("cpu") == "cpu"
     assert resolve_device(wp.get_device("cpu")) == "cpu"
     assert resolve_device(TWIN) == TWIN
+
+
+@pytest.mark.parametrize("device", ["cuda", "cuda:9"])
+def test_physics_takes_a_cpu_device_only(device):
+    """NewtonScene reads and resets its state through numpy views: another device is refused, not half run."""
+    from flowsynth.motion import NewtonScene
+
+    with pytest.raises(ConfigError, match=f"physics runs on a CPU device only.*'{device}'"):
+        NewtonScene(fs.BouncingThingsConfig(), [], None, 2, device=device)

@@ -518,4 +518,4 @@ def test_lens_tile_lists_match_brute_force(lens, monkeypatch):
         for k in keys:
             assert torch.equal(o0[k], o1[k]), k
         assert n0 < n1
-        assert (g0.item >= 0).any() and o0["occ_fw"].any()
+        assert (g0.host().item >= 0).any() and o0["occ_fw"].any()
