@@ -99,7 +99,8 @@ from flowsynth.sampling import sample_layout
 sys.path.insert(0, {here!r})
 from physics import SETS, make_cfg
 if {off}:
-    motion.memoise_newton_kernel_factories = lambda: None  # Newton's own behaviour: fresh kernels per pipeline
+    import contextlib
+    motion.memoise_newton_kernel_factories = contextlib.nullcontext  # Newton's own behaviour: fresh kernels
 cfg = make_cfg(20, SETS["primitives"] + SETS["hulls"], 2)
 times = []
 for seed in range(5):

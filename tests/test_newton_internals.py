@@ -1,9 +1,10 @@
 """flowsynth.motion uses private corners of Newton; these tests fail loudly, naming the cause, when they move.
 
-``motion.memoise_newton_kernel_factories`` wraps Newton's narrow-phase kernel factories
-(``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every CollisionPipeline of a process
-shares one set of kernels, and ``newton._src.sim.builder._convex_hull_adjacency`` so each hull's edge
-adjacency is computed once per process (benchmarks/physics.py, "memoisation"). That only works while
+``motion.memoise_newton_kernel_factories`` (a context manager, open while flowsynth builds a Newton scene) wraps
+Newton's narrow-phase kernel factories (``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every
+CollisionPipeline flowsynth builds shares one set of kernels, and ``newton._src.sim.builder._convex_hull_adjacency``
+so each hull's edge adjacency is computed once per process (benchmarks/physics.py, "memoisation"); outside it
+Newton's own functions are back (tests/test_newton_scope.py). That only works while
 (a) those functions exist under those names and (b) Newton looks them up in those modules when called.
 Either can change in any Newton release (pinned < 1.9).
 """
@@ -34,7 +35,8 @@ def test_hull_adjacency_computed_once_per_hull():
     cfg = fs.BouncingThingsConfig(num_objects=(3, 3), num_frames=2, assets=("rock",))
     layout = sample_layout(cfg, 0, 0)
     motion.NewtonScene(cfg, layout.assets, layout.initial, 2)
-    fn = builder._convex_hull_adjacency
+    with motion.memoise_newton_kernel_factories():  # the memoised function is installed only inside
+        fn = builder._convex_hull_adjacency
     assert hasattr(fn, "cache_info"), CAUSE.format(names=list(motion._NEWTON_BUILDER_FUNCTIONS))
     hits = fn.cache_info().hits
     motion.NewtonScene(cfg, layout.assets, layout.initial, 2)
