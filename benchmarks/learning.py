@@ -589,6 +589,22 @@ def epe_means(runs: list, kind: str, arms) -> dict:
             **{a: float(np.mean([r["results"][a]["curve"][-1][kind] for r in runs])) for a in arms}}
 
 
+def train_arms(arms: dict, setting: tuple, res: dict, mags: dict, trained: dict) -> None:
+    """Train the nets of ``arms`` (name -> data) at once, each in a process of its own; put each arm's curve into
+    ``res``, its mean |flow| into ``mags`` and its share of pixels trained on into ``trained``. ``setting``: (tests,
+    steps, batch, seed, every, jobs, threads, multiprocessing context)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    tests, steps, batch, seed, every, jobs, threads, ctx = setting
+    jobs = max(1, min(jobs, len(arms)))
+    with ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
+        futs = {name: ex.submit(train, data, tests, steps, batch, seed, every, max(1, threads // jobs))
+                for name, data in arms.items()}
+        res.update({name: f.result() for name, f in futs.items()})
+    mags.update({name: mean_flow(d) for name, d in arms.items()})
+    trained.update({name: float(d[3].mean()) for name, d in arms.items()})
+
+
 def final_ratios(runs: list, arm: str = "flowsynth", against: str = "chairs2d") -> dict:
     """Per test, each seed's ``arm`` / ``against`` test EPE at the end of training."""
     return {kind: [r["results"][arm]["curve"][-1][kind] / r["results"][against]["curve"][-1][kind] for r in runs]
@@ -727,7 +743,6 @@ def main() -> None:
         return
     import numpy as np
     import torch
-    from concurrent.futures import ProcessPoolExecutor
 
     import torch.multiprocessing as tmp
 
@@ -778,35 +793,32 @@ def main() -> None:
         pilot = chairs2d_pairs(64, seed + 1, sources)
         motion_scale = mean_flow(fs_valid) / mean_flow(pilot)  # same mean |flow| as the flowsynth pool
         chairs = chairs2d_pairs(pool, seed, sources, motion_scale, visible=args.mask == "visible")
-        arms = [fs_train, chairs]
-        if args.photo_arms:  # the same pool sizes, motion scale and loss mask as the two arms above
-            photo_dir = photo_folder()
-            synth_p, _ = flowsynth_pairs(pool, seed, args.workers, args.flow_px, {
-                **overrides, "texture_dir": str(photo_dir),
-                "texture_families": list(overrides.get("texture_families", base_families())) + ["image"]},
-                args.render_pass)
-            arms.append(tuple(x[:pool] for x in (synth_p[:4] if args.mask == "valid" else synth_p[:3] + synth_p[4:5])))
-            del synth_p
-            arms.append(chairs2d_pairs(pool, seed, photo_sources(pool // 2, seed), motion_scale,
-                                       visible=args.mask == "visible"))
         tests = test_sets(n_test, seed, middlebury)
         zero = {k: float((torch.linalg.vector_norm(v[2], dim=1, keepdim=True) * v[3]).sum() / v[3].sum())
                 for k, v in tests.items()}
-        jobs = max(1, min(args.jobs, len(names)))
-        with ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
-            futs = {name: ex.submit(train, data, tests, steps, batch, seed, every, max(1, args.threads // jobs))
-                    for name, data in zip(names, arms)}
-            res = {name: f.result() for name, f in futs.items()}
-        mags = {name: mean_flow(d) for name, d in [*zip(names, arms), ("photos (test)", tests["resampled"]),
+        mags = {name: mean_flow(d) for name, d in [("photos (test)", tests["resampled"]),
                                                     ("motorcycle (test)", tests["stereo"]),
                                                     *((k, v) for k, v in tests.items() if k.startswith("mb_"))]}
-        trained = {name: float(d[3].mean()) for name, d in zip(names, arms)}
-        runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "mean_flow_px": mags,
-                     "trained_pixel_fraction": trained,
+        res, trained = {}, {}
+        setting = (tests, steps, batch, seed, every, args.jobs, args.threads, ctx)
+        train_arms({"flowsynth": fs_train, "chairs2d": chairs}, setting, res, mags, trained)
+        # the next pools are made once these are freed: a stream seed's two arms hold ~10 GB
+        del synth, fs_valid, fs_train, sources, chairs
+        if args.photo_arms:  # the same pool sizes, motion scale and loss mask as the two arms above
+            synth_p, _ = flowsynth_pairs(pool, seed, args.workers, args.flow_px, {
+                **overrides, "texture_dir": str(photo_folder()),
+                "texture_families": list(overrides.get("texture_families", base_families())) + ["image"]},
+                args.render_pass)
+            fs_p = tuple(x[:pool] for x in (synth_p[:4] if args.mask == "valid" else synth_p[:3] + synth_p[4:5]))
+            del synth_p
+            train_arms({"flowsynth_photos": fs_p, "chairs2d_photos": chairs2d_pairs(
+                pool, seed, photo_sources(pool // 2, seed), motion_scale, visible=args.mask == "visible")},
+                setting, res, mags, trained)
+            del fs_p
+        runs.append({"seed": seed, "zero_flow_epe": zero, "results": {n: res[n] for n in names},
+                     "mean_flow_px": mags, "trained_pixel_fraction": trained,
                      "chairs2d_motion_scale": motion_scale, "flowsynth_generation_s": gen_s})
         save(None)
-        # the next seed's pools are made while these would still be held: a stream seed (9600 pairs) holds ~10 GB
-        del synth, fs_valid, fs_train, sources, chairs, arms
         for kind in test_keys(runs[-1:]):
             row = {"seed": seed, "test": kind, "zero-flow": with_means(zero)[kind],
                    "untrained": res["flowsynth"]["curve"][0][kind]}
