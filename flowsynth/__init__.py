@@ -9,6 +9,7 @@ no function shares its name with a module: the renderer's module is ``flowsynth.
 from flowsynth.caches import clear_caches
 from flowsynth.camera import Camera
 from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ShapeError, StorageError
+from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
 from flowsynth.renderer import render, render_plan
 from flowsynth.scene import Scene, SceneObject
@@ -23,6 +24,7 @@ __all__ = [
     "ExportError",
     "FlowsynthError",
     "Plan",
+    "RenderOptions",
     "Scene",
     "SceneObject",
     "ShapeError",

@@ -40,6 +40,7 @@ __all__ = [
     "ROOM_WALLS",
     "Asset",
     "Collider",
+    "check_asset_entries",
     "get_asset",
     "load_user_mesh",
     "resolve_assets",
@@ -98,30 +99,49 @@ class Asset:
     collider: Collider
 
 
+def check_asset_entries(entries: tuple[str, ...] | list[str], field: str = "assets") -> None:
+    """Check asset entries by their form alone, reading no file: each a non-empty string that is a built-in name, a
+    glob or a path (it has a folder separator or an extension). Raises AssetError naming ``field`` otherwise.
+    ``resolve_assets`` reads the files."""
+    for entry in entries:
+        _entry_kind(entry, field)
+
+
+def _entry_kind(entry, field: str) -> str:
+    """"builtin", "glob" or "path" for a valid entry (no file is read); AssetError naming ``field`` otherwise."""
+    if not isinstance(entry, str) or not entry:
+        raise AssetError(f"{field}: entries must be non-empty strings, got {entry!r}")
+    if entry in BUILTIN_ASSETS:
+        return "builtin"
+    expanded = os.path.expanduser(entry)
+    if any(c in expanded for c in _GLOB_CHARS):
+        return "glob"
+    if os.path.sep in expanded or os.path.splitext(expanded)[1]:
+        return "path"
+    raise AssetError(f"{field}: unknown asset {entry!r}; use one of {list(BUILTIN_ASSETS)} "
+                     "or a path to a mesh file that trimesh can load")
+
+
 def resolve_assets(entries: tuple[str, ...] | list[str], field: str = "assets") -> tuple[str, ...]:
     """Expand built-in names, file paths and globs into asset keys, in order.
 
     Built-in names stay as they are; paths become absolute; a glob expands to its matches sorted by
     name. Every file is loaded once (cached) to check it. Raises AssetError naming ``field`` when an
-    entry is unknown, a glob matches nothing, or a file does not load.
+    entry is unknown, a glob matches nothing, or a file does not exist or does not load.
     """
     out: list[str] = []
     for entry in entries:
-        if not isinstance(entry, str) or not entry:
-            raise AssetError(f"{field}: entries must be non-empty strings, got {entry!r}")
-        if entry in BUILTIN_ASSETS:
+        kind = _entry_kind(entry, field)
+        if kind == "builtin":
             out.append(entry)
             continue
         expanded = os.path.expanduser(entry)
-        if any(c in expanded for c in _GLOB_CHARS):
+        if kind == "glob":
             matches = sorted(p for p in glob.glob(expanded, recursive=True) if os.path.isfile(p))
             if not matches:
                 raise AssetError(f"{field}: glob {entry!r} matches no files; fix the pattern or remove it")
-        elif os.path.sep in expanded or os.path.splitext(expanded)[1]:
-            matches = [expanded]
         else:
-            raise AssetError(f"{field}: unknown asset {entry!r}; use one of {list(BUILTIN_ASSETS)} "
-                             "or a path to a mesh file that trimesh can load")
+            matches = [expanded]
         for path in matches:
             path = os.path.abspath(path)
             try:

@@ -1,9 +1,16 @@
 """Configuration of the BouncingThings scene generator: one frozen, validated dataclass.
 
-Every field has a default; invalid values raise :class:`flowsynth.errors.ConfigError` (or
-:class:`flowsynth.errors.AssetError` for asset files) naming the field and the fix. Sequences are
-stored as tuples so a config is hashable and never mutates. Units: metres, seconds, radians
+Every field has a default; invalid values raise :class:`flowsynth.errors.ConfigError` naming the field and the fix.
+Sequences are stored as tuples so a config is hashable and never mutates. Units: metres, seconds, radians
 (degrees only in ``fov_deg``). World frame: right-handed, +z up, the floor at z = 0 (docs/scenes.md).
+
+The render options (``OPTION_NAMES``: spp, edge_spp, ..., the final_* fields) are fields under their
+``flowsynth.options.RenderOptions`` names, with RenderOptions' defaults (but ``max_objects``), and are validated by
+building one (``cfg.render_options``): one rule and one default per option (docs/rendering.md, Options).
+
+Constructing a config reads no file: mesh paths, globs and ``texture_dir`` are checked by their form only, and are
+resolved when a scene is sampled (``flowsynth.sampling``; ``check_files`` does it up front), so
+``from_dict(meta["config"])`` works on a machine without the meshes and textures it names.
 """
 
 from __future__ import annotations
@@ -14,17 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from flowsynth.errors import AssetError, ConfigError
-from flowsynth.plan import (
-    DEFAULT_BOUNCES,
-    DEFAULT_RENDER_MODE,
-    DEFAULT_TONEMAP,
-    FINAL_OPTIONS,
-    MAX_BOUNCES,
-    RENDER_MODES,
-    TONEMAPS,
-    TRACK_SAMPLING,
-    FinalPass,
-)
+from flowsynth.options import OPTION_NAMES, RENDER_MODES, RenderOptions
 
 __all__ = ["CAMERA_MOTIONS", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig"]
 
@@ -33,6 +30,10 @@ CAMERA_MOTIONS = ("static", "moving")
 # Initial placement needs free space: total bounding-sphere volume of the largest possible object set
 # may fill at most this fraction of the objects' region (random sequential packing jams near 0.38).
 MAX_PACKING_FRACTION = 0.25
+_OPT = RenderOptions()  # the render options' defaults (RenderOptions is their one definition)
+DATASET_MAX_OBJECTS = 32
+"""The config's ``max_objects``: a stream pads every sample's object tables to one size so that default_collate
+stacks them (RenderOptions' None, the scene's own count, would not); 32 leaves room above ``num_objects``' 12."""
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,8 @@ class BouncingThingsConfig:
     """(min, max) number of flying objects per scene, drawn uniformly (inclusive) [count]."""
     assets: tuple[str, ...] = ("box", "sphere", "cylinder", "capsule", "cone", "torus", "rock", "crystal",
                                "star", "blob")
-    """Built-in asset names (flowsynth.assets.BUILTIN_ASSETS) and/or mesh file paths or globs."""
+    """Built-in asset names (flowsynth.assets.BUILTIN_ASSETS) and/or mesh file paths or globs (resolved and loaded
+    when a scene is sampled, not when the config is made)."""
     object_size: tuple[float, float] = (0.4, 1.2)
     """(min, max) bounding-sphere diameter of an object [m]; drawn log-uniformly over ``size_levels``."""
     size_levels: int = 8
@@ -124,33 +126,33 @@ class BouncingThingsConfig:
     """Room interior extent (x, y, z) [m]; the room spans x, y in [-size/2, size/2] and z in [0, size_z]."""
     camera_clearance: float = 2.0
     """Depth of the camera zone along x next to the wall x = -size_x/2 [m]; objects stay out of it."""
-    max_objects: int = 32
-    """Rows of the padded per-object tables [count]; num_objects max must be <= max_objects."""
-    render_mode: str = DEFAULT_RENDER_MODE
+    max_objects: int = DATASET_MAX_OBJECTS
+    """Rows of the padded per-object tables [count], >= 1; num_objects max must be <= max_objects."""
+    render_mode: str = _OPT.render_mode
     """RGB shading: "flat" (lit, no shadows), "direct" (lights and shadows) or "path" (path traced)."""
-    spp: int = 1
+    spp: int = _OPT.spp
     """Samples per pixel for RGB, >= 1 [count]."""
-    edge_spp: int = 4
+    edge_spp: int = _OPT.edge_spp
     """Samples per pixel for RGB at silhouettes, >= 1 [count]: a pixel whose 4-neighbour sees another instance
     (or the sky) gets max(spp, edge_spp) samples, so object outlines are anti-aliased at a fraction of what
     spp = edge_spp everywhere costs (docs/rendering.md, Anti-aliasing); 1 = off."""
-    shutter: float = 0.0
+    shutter: float = _OPT.shutter
     """Shutter open time as a fraction of the frame interval, in [0, 1]; 0 disables motion blur."""
-    bounces: int = DEFAULT_BOUNCES
+    bounces: int = _OPT.bounces
     """Path-tracing bounces after the primary hit (render_mode "path"), in [0, MAX_BOUNCES = 64] [count]."""
-    tonemap: str = DEFAULT_TONEMAP
+    tonemap: str = _OPT.tonemap
     """Linear radiance -> display: "clamp" or "reinhard", then sRGB encoding (docs/rendering.md)."""
-    exposure: float = 1.0
+    exposure: float = _OPT.exposure
     """Radiance multiplier before tone mapping, >= 0."""
-    flow_gaps: tuple[int, ...] = (1,)
+    flow_gaps: tuple[int, ...] = _OPT.flow_gaps
     """Frame gaps k of the per-pair outputs (flow, masks, scene flow) [frames]: a requested ``flow_fw`` gives
     ``flow_fw`` for k = 1 and ``flow_fw_kK`` (T-K pairs (t, t+K)) for every other K; needs K < num_frames."""
-    num_tracks: int = 256
+    num_tracks: int = _OPT.num_tracks
     """Point tracks per clip Q (outputs ``tracks`` = target_points, occluded, query_points), >= 1 [count]."""
-    track_sampling: str = "uniform"
+    track_sampling: str = _OPT.track_sampling
     """Where query points are drawn: "uniform" (any surface), "objects" (not the room) or "edges" (near depth
     edges); see flowsynth/tracks.py."""
-    stereo_baseline: float = 0.0
+    stereo_baseline: float = _OPT.stereo_baseline
     """Distance of a rectified right camera along the left camera's +x [m], >= 0; 0 = no right camera.
     Needed (> 0) for rgb_right, depth_right, disparity* (flowsynth/stereo.py)."""
     texture_px: tuple[float, float] = (2.0, 64.0)
@@ -159,39 +161,40 @@ class BouncingThingsConfig:
     (e.g. (50, 500)) give large-scale patterns."""
     texture_dir: str | None = None
     """Folder of image textures (jpg/png) for objects and walls (add "image" to ``texture_families``); None
-    uses procedural textures only. Images are tiled at ``texture_px`` scale, not stretched (docs/rendering.md)."""
+    uses procedural textures only. Images are tiled at ``texture_px`` scale, not stretched (docs/rendering.md).
+    Read when a scene is sampled, not when the config is made."""
     texture_families: tuple[str, ...] = ("noise", "value", "cells", "stripes", "checks", "blend")
     """Texture families to draw each surface's material from (non-empty; flowsynth.materials.TEXTURE_FAMILIES).
     "solid" (one flat colour) is drawn only when listed."""
     # The final pass, output ``rgb_final`` (flowsynth/finalpass.py; models and defaults: docs/rendering.md, Final
     # pass). Only read when rgb_final is requested; the ground truth never depends on them.
-    final_shutter: float = 0.5
+    final_shutter: float = _OPT.final_shutter
     """Final pass: shutter open time [fraction of the frame interval] in [0, 1], centred on the frame instant
     (the ground truth's instant); 0 = no motion blur (the clean pass's own ``shutter`` then applies)."""
-    final_time_samples: int = 8
+    final_time_samples: int = _OPT.final_time_samples
     """Final pass: motion-blur time samples per pixel [count], >= 1 (its spp is max(spp, this))."""
-    final_dof_prob: float = 0.3
+    final_dof_prob: float = _OPT.final_dof_prob
     """Final pass: probability in [0, 1] that a clip has depth of field (thin lens)."""
-    final_aperture: tuple[float, float] = (0.01, 0.04)
+    final_aperture: tuple[float, float] = _OPT.final_aperture
     """Final pass: (min, max) aperture diameter of a clip with depth of field [m], >= 0, drawn log-uniformly."""
-    final_focus: float | None = None
+    final_focus: float | None = _OPT.final_focus
     """Final pass: focus distance (planar depth) [m], > 0; None draws it per clip as the depth of a random object
     pixel of the middle frame."""
-    final_max_coc: float = 16.0
+    final_max_coc: float = _OPT.final_max_coc
     """Final pass: largest circle-of-confusion diameter [px] in [0, 64]; larger ones are clamped."""
-    final_shot_noise: tuple[float, float] = (0.0, 0.002)
+    final_shot_noise: tuple[float, float] = _OPT.final_shot_noise
     """Final pass: (min, max) Poisson gain a [linear intensity] in [0, 1], drawn uniformly per clip: shot-noise
     variance a x at linear signal x (1 = white)."""
-    final_read_noise: tuple[float, float] = (0.0, 0.004)
+    final_read_noise: tuple[float, float] = _OPT.final_read_noise
     """Final pass: (min, max) read-noise standard deviation b [linear intensity] in [0, 1], drawn uniformly per
     clip."""
-    final_exposure_jitter: float = 0.1
+    final_exposure_jitter: float = _OPT.final_exposure_jitter
     """Final pass: standard deviation of each frame's exposure change [stops, log2 of the gain], in [0, 4]."""
-    final_wb_jitter: float = 0.03
+    final_wb_jitter: float = _OPT.final_wb_jitter
     """Final pass: standard deviation of each frame's red and blue white-balance gains [natural log], in [0, 1]."""
-    final_fog_density: float = 0.0
+    final_fog_density: float = _OPT.final_fog_density
     """Final pass: fog extinction coefficient sigma [1/m], >= 0; 0 = no fog."""
-    final_fog_color: tuple[float, float, float] = (0.5, 0.5, 0.55)
+    final_fog_color: tuple[float, float, float] = _OPT.final_fog_color
     """Final pass: radiance of the fog [linear RGB], each >= 0."""
 
     def __post_init__(self) -> None:
@@ -219,11 +222,28 @@ class BouncingThingsConfig:
             raise ConfigError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
         return cls.from_dict({**PRESETS[name], **overrides})
 
+    @property
+    def render_options(self) -> RenderOptions:
+        """The render options this config's samples are made with (its fields of the same names). A sample
+        re-renders from its provenance alone: ``cfg = BouncingThingsConfig.from_dict(meta["meta"]["config"])`` and
+        ``fs.render(fs.Scene.from_meta(meta), keys, options=cfg.render_options)`` (docs/rendering.md, Provenance)."""
+        return RenderOptions(**{name: getattr(self, name) for name in OPTION_NAMES})
+
     def plan_options(self) -> dict[str, Any]:
-        """The ``flowsynth.plan.make_plan`` (and ``flowsynth.render``) options this config's samples are made with.
-        A sample re-renders from its provenance alone: ``cfg = BouncingThingsConfig.from_dict(meta["meta"]["config"])``
-        and ``fs.render(fs.Scene.from_meta(meta), keys, **cfg.plan_options())`` (docs/rendering.md, Provenance)."""
-        return {name: getattr(self, name) for name in PLAN_OPTIONS}
+        """``render_options`` as keywords of ``flowsynth.plan.make_plan`` and ``fs.render``."""
+        return {name: getattr(self, name) for name in OPTION_NAMES}
+
+    def check_files(self) -> tuple[str, ...]:
+        """Resolve the files this config names, as sampling a scene does: every mesh path and glob of ``assets``
+        loaded (returns the asset keys, globs expanded) and ``texture_dir`` listed. Raises AssetError / ConfigError
+        naming the path that is missing or unreadable. Constructing a config never reads files; this does."""
+        from flowsynth.assets import resolve_assets
+        from flowsynth.materials import list_textures
+
+        keys = resolve_assets(self.assets, field="assets")
+        if self.texture_dir is not None:
+            list_textures(self.texture_dir)
+        return keys
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-compatible dict (tuples become lists); ``from_dict(cfg.to_dict()) == cfg``."""
@@ -244,9 +264,8 @@ class BouncingThingsConfig:
         return cls(**d)
 
 
-# Config fields that are options of flowsynth.plan.make_plan, under the same names.
-PLAN_OPTIONS = ("max_objects", "render_mode", "spp", "edge_spp", "shutter", "bounces", "tonemap", "exposure",
-                "flow_gaps", "num_tracks", "track_sampling", "stereo_baseline") + FINAL_OPTIONS
+# Config fields that are render options (flowsynth.options.RenderOptions), under the same names.
+PLAN_OPTIONS = OPTION_NAMES
 
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
@@ -374,7 +393,7 @@ def _validate(cfg: BouncingThingsConfig) -> None:
     _set(cfg, "fps", _float(cfg, "fps", lo=0.0, lo_open=True))
     _set(cfg, "fov_deg", _float(cfg, "fov_deg", lo=0.0, hi=180.0, lo_open=True, hi_open=True))
     _lens(cfg)
-    _int(cfg, "max_objects", 1)
+    _render_options(cfg)
     n_hi = _range(cfg, "num_objects", lo=0, integer=True)[1]
     if n_hi > cfg.max_objects:
         raise ConfigError(f"num_objects: max {n_hi} exceeds max_objects={cfg.max_objects}; "
@@ -428,57 +447,44 @@ def _validate(cfg: BouncingThingsConfig) -> None:
                           f"{filled / volume:.0%} of the "
                           f"room (max {MAX_PACKING_FRACTION:.0%}); lower num_objects or object_size, "
                           "or enlarge room_size")
-    _choice(cfg, "render_mode", RENDER_MODES)
-    _int(cfg, "spp", 1)
-    _int(cfg, "edge_spp", 1)
-    _set(cfg, "shutter", _float(cfg, "shutter", lo=0.0, hi=1.0))
     if cfg.texture_dir is not None and not isinstance(cfg.texture_dir, str):
         raise ConfigError(f"texture_dir must be a folder path or None, got {cfg.texture_dir!r}")
     _range(cfg, "texture_px", lo=0.0, lo_open=True)
-    _int(cfg, "bounces", 0, MAX_BOUNCES)
-    _choice(cfg, "tonemap", TONEMAPS)
-    _set(cfg, "exposure", _float(cfg, "exposure", lo=0.0))
-    gaps = cfg.flow_gaps
-    if isinstance(gaps, (str, bytes)) or not hasattr(gaps, "__len__") or not gaps or not all(_is_int(k) for k in gaps):
-        raise ConfigError(f"flow_gaps must be a non-empty sequence of integers, e.g. (1, 2, 4); got {gaps!r}")
-    gaps = tuple(dict.fromkeys(int(k) for k in gaps))
-    if min(gaps) < 1:
-        raise ConfigError(f"flow_gaps must be integers >= 1, got {gaps}")
-    _set(cfg, "flow_gaps", gaps)
-    _int(cfg, "num_tracks", 1)
-    _set(cfg, "stereo_baseline", _float(cfg, "stereo_baseline", lo=0.0))
-    _choice(cfg, "track_sampling", TRACK_SAMPLING)
     fams = cfg.texture_families
     if isinstance(fams, str) or not fams or not all(isinstance(f, str) and f for f in fams):
         raise ConfigError(f"texture_families must be a non-empty sequence of names, got {fams!r}")
     _set(cfg, "texture_families", tuple(fams))
     from flowsynth.materials import check_texture_families
 
-    try:
+    try:  # names only: texture_dir is read when a scene is sampled
         check_texture_families(cfg.texture_families, cfg.texture_dir)
     except ConfigError as e:
         raise ConfigError(f"texture_families/texture_dir: {e}") from None
     _validate_assets(cfg)
-    _validate_final(cfg)
 
 
-def _validate_final(cfg: BouncingThingsConfig) -> None:
-    """The final_* fields, checked and normalised by flowsynth.plan.FinalPass (errors name the field)."""
-    fp = FinalPass.from_options({name: getattr(cfg, name) for name in FINAL_OPTIONS})
-    for name in FINAL_OPTIONS:
-        _set(cfg, name, getattr(fp, name.removeprefix("final_")))
+def _render_options(cfg: BouncingThingsConfig) -> None:
+    """The render-option fields, checked and normalised by flowsynth.options.RenderOptions (errors name the field):
+    the one rule of each option, as fs.render applies it. The config adds one: max_objects is a number."""
+    if cfg.max_objects is None:
+        raise ConfigError("max_objects must be an integer >= 1 in a config (every sample's object tables have that "
+                          "many rows), got None")
+    options = RenderOptions(**{name: getattr(cfg, name) for name in OPTION_NAMES})
+    for name in OPTION_NAMES:
+        _set(cfg, name, getattr(options, name))
 
 
 def _validate_assets(cfg: BouncingThingsConfig) -> None:
+    """Asset entries by their form (built-in name, path or glob); the files are read when a scene is sampled."""
     assets = cfg.assets
     if isinstance(assets, str):
         assets = (assets,)
     if not hasattr(assets, "__iter__") or len(assets) == 0:
         raise ConfigError(f"assets must be a non-empty sequence of asset names or mesh paths, got {assets!r}")
     _set(cfg, "assets", tuple(assets))
-    from flowsynth.assets import resolve_assets
+    from flowsynth.assets import check_asset_entries
 
     try:
-        resolve_assets(cfg.assets, field="assets")
+        check_asset_entries(cfg.assets, field="assets")
     except AssetError as e:
         raise ConfigError(str(e)) from e

@@ -99,6 +99,7 @@ def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compressio
     outputs = make_plan(lay.default_outputs if outputs is None else outputs, flow_gaps=cfg.flow_gaps,
                         stereo_baseline=cfg.stereo_baseline).outputs
     lay.check(cfg, outputs, num)
+    cfg.check_files()  # the meshes and textures it names (a config reads no file when it is made)
     check_sample_memory(cfg, processes=min(workers or 1, num))
     return lay, outputs
 

@@ -174,7 +174,8 @@ def render_final(scene, accel, gb, plan: Plan, device: str = "cpu") -> torch.Ten
     seed = int(scene.render_seed if plan.seed is None else plan.seed)
     plan = replace(plan, seed=seed)
     if fp.shutter > 0:
-        plan = replace(plan, shutter=fp.shutter, shutter_offset=-0.5 * fp.shutter, spp=max(plan.spp, fp.time_samples))
+        plan = replace(plan.with_options(shutter=fp.shutter, spp=max(plan.spp, fp.time_samples)),
+                       shutter_offset=-0.5 * fp.shutter)
     radiance = render_radiance(scene, accel, gb, plan, device=device)
     T, H, W = radiance.shape[:3]
     dz = scene.camera.pixel_rays_numpy()[..., 2]

@@ -237,7 +237,8 @@ def sample_material(rng: np.random.Generator, texture_families=PROCEDURAL_FAMILI
         texture_px: (min, max) feature size on screen [px] (screen terms only).
     """
     families = check_texture_families(texture_families, texture_dir)
-    files = list_textures(texture_dir) if "image" in families else []
+    files = list_textures(texture_dir) if texture_dir is not None else []  # a texture_dir given must hold images
+    files = files if "image" in families else []
     family = str(rng.choice(families))
     px = None if pixel_size is None else (float(pixel_size), float(texture_px[0]), float(texture_px[1]))
     mat: dict = {}
@@ -389,14 +390,14 @@ def _number(d: dict, key: str, default: float, lo: float, hi: float, where: str 
 
 
 def check_texture_families(families, texture_dir) -> list[str]:
+    """The texture families as a list, checked by name (reads no file: ``list_textures`` reads ``texture_dir``).
+    Raises ConfigError for an unknown family, or for "image" without a ``texture_dir``."""
     families = [families] if isinstance(families, str) else list(families)
     bad = [f for f in families if f not in TEXTURE_FAMILIES]
     if not families or bad:
         raise ConfigError(f"texture families must be a non-empty subset of {TEXTURE_FAMILIES}, got {families!r}")
     if "image" in families and texture_dir is None:
         raise ConfigError("texture family 'image' needs texture_dir: a folder of pictures (png, jpg, ...)")
-    if texture_dir is not None:
-        list_textures(texture_dir)
     return families
 
 

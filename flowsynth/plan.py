@@ -17,19 +17,30 @@
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 from flowsynth.errors import ConfigError
-from flowsynth.kernels import RENDER_MODES
+from flowsynth.options import (  # re-exported: the options' one definition is flowsynth/options.py
+    DEFAULT_BOUNCES,
+    DEFAULT_RENDER_MODE,
+    DEFAULT_TONEMAP,
+    FINAL_OPTIONS,
+    MAX_BOUNCES,
+    OPTION_NAMES,
+    RENDER_MODES,
+    TONEMAPS,
+    TRACK_SAMPLING,
+    FinalPass,
+    RenderOptions,
+    check_flow_gaps,
+)
 from flowsynth.parallel import resolve_threads
 
 __all__ = ["CORE_OUTPUTS", "DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FINAL_KEYS", "FINAL_OPTIONS",
            "FLOW_KEYS", "GAP_KEYS", "GBUFFER_KEYS", "MAX_BOUNCES", "OCCLUSION_METHODS", "OUTPUTS", "RENDER_MODES",
            "SCENE_FLOW_KEYS", "STEREO_KEYS", "TABLE_KEYS", "TONEMAPS", "TRACK_KEYS", "TRACK_SAMPLING", "FinalPass",
-           "Plan", "expand_outputs", "gap_key", "make_plan", "split_gap_key"]
+           "Plan", "RenderOptions", "expand_outputs", "gap_key", "make_plan", "split_gap_key"]
 
 GBUFFER_KEYS = ("depth", "distance", "normals", "position", "instance", "category", "asset")
 FLOW_KEYS = ("flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw", "motion")
@@ -42,7 +53,6 @@ SCENE_FLOW_KEYS = ("scene_flow_fw", "scene_flow_bw")
 GAP_KEYS = FLOW_KEYS[:-1] + SCENE_FLOW_KEYS
 # Point tracks in the TAP-Vid layout (flowsynth/tracks.py); the alias ``tracks`` requests all three.
 TRACK_KEYS = ("target_points", "occluded", "query_points")
-TRACK_SAMPLING = ("uniform", "objects", "edges")
 ALIASES = {"tracks": TRACK_KEYS}
 # Rectified right camera at ``stereo_baseline`` metres along the left camera's +x (flowsynth/stereo.py).
 STEREO_KEYS = ("rgb_right", "depth_right", "disparity", "disparity_right", "disparity_change", "disparity_occ",
@@ -55,126 +65,33 @@ FINAL_KEYS = ("rgb_final",)
 OUTPUTS = CORE_OUTPUTS + SCENE_FLOW_KEYS + TRACK_KEYS + STEREO_KEYS + FINAL_KEYS
 _GAP_RE = re.compile(r"^(?P<base>[a-z_]+_(?:fw|bw))_k(?P<k>[0-9]+)$")
 OCCLUSION_METHODS = ("exact", "depth")
-# RGB options: the one definition of their choices, ranges and defaults (config, Plan and shading use these;
-# the models are in docs/rendering.md). RENDER_MODES is defined beside the kernels that implement them.
-DEFAULT_RENDER_MODE = "flat"
-TONEMAPS = ("clamp", "reinhard")
-DEFAULT_TONEMAP = "clamp"
-MAX_BOUNCES = 64  # path-tracing bounces after the first hit lie in [0, MAX_BOUNCES]
-DEFAULT_BOUNCES = 3
 
 
-def _final_number(name: str, v, lo: float, hi: float | None = None) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-        raise ConfigError(f"final_{name} must be a finite number, got {v!r}")
-    if float(v) < lo or (hi is not None and float(v) > hi):
-        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ConfigError(f"final_{name} must be {bound}, got {v!r}")
-    return float(v)
-
-
-def _final_tuple(name: str, v, n: int, lo: float, hi: float | None = None) -> tuple[float, ...]:
-    if isinstance(v, (str, bytes)) or not hasattr(v, "__len__") or len(v) != n:
-        raise ConfigError(f"final_{name} must be a sequence of {n} numbers, got {v!r}")
-    out = tuple(_final_number(name, x, lo, hi) for x in v)
-    if n == 2 and out[0] > out[1]:
-        raise ConfigError(f"final_{name}: min {out[0]} > max {out[1]}; pass (min, max) with min <= max")
-    return out
-
-
-@dataclass(frozen=True)
-class FinalPass:
-    """Settings of the final pass, ``rgb_final`` (flowsynth/finalpass.py; the models: docs/rendering.md, Final pass).
-
-    ``BouncingThingsConfig`` and ``make_plan`` take each field as ``final_<name>``. Per-clip values (DoF or not,
-    aperture, focus, noise levels) and per-frame gains are drawn from the scene's render seed. Validated here
-    (ConfigError naming the ``final_`` field); values are normalised to floats and tuples."""
-
-    shutter: float = 0.5
-    """Shutter open time [fraction of the frame interval] in [0, 1], centred on the frame instant; 0 = no blur."""
-    time_samples: int = 8
-    """Time samples per pixel of the motion blur (the final render's spp is max(spp, this)) [count], >= 1."""
-    dof_prob: float = 0.3
-    """Probability that a clip has depth of field, in [0, 1]."""
-    aperture: tuple[float, float] = (0.01, 0.04)
-    """(min, max) aperture diameter A of a clip with depth of field [m], drawn log-uniformly."""
-    focus: float | None = None
-    """Focus distance d_f [m] (planar depth), > 0; None: the depth of a random object pixel of the middle frame."""
-    max_coc: float = 16.0
-    """Largest circle-of-confusion diameter [px] in [0, 64]; larger ones are clamped (bounds the gather's cost)."""
-    shot_noise: tuple[float, float] = (0.0, 0.002)
-    """(min, max) Poisson gain a [linear intensity per photo-electron], in [0, 1], drawn uniformly per clip:
-    variance a x at signal x."""
-    read_noise: tuple[float, float] = (0.0, 0.004)
-    """(min, max) standard deviation b of the Gaussian read noise [linear intensity], in [0, 1], drawn uniformly
-    per clip."""
-    exposure_jitter: float = 0.1
-    """Standard deviation of each frame's exposure change [stops = log2 gain], in [0, 4]."""
-    wb_jitter: float = 0.03
-    """Standard deviation of each frame's red and blue white-balance gain [natural log of the gain], in [0, 1]."""
-    fog_density: float = 0.0
-    """Extinction coefficient sigma of homogeneous fog [1/m], >= 0; 0 = no fog."""
-    fog_color: tuple[float, float, float] = (0.5, 0.5, 0.55)
-    """Radiance the fog tends to with distance [linear RGB], each >= 0."""
-
-    def __post_init__(self) -> None:
-        setattr_ = object.__setattr__
-        setattr_(self, "shutter", _final_number("shutter", self.shutter, 0.0, 1.0))
-        n = self.time_samples
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ConfigError(f"final_time_samples must be an integer >= 1, got {n!r}")
-        setattr_(self, "dof_prob", _final_number("dof_prob", self.dof_prob, 0.0, 1.0))
-        setattr_(self, "aperture", _final_tuple("aperture", self.aperture, 2, 0.0))
-        if self.focus is not None:
-            setattr_(self, "focus", _final_number("focus", self.focus, 0.0))
-            if self.focus == 0.0:
-                raise ConfigError("final_focus must be > 0 [m] or None (drawn per clip), got 0")
-        setattr_(self, "max_coc", _final_number("max_coc", self.max_coc, 0.0, 64.0))
-        setattr_(self, "shot_noise", _final_tuple("shot_noise", self.shot_noise, 2, 0.0, 1.0))
-        setattr_(self, "read_noise", _final_tuple("read_noise", self.read_noise, 2, 0.0, 1.0))
-        setattr_(self, "exposure_jitter", _final_number("exposure_jitter", self.exposure_jitter, 0.0, 4.0))
-        setattr_(self, "wb_jitter", _final_number("wb_jitter", self.wb_jitter, 0.0, 1.0))
-        setattr_(self, "fog_density", _final_number("fog_density", self.fog_density, 0.0))
-        setattr_(self, "fog_color", _final_tuple("fog_color", self.fog_color, 3, 0.0))
-
-    @classmethod
-    def from_options(cls, options: dict) -> FinalPass:
-        """From ``final_<name>`` keyword options (FINAL_OPTIONS); ConfigError for any other name."""
-        unknown = sorted(k for k in options if k not in FINAL_OPTIONS)
-        if unknown:
-            raise ConfigError(f"unknown render option(s) {unknown}; the final pass's options are: "
-                              f"{', '.join(FINAL_OPTIONS)} (the others: flowsynth.plan.make_plan)")
-        return cls(**{k.removeprefix("final_"): v for k, v in options.items()})
-
-
-# make_plan / fs.render / BouncingThingsConfig names of the FinalPass fields.
-FINAL_OPTIONS = tuple("final_" + f.name for f in dataclasses.fields(FinalPass))
-
-
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Plan:
-    """The stages needed for ``outputs``; flags are derived, never set by hand."""
+    """The stages needed for ``outputs`` under ``options``; flags are derived, never set by hand (``make_plan``).
+
+    Every render option reads through the plan as well: ``plan.spp`` is ``plan.options.spp``, ``plan.final_pass``
+    is ``plan.options.final_pass``; ``with_options`` changes some."""
 
     outputs: tuple[str, ...]
+    options: RenderOptions = field(default_factory=RenderOptions)
     occlusion: str = "exact"
-    max_objects: int | None = None
-    render_mode: str = DEFAULT_RENDER_MODE
-    spp: int = 1
-    edge_spp: int = 1
-    shutter: float = 0.0
     seed: int | None = None
-    bounces: int = DEFAULT_BOUNCES
-    tonemap: str = DEFAULT_TONEMAP
-    exposure: float = 1.0
+    """The renderer's noise seed; None: the scene's ``render_seed``."""
     threads: int | None = None
-    flow_gaps: tuple[int, ...] = (1,)
-    num_tracks: int = 256
-    track_sampling: str = "uniform"
-    stereo_baseline: float = 0.0
-    final_pass: FinalPass = FinalPass()
     shutter_offset: float = 0.0
     """[frames] added to every motion-blur sample time: -shutter / 2 centres the shutter on the frame instant
     (the final pass sets it; make_plan leaves 0, the shutter opening at the frame instant)."""
+
+    def __getattr__(self, name: str):  # only for names that are no attribute of the plan: the render options
+        if name in OPTION_NAMES or name == "final_pass":
+            return getattr(self.options, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def with_options(self, **changes) -> Plan:
+        """This plan with some render options changed (validated as ``RenderOptions`` validates them)."""
+        return replace(self, options=RenderOptions.from_options(self.options, **changes))
 
     def _any(self, *keys: str) -> bool:
         return any(k in self.outputs for k in keys)
@@ -245,87 +162,47 @@ def split_gap_key(key: str) -> tuple[str, int] | None:
     return None
 
 
-def _check_gaps(flow_gaps) -> tuple[int, ...]:
-    if isinstance(flow_gaps, (int, str)) or not hasattr(flow_gaps, "__iter__"):
-        raise ConfigError(f"flow_gaps must be a sequence of integers >= 1, e.g. (1, 2, 4); got {flow_gaps!r}")
-    gaps = tuple(flow_gaps)
-    if not gaps or any(isinstance(k, bool) or not isinstance(k, int) or k < 1 for k in gaps):
-        raise ConfigError(f"flow_gaps must be a non-empty sequence of integers >= 1, e.g. (1, 2, 4); "
-                          f"got {flow_gaps!r}")
-    return tuple(dict.fromkeys(gaps))
-
-
 def expand_outputs(outputs, flow_gaps=(1,)) -> tuple[str, ...]:
     """Requested keys with every GAP_KEYS base name replaced by its keys for each gap of ``flow_gaps``
     and every alias (``tracks``) by the keys it stands for."""
-    gaps = _check_gaps(flow_gaps)
+    gaps = check_flow_gaps(flow_gaps)
     out: list[str] = []
     for key in outputs:
         out += [gap_key(key, k) for k in gaps] if key in GAP_KEYS else list(ALIASES.get(key, [key]))
     return tuple(dict.fromkeys(out))
 
 
-def make_plan(outputs, occlusion: str = "exact", max_objects: int | None = None,
-              render_mode: str = DEFAULT_RENDER_MODE, spp: int = 1, shutter: float = 0.0, seed: int | None = None,
-              bounces: int = DEFAULT_BOUNCES, tonemap: str = DEFAULT_TONEMAP, exposure: float = 1.0,
-              threads: int | None = None, flow_gaps=(1,), num_tracks: int = 256,
-              track_sampling: str = "uniform", stereo_baseline: float = 0.0, edge_spp: int = 1,
-              **final_options) -> Plan:
+def make_plan(outputs, options: RenderOptions | None = None, *, occlusion: str = "exact", seed: int | None = None,
+              threads: int | None = None, **changes) -> Plan:
     """Validate a list of output keys and derive the plan. Raises ConfigError naming the valid keys.
 
-    ``num_tracks`` (Q >= 1) and ``track_sampling`` (TRACK_SAMPLING): point tracks, see flowsynth/tracks.py.
-    ``stereo_baseline`` [m]: distance of the right camera (0 = no right camera; STEREO_KEYS need > 0).
-    ``flow_gaps``: frame gaps k of the per-pair keys (GAP_KEYS): each requested ``flow_fw`` etc. becomes
-    ``gap_key(key, k)`` for every k (``flow_fw`` for k = 1, ``flow_fw_k2`` for k = 2, ...); keys named with
-    a gap (``flow_fw_k3``) may also be requested directly. ``Plan.outputs`` holds the expanded keys.
+    ``options``: a ``flowsynth.options.RenderOptions`` (None: the defaults); ``changes``: render options by name
+    (the RenderOptions fields, e.g. ``spp=4``, ``final_shutter=0.3``), applied on top of ``options`` and validated
+    by RenderOptions (one rule per option; defaults and why: docs/rendering.md, Options).
+    ``flow_gaps``: each requested ``flow_fw`` etc. becomes ``gap_key(key, k)`` for every k (``flow_fw`` for k = 1,
+    ``flow_fw_k2`` for k = 2, ...); keys named with a gap (``flow_fw_k3``) may also be requested directly.
+    ``Plan.outputs`` holds the expanded keys.
 
-    ``edge_spp``: RGB samples of pixels at silhouettes and creases, max(spp, edge_spp) (docs/rendering.md).
-    ``threads``: threads of every ray launch (None = all cores the process may use, 1 inside DataLoader and
-    export workers; flowsynth.parallel). Results do not depend on it. ``seed``: the renderer's noise seed; None
-    (default) uses the scene's ``render_seed``. ``final_options``: the final pass's settings as ``final_<name>``
-    keywords (FINAL_OPTIONS; FinalPass documents each), used when ``rgb_final`` is requested."""
+    ``occlusion``: OCCLUSION_METHODS. ``threads``: threads of every ray launch (None = all cores the process may
+    use, 1 inside DataLoader and export workers; flowsynth.parallel). Results do not depend on it. ``seed``: the
+    renderer's noise seed; None (default) uses the scene's ``render_seed``."""
+    options = RenderOptions.from_options(options, **changes)
     if isinstance(outputs, str):
         outputs = [s for s in outputs.split(",") if s]
     outputs = tuple(dict.fromkeys(outputs))
     if not outputs:
         raise ConfigError(f"outputs is empty; choose from {', '.join(OUTPUTS)}")
-    gaps = _check_gaps(flow_gaps)
-    outputs = expand_outputs(outputs, gaps)
+    outputs = expand_outputs(outputs, options.flow_gaps)
     unknown = [k for k in outputs if k not in OUTPUTS and split_gap_key(k) is None]
     if unknown:
         raise ConfigError(f"unknown output(s) {unknown}; valid outputs are: {', '.join(OUTPUTS)}, "
                           f"and KEY_kK (frame gap K >= 2) for KEY in {', '.join(GAP_KEYS)}")
     if occlusion not in OCCLUSION_METHODS:
         raise ConfigError(f"occlusion must be one of {OCCLUSION_METHODS}, got {occlusion!r}")
-    if max_objects is not None and (not isinstance(max_objects, int) or max_objects < 0):
-        raise ConfigError(f"max_objects must be a non-negative integer, got {max_objects!r}")
-    if render_mode not in RENDER_MODES:
-        raise ConfigError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
-    if not isinstance(spp, int) or spp < 1:
-        raise ConfigError(f"spp must be an integer >= 1, got {spp!r}")
-    if isinstance(edge_spp, bool) or not isinstance(edge_spp, int) or edge_spp < 1:
-        raise ConfigError(f"edge_spp must be an integer >= 1, got {edge_spp!r}")
-    if not (0.0 <= float(shutter) <= 1.0):
-        raise ConfigError(f"shutter must be in [0, 1] (fraction of the frame interval), got {shutter!r}")
-    if isinstance(bounces, bool) or not isinstance(bounces, int) or not 0 <= bounces <= MAX_BOUNCES:
-        raise ConfigError(f"bounces must be an integer in [0, {MAX_BOUNCES}], got {bounces!r}")
-    if tonemap not in TONEMAPS:
-        raise ConfigError(f"tonemap must be one of {TONEMAPS}, got {tonemap!r}")
-    if not (math.isfinite(float(exposure)) and float(exposure) >= 0.0):
-        raise ConfigError(f"exposure must be finite and >= 0, got {exposure!r}")
     if threads is not None:
         resolve_threads(threads)
-    if isinstance(num_tracks, bool) or not isinstance(num_tracks, int) or num_tracks < 1:
-        raise ConfigError(f"num_tracks must be an integer >= 1, got {num_tracks!r}")
-    if track_sampling not in TRACK_SAMPLING:
-        raise ConfigError(f"track_sampling must be one of {TRACK_SAMPLING}, got {track_sampling!r}")
-    if isinstance(stereo_baseline, bool) or not isinstance(stereo_baseline, (int, float)) or not (
-            math.isfinite(stereo_baseline) and stereo_baseline >= 0):
-        raise ConfigError(f"stereo_baseline must be a finite number >= 0 [m], got {stereo_baseline!r}")
-    final = FinalPass.from_options(final_options)
     stereo = [k for k in outputs if k in STEREO_KEYS]
-    if stereo and stereo_baseline == 0:
+    if stereo and options.stereo_baseline == 0:
         raise ConfigError(f"{stereo} need a right camera: set stereo_baseline > 0 [m] (e.g. 0.1)")
-    return Plan(outputs, occlusion, max_objects, render_mode, int(spp), int(edge_spp), float(shutter),
-                None if seed is None else int(seed), int(bounces),
-                tonemap, float(exposure), threads, gaps, num_tracks, track_sampling, float(stereo_baseline), final)
+    return Plan(outputs=outputs, options=options, occlusion=occlusion, seed=None if seed is None else int(seed),
+                threads=threads)

@@ -16,6 +16,7 @@ import torch
 from flowsynth.accel import SceneAccel, resolve_device
 from flowsynth.camera import check_lens_outputs
 from flowsynth.gbuffer import GBuffer, cast_gbuffer, scene_arrays
+from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
 from flowsynth.scene import Scene
 
@@ -25,8 +26,8 @@ __all__ = ["HOST_KEYS", "gbuffer_outputs", "render", "render_plan"]
 HOST_KEYS = frozenset({"distance", "depth", "normals", "instance", "category", "asset"})
 
 
-def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, device: str = "cpu",
-           occlusion: str = "exact", **options) -> dict[str, torch.Tensor]:
+def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, options: RenderOptions | None = None,
+           device: str = "cpu", occlusion: str = "exact", **kwargs) -> dict[str, torch.Tensor]:
     """Render the requested ground truth of every frame of ``scene``.
 
     Args:
@@ -37,13 +38,16 @@ def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, d
             only (docs/architecture.md, Devices). Results are CPU tensors.
         occlusion: "exact" (visibility rays) or "depth" (cheaper depth-buffer comparison; benchmarks/accuracy.py
             measures what each costs and how often each is wrong: docs/decisions/0003-exact-occlusion.md).
-        options: further ``flowsynth.plan.make_plan`` options, e.g. ``threads`` (ray-launch threads; None =
-            every core the process may use, 1 inside DataLoader and export workers; see flowsynth.parallel).
+        options: the render options (``fs.RenderOptions``: spp, edge_spp, render_mode, ..., final_*; None = the
+            defaults, docs/rendering.md, Options), e.g. a config's ``cfg.render_options``.
+        kwargs: render options by name (``spp=4``), applied on top of ``options``; and ``seed`` (None = the scene's
+            render seed) and ``threads`` (ray-launch threads; None = every core the process may use, 1 inside
+            DataLoader and export workers; see flowsynth.parallel), as ``flowsynth.plan.make_plan`` takes them.
 
     Returns:
         dict mapping each requested key to a CPU tensor.
     """
-    plan = make_plan(outputs, occlusion=occlusion, **options)
+    plan = make_plan(outputs, options, occlusion=occlusion, **kwargs)
     return render_plan(scene, plan, device=device)
 
 

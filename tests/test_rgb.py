@@ -167,8 +167,8 @@ def test_antialiasing_converges():
         scene = moving_boxes(1, W=64, H=48, camera_motion=False)
         for obj in scene.objects:
             obj.material.update(material)
-        lin = {spp: to_linear(fs.render(scene, ["rgb"], render_mode="flat", spp=spp, seed=spp)["rgb"].numpy())
-               for spp in (1, 4, 16, 256)}
+        lin = {spp: to_linear(fs.render(scene, ["rgb"], render_mode="flat", spp=spp, edge_spp=1, seed=spp)["rgb"]
+                              .numpy()) for spp in (1, 4, 16, 256)}  # edge_spp=1: spp samples in every pixel
         return {spp: float(np.sqrt(np.mean((lin[spp] - lin[256]) ** 2))) for spp in (1, 4, 16)}
 
     # Silhouettes only (solid colours): only more samples anti-alias them.
@@ -303,7 +303,7 @@ def test_path_tracer_matches_analytic_furnace():
     scene.add_object(trimesh.creation.icosphere(2, 1.0), pose(t=(0, 0, 4.0)),
                      material={"texture": "solid", "colors": [[0.8, 0.6, 0.4]], "specular": 0.0})
     hit = fs.render(scene, ["instance"])["instance"][0, 0].numpy() > 0
-    flat = to_linear(fs.render(scene, ["rgb"], render_mode="flat")["rgb"][0].numpy())
+    flat = to_linear(fs.render(scene, ["rgb"], render_mode="flat", edge_spp=1)["rgb"][0].numpy())  # pixel centres
     path = to_linear(fs.render(scene, ["rgb"], render_mode="path", spp=64)["rgb"][0].numpy())
     expect = 0.7 * to_linear(np.array([0.8, 0.6, 0.4]))[:, None]
     assert np.abs(flat[:, hit] - expect).max() < 1e-3
@@ -386,7 +386,7 @@ def test_image_textures(tmp_path):
     scene = wall_scene(1, 48, 36, wall={"texture": "image", "image": str(tmp_path / "red.png"), "scale": 0.3})
     scene.add_object(trimesh.creation.box((1.5, 1.5, 1.5)), pose(rot([1, 1, 0], 0.5), (0, 0, 4.0)),
                      material={"texture": "image", "image": str(tmp_path / "check.jpg"), "scale": 1.0})
-    out = fs.render(scene, ["rgb", "instance"], render_mode="flat")
+    out = fs.render(scene, ["rgb", "instance"], render_mode="flat", edge_spp=1)  # one sample a pixel: its own hit
     rgb, inst = out["rgb"][0].numpy(), out["instance"][0, 0].numpy()
     wall, box = rgb[:, inst == 1], rgb[:, inst == 2]
     assert (wall[0] > 4 * wall[1] + 0.05).all() and (wall[1] == wall[2]).all()  # red picture
