@@ -30,7 +30,6 @@ NOT_CACHES = {
     "flowsynth.kernels.reproject._PAIR": "compiled Warp kernels per specialisation (not data)",
     "flowsynth.kernels.shade._SHADE": "compiled Warp kernels per render mode (not data)",
     "flowsynth.motion._clamp_kernel": "a compiled Warp kernel (no argument)",
-    "flowsynth.motion.memoise_newton_kernel_factories": "runs once: patches Newton (issue 41 item 5)",
     "flowsynth._flags.field_docs": "the config's field docstrings, read once from the source (no argument)",
     "flowsynth.parallel._pools": "thread pools by size (a resource, not data)",
     "flowsynth.parallel._loaded": "which Warp kernels were loaded before a threaded launch (not data)",
