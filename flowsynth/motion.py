@@ -246,7 +246,7 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
             if k > 0:
                 sim.advance_frame()
             poses[k], vel[k], ang[k] = sim.read()
-        if SCENE_REUSE and sim.reusable and sim._snapshot is not None:
+        if SCENE_REUSE and sim.can_reset:
             _SCENES[key] = sim
             while len(_SCENES) > SCENE_CACHE_SIZE:
                 _SCENES.popitem(last=False)
@@ -358,6 +358,12 @@ class NewtonScene:
         self.graph = None
         self.reusable = False  # snapshot the captured substep's memory at capture, for reset()
         self._snapshot: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+    @property
+    def can_reset(self) -> bool:
+        """The scene was asked to be reusable at its capture and its captured memory was snapshotted: ``reset``
+        can restore it."""
+        return self.reusable and self._snapshot is not None
 
     def _set_velocities(self, initial: InitialState) -> None:
         qd = self.state0.body_qd.numpy()  # a view of the CPU array: written in place

@@ -1,6 +1,7 @@
 """docs/decisions/: every decision cited exists and is complete, and the benchmark runner cannot write there.
 
-A decision record (docs/decisions/NNNN-name.md) holds the reading of a benchmark and what was decided on it.
+A decision record (a numbered file in docs/decisions/, ``NNNN-name.md``) holds the reading of a benchmark and what
+was decided on it.
 benchmarks/run.py regenerates benchmarks/results/SUMMARY.md; before issue 41 hand-written readings lived there and
 a run erased them. These tests hold the split: records complete and cited correctly, the runner's writer confined
 to the files it owns.

