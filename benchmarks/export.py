@@ -32,7 +32,7 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     args = p.parse_args()
     import flowsynth as fs
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
     W, H = (256, 192) if args.quick else (512, 384)
     num = 12 if args.quick else 32
@@ -40,11 +40,11 @@ def main() -> None:
     rows, sizes = [], defaultdict(list)
     tmp = Path(tempfile.mkdtemp(prefix="fs-export-bench-"))
     try:
-        export(cfg, tmp / "warm", 1, outputs=OUTPUTS, progress=False)  # compile / load kernels once
+        export_dataset(cfg, tmp / "warm", 1, outputs=OUTPUTS, progress=False)  # compile / load kernels once
         for workers in (1, 2):
             out = tmp / f"w{workers}"
             with Timer() as tm:
-                export(cfg, out, num, outputs=OUTPUTS, workers=workers, progress=False, seed=workers)
+                export_dataset(cfg, out, num, outputs=OUTPUTS, workers=workers, progress=False, seed=workers)
             dt = tm.wall_s
             rows.append({"workers": workers, "samples": num, "seconds": dt, "samples/s": num / dt})
             if workers == 1:

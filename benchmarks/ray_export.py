@@ -2,8 +2,8 @@
 
     python benchmarks/ray_export.py [--quick] [--lengths 16,48] [--rounds 2] [--cold]
 
-What a user runs, each in a fresh Python process, timed from its start to its exit: ``export(workers=2)``
-(fork, one thread each) and ``ray.init(num_cpus=2)`` + ``export(engine="ray", workers=2)`` (2 actors),
+What a user runs, each in a fresh Python process, timed from its start to its exit: ``export_dataset(workers=2)``
+(fork, one thread each) and ``ray.init(num_cpus=2)`` + ``export_dataset(engine="ray", workers=2)`` (2 actors),
 for every run length of ``--lengths``, alternating engines (load from other processes hits both alike).
 Per run: wall time, seconds to the first finished sample, the steady rate between the first and the last
 finished sample (the sample folders' mtimes), and the start-up ``wall - samples / steady rate``.
@@ -51,7 +51,7 @@ _EXPORT = """
 import json, sys, time
 t = time.perf_counter()
 import flowsynth as fs
-from flowsynth.export import export
+from flowsynth.export import export_dataset
 a = json.loads(sys.argv[1])
 out = {"import_s": time.perf_counter() - t}
 if a["engine"] == "ray":
@@ -60,8 +60,8 @@ if a["engine"] == "ray":
     ray.init(num_cpus=a["cpus"], include_dashboard=False, log_to_driver=False)
     out["ray_init_s"] = time.perf_counter() - t
 t = time.perf_counter()
-export(fs.BouncingThingsConfig(**a["cfg"]), a["out"], a["num"], outputs=a["outputs"], workers=a["cpus"],
-       engine=a["engine"], progress=False)
+export_dataset(fs.BouncingThingsConfig(**a["cfg"]), a["out"], a["num"], outputs=a["outputs"], workers=a["cpus"],
+               engine=a["engine"], progress=False)
 out["export_s"] = time.perf_counter() - t
 print(json.dumps(out))
 """

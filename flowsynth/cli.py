@@ -196,14 +196,14 @@ def _dry_run(args, cfg) -> None:
 
 
 def _export(args, cfg) -> None:
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
     from flowsynth.io import layouts
 
     start = time.perf_counter()
-    root = export(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
-                  layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
-                  exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress,
-                  engine=args.engine, address=args.address, shard_size=args.shard_size)
+    root = export_dataset(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
+                          layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
+                          exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress,
+                          engine=args.engine, address=args.address, shard_size=args.shard_size)
     print(f"exported {args.num} sample{'s' if args.num != 1 else ''} to {root} in "
           f"{time.perf_counter() - start:.1f} s, layout {args.layout}; load it in Python with "
           f"{layouts.get(args.layout).load_hint(root)}")

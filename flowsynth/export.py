@@ -1,5 +1,8 @@
 """Crash-safe, resumable, parallel export of BouncingThings samples to disk, in any registered layout.
 
+The entry point is :func:`export_dataset` (what ``flowsynth export`` runs); ``flowsynth.export.export`` is its
+deprecated old name (a function named like its module).
+
 What a layout writes is its own business (``flowsynth/io/layouts/``: native, flyingchairs, kitti,
 sintel, ...). This module does the bookkeeping that is the same for every layout::
 
@@ -54,7 +57,7 @@ from flowsynth.integrity import file_records
 from flowsynth.io import layouts
 from flowsynth.writer import ExportWriter, run_job
 
-__all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export"]
+__all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export_dataset"]
 
 ENGINES = ("local", "ray")  # where samples are made: worker processes here, or actors of a Ray cluster
 
@@ -141,10 +144,10 @@ def _recorded(root: Path, old: dict) -> dict[int, dict]:
     return records
 
 
-def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None, workers: int | None = None,
-           layout: str = "native", overwrite: bool = False, occlusion: str = "exact",
-           exr_compression: str = "zip", verify: bool = False, progress: bool = True, engine: str = "local",
-           address: str | None = None, shard_size: int | None = None) -> Path:
+def export_dataset(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None,
+                   workers: int | None = None, layout: str = "native", overwrite: bool = False,
+                   occlusion: str = "exact", exr_compression: str = "zip", verify: bool = False, progress: bool = True,
+                   engine: str = "local", address: str | None = None, shard_size: int | None = None) -> Path:
     """Export samples 0..num-1 of ``BouncingThings(cfg, outputs, seed)`` to ``out``; resumes if interrupted.
 
     Args:
@@ -201,6 +204,18 @@ def export(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outputs=None
                            "finished and kept, temporaries removed; fix the cause (free space?) and re-run the "
                            "same command to resume", e.errno) from e
     return root
+
+
+def __getattr__(name: str):
+    # The function was ``export`` until issue 41 (a function named like its module); the old name still works,
+    # with a DeprecationWarning, and is bound nowhere (``flowsynth.export`` is always this module).
+    if name == "export":
+        import warnings
+
+        warnings.warn("flowsynth.export.export is deprecated; use flowsynth.export.export_dataset (the same "
+                      "function)", DeprecationWarning, stacklevel=2)
+        return export_dataset
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _same(old: dict, identity: dict) -> bool:
@@ -406,11 +421,12 @@ class Sizes:
 
 def estimate(cfg, num: int, *, seed: int = 0, outputs=None, layout: str = "native", occlusion: str = "exact",
              exr_compression: str = "zip", shard_size: int | None = None) -> Sizes:
-    """Sizes of ``export(cfg, ..., num, ...)`` without writing under its folder (``flowsynth export --dry-run``).
+    """Sizes of ``export_dataset(cfg, ..., num, ...)`` without writing under its folder
+    (``flowsynth export --dry-run``).
 
     Sample 0 is generated and written in a temporary folder that is removed afterwards; other
     samples differ from it by what their content compresses to (a few per cent, benchmarks/export.py).
-    Raises ConfigError for invalid arguments, as :func:`export` does.
+    Raises ConfigError for invalid arguments, as :func:`export_dataset` does.
     """
     from flowsynth.datasets import BouncingThings
 

@@ -143,7 +143,7 @@ def test_interrupt_exits_130_with_a_resume_hint(tmp_path, capsys, monkeypatch, s
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(flowsynth.export, "export", interrupted)
+    monkeypatch.setattr(flowsynth.export, "export_dataset", interrupted)
     assert main(["export", "--out", str(tmp_path / "o"), "--num", "1", *small_flags]) == 130
     assert "re-run the same command to resume" in capsys.readouterr().err
 

@@ -144,14 +144,14 @@ def _done(out: Path) -> int:
 
 @pytest.mark.ray
 def test_killed_actor_loses_nothing(cluster, tmp_path):
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
     out, num = tmp_path / "ray", 8
     errors: list[BaseException] = []
 
     def run():
         try:
-            export(CFG, out, num, seed=1, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
+            export_dataset(CFG, out, num, seed=1, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
         except BaseException as e:  # reported by the assertion below
             errors.append(e)
 
@@ -165,7 +165,7 @@ def test_killed_actor_loses_nothing(cluster, tmp_path):
     os.kill(victims[0], signal.SIGKILL)
     thread.join(600)
     assert not thread.is_alive() and not errors, errors
-    export(CFG, tmp_path / "local", num, seed=1, outputs=OUTS.split(","), progress=False)
+    export_dataset(CFG, tmp_path / "local", num, seed=1, outputs=OUTS.split(","), progress=False)
     _same_export(out, tmp_path / "local")
 
 
@@ -228,7 +228,7 @@ def test_driver_failure_stops_the_actors_before_cleaning_up(cluster, tmp_path, m
     from flowsynth.errors import StorageError
 
     with pytest.raises(StorageError) as err:
-        ex.export(CFG, out, 8, seed=1, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
+        ex.export_dataset(CFG, out, 8, seed=1, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
     assert err.value.errno == 28
     deadline = time.time() + 30  # killed and waited for; their processes may take a moment to exit
     while _actor_pids("WriterActor") and time.time() < deadline:

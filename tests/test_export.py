@@ -51,9 +51,9 @@ def check_manifest(root: Path, num: int):
 
 
 def test_exported_equals_stream(tmp_path):
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
-    root = export(CFG, tmp_path / "ds", 3, seed=4, outputs=FLOAT_OUTS, progress=False)
+    root = export_dataset(CFG, tmp_path / "ds", 3, seed=4, outputs=FLOAT_OUTS, progress=False)
     manifest = check_manifest(root, 3)
     assert manifest["seed"] == 4 and manifest["layout"] == "native" and manifest["versions"]["warp-lang"]
     ds = BouncingThings(CFG, outputs=FLOAT_OUTS, seed=4)
@@ -68,9 +68,9 @@ def test_exported_equals_stream(tmp_path):
 
 
 def test_exported_rgb_within_quantisation(tmp_path):
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
-    root = export(CFG, tmp_path / "ds", 1, outputs=["rgb", "flow_fw"], progress=False)
+    root = export_dataset(CFG, tmp_path / "ds", 1, outputs=["rgb", "flow_fw"], progress=False)
     a, b = Exported(root)[0], BouncingThings(CFG, outputs=["rgb", "flow_fw"]).sample(0)
     assert (a["rgb"] - b["rgb"]).abs().max() <= 0.5 / 255 + 1e-6
     assert torch.equal(a["flow_fw"], b["flow_fw"])
@@ -96,10 +96,10 @@ def test_sigkill_then_resume(tmp_path):
 
 
 def test_two_workers_match_one(tmp_path):
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
-    a = export(CFG, tmp_path / "a", 4, outputs=["depth", "instance"], workers=2, progress=False)
-    b = export(CFG, tmp_path / "b", 4, outputs=["depth", "instance"], workers=1, progress=False)
+    a = export_dataset(CFG, tmp_path / "a", 4, outputs=["depth", "instance"], workers=2, progress=False)
+    b = export_dataset(CFG, tmp_path / "b", 4, outputs=["depth", "instance"], workers=1, progress=False)
     ma, mb = (json.loads((r / "manifest.json").read_text())["samples"] for r in (a, b))
     assert ma == mb
 
@@ -108,11 +108,11 @@ def test_two_workers_match_one(tmp_path):
 def test_every_layout_round_trips_and_keeps_books(tmp_path, name):
     """Generic contract of a layout: files recorded in the manifest, read back with the stream's keys, shapes
     and dtypes; 3 frames so layouts that store frame pairs write several per sample."""
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
     cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "num_frames": 3, "stereo_baseline": 0.1})  # for flyingthings3d
     lay = layouts.get(name)
-    root = export(cfg, tmp_path / name, 2, seed=1, layout=name, progress=False)
+    root = export_dataset(cfg, tmp_path / name, 2, seed=1, layout=name, progress=False)
     manifest = check_manifest(root, 2)
     assert manifest["layout"] == name and manifest["outputs"] == list(lay.default_outputs)
     ex = Exported(root, verify=True)
@@ -131,7 +131,7 @@ def test_every_layout_round_trips_and_keeps_books(tmp_path, name):
 
 def test_layout_checks_refuse_before_writing(tmp_path):
     from flowsynth.errors import ConfigError
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
     cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "stereo_baseline": 0.1})  # flyingthings3d needs stereo
     one = fs.BouncingThingsConfig(**{**cfg.to_dict(), "num_frames": 1})
@@ -139,13 +139,14 @@ def test_layout_checks_refuse_before_writing(tmp_path):
         lay = layouts.get(name)
         if lay.min_frames > 1:
             with pytest.raises(ConfigError, match="num_frames"):
-                export(one, tmp_path / name, 1, layout=name, progress=False)
+                export_dataset(one, tmp_path / name, 1, layout=name, progress=False)
         if lay.required_outputs:
             with pytest.raises(ConfigError, match="needs the outputs"):
-                export(cfg, tmp_path / name, 1, layout=name, outputs=["depth"], progress=False)
+                export_dataset(cfg, tmp_path / name, 1, layout=name, outputs=["depth"], progress=False)
         if lay.stored_outputs is not None:
             with pytest.raises(ConfigError, match="stores only"):
-                export(cfg, tmp_path / name, 1, layout=name, outputs=[*lay.required_outputs, "depth"], progress=False)
+                export_dataset(cfg, tmp_path / name, 1, layout=name, outputs=[*lay.required_outputs, "depth"],
+                               progress=False)
         assert not (tmp_path / name).exists()
     with pytest.raises(ConfigError, match="unknown layout"):
         layouts.get("nope")
@@ -193,7 +194,7 @@ def test_preview_writes_png(tmp_path):
 
 
 def test_dry_run_writes_nothing_and_predicts_the_real_sizes(tmp_path, capsys):
-    from flowsynth.export import estimate, export
+    from flowsynth.export import estimate, export_dataset
 
     out = tmp_path / "dry"
     assert main(["export", "--out", str(out), "--num", "3", "--dry-run", *SMALL]) == 0
@@ -203,7 +204,7 @@ def test_dry_run_writes_nothing_and_predicts_the_real_sizes(tmp_path, capsys):
     total_line = next(line for line in printed.splitlines() if line.startswith("total"))
     assert total_line.split()[1:] == [f"{sum(sizes.per_sample.values()):,}", f"{sizes.total:,}"]
     # sample 0 exported for real is the very sample the dry run measured: equal byte for byte, per output
-    one = export(CFG, tmp_path / "one", 1, progress=False)
+    one = export_dataset(CFG, tmp_path / "one", 1, progress=False)
     files = json.loads((one / "manifest.json").read_text())["samples"]["00000"]
     by_output: dict[str, int] = {}
     for rel, rec in files.items():
@@ -212,7 +213,7 @@ def test_dry_run_writes_nothing_and_predicts_the_real_sizes(tmp_path, capsys):
         by_output[key] = by_output.get(key, 0) + rec["size"]
     assert by_output == sizes.per_sample
     # other samples compress differently: 3 samples here came to 1.3 % above 3 x sample 0
-    three = export(CFG, tmp_path / "three", 3, progress=False)
+    three = export_dataset(CFG, tmp_path / "three", 3, progress=False)
     real = sum(r["size"] for f in json.loads((three / "manifest.json").read_text())["samples"].values()
                for r in f.values())
     assert abs(real - sizes.total) <= 0.1 * sizes.total

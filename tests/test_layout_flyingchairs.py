@@ -9,7 +9,7 @@ import tvision
 
 from flowsynth.cli import main
 from flowsynth.datasets import BouncingThings
-from flowsynth.export import export
+from flowsynth.export import export_dataset
 
 
 
@@ -43,7 +43,7 @@ def test_torchvision_reads_any_num(tmp_path, num, capsys, small_config, small_fl
 def test_every_frame_pair_is_a_sample(tmp_path, small_config):
     """num_frames 6 and 2 samples: 10 pairs, the 10th in the val split, nothing dropped."""
     cfg = dataclasses.replace(small_config, num_frames=6)
-    export(cfg, tmp_path, 2, layout="flyingchairs", progress=False)
+    export_dataset(cfg, tmp_path, 2, layout="flyingchairs", progress=False)
     assert len(list((tmp_path / "FlyingChairs" / "data").glob("*_flow.flo"))) == 10
     train = tvision.datasets().FlyingChairs(root=tmp_path, split="train")
     val = tvision.datasets().FlyingChairs(root=tmp_path, split="val")

@@ -9,14 +9,14 @@ import pytest
 
 import flowsynth as fs
 from flowsynth.datasets import BouncingThings, Exported
-from flowsynth.export import export
+from flowsynth.export import export_dataset
 
 ROOT = "FlyingThings3D_subset/train"
 
 
 def test_opencv_reads_export(tmp_path, layout_config):
     CFG = dataclasses.replace(layout_config, stereo_baseline=0.25)
-    export(CFG, tmp_path, 2, layout="flyingthings3d", progress=False)
+    export_dataset(CFG, tmp_path, 2, layout="flyingthings3d", progress=False)
     stream = BouncingThings(CFG, outputs=list(fs.io.layouts.get("flyingthings3d").default_outputs))
     T = CFG.num_frames
     for i in range(2):
@@ -53,4 +53,4 @@ def test_opencv_reads_export(tmp_path, layout_config):
 def test_needs_a_right_camera(tmp_path):
     cfg = fs.BouncingThingsConfig(width=48, height=32, num_frames=2, motion="kinematic", num_objects=(1, 2))
     with pytest.raises(fs.ConfigError, match="stereo"):
-        export(cfg, tmp_path, 1, layout="flyingthings3d", progress=False)
+        export_dataset(cfg, tmp_path, 1, layout="flyingthings3d", progress=False)

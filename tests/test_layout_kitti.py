@@ -6,14 +6,14 @@ import torch
 import tvision
 
 from flowsynth.datasets import BouncingThings, Exported
-from flowsynth.export import export
+from flowsynth.export import export_dataset
 from flowsynth.io import layouts
 
 HALF_STEP = 0.5 / 64  # the writer rounds to the nearest 1/64 px
 
 
 def test_torchvision_reads_export(tmp_path, layout_config):
-    export(layout_config, tmp_path, 2, layout="kitti", progress=False)
+    export_dataset(layout_config, tmp_path, 2, layout="kitti", progress=False)
     ds = tvision.datasets().KittiFlow(root=tmp_path, split="train")
     assert len(ds) == 4  # 2 samples x 2 frame pairs
     stream = BouncingThings(layout_config, outputs=["rgb", "flow_fw", "valid_fw", "occ_fw"])

@@ -9,14 +9,14 @@ import tvision
 
 import flowsynth as fs
 from flowsynth.datasets import BouncingThings, Exported
-from flowsynth.export import export
+from flowsynth.export import export_dataset
 
 CFG = fs.BouncingThingsConfig(width=48, height=32, num_frames=3, motion="kinematic", num_objects=(3, 4),
                               max_objects=4, min_speed=2.0, max_speed=3.0)
 
 
 def test_torchvision_reads_export(tmp_path):
-    export(CFG, tmp_path, 2, layout="sintel", progress=False)
+    export_dataset(CFG, tmp_path, 2, layout="sintel", progress=False)
     ds = tvision.datasets().Sintel(root=tmp_path, split="train", pass_name="clean")
     assert len(ds) == 4  # 2 scenes x 2 frame pairs
     stream = BouncingThings(CFG, outputs=["rgb", "flow_fw", "occ_fw"])
@@ -45,7 +45,7 @@ def test_torchvision_reads_final_pass(tmp_path):
     """With rgb_final among the outputs, final/ sits beside clean/: torchvision's pass_name="final" reads the
     final frames (8-bit of the stream's rgb_final) with the same flow as the clean pass; Exported reads both back."""
     outputs = ["rgb", "rgb_final", "flow_fw"]
-    export(CFG, tmp_path, 1, layout="sintel", outputs=outputs, progress=False)
+    export_dataset(CFG, tmp_path, 1, layout="sintel", outputs=outputs, progress=False)
     tv = tvision.datasets()
     final = tv.Sintel(root=tmp_path, split="train", pass_name="final")
     clean = tv.Sintel(root=tmp_path, split="train", pass_name="clean")

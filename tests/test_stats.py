@@ -99,9 +99,9 @@ def test_stats_cli_prints_and_writes_json(tmp_path, capsys):
 
 
 def test_export_manifest_carries_the_same_statistics(tmp_path):
-    from flowsynth.export import export
+    from flowsynth.export import export_dataset
 
-    root = export(CFG, tmp_path / "ds", 2, seed=3, outputs=["rgb", "flow_fw", "occ_fw"], progress=False)
+    root = export_dataset(CFG, tmp_path / "ds", 2, seed=3, outputs=["rgb", "flow_fw", "occ_fw"], progress=False)
     manifest = json.loads((root / "manifest.json").read_text())
     want = dataset_stats(CFG, 2, seed=3)
     got = manifest["stats"]
@@ -110,5 +110,6 @@ def test_export_manifest_carries_the_same_statistics(tmp_path):
         assert got[key] == pytest.approx(want[key]), key
     written = {p.name.rsplit("_", 1)[0] for p in (root / "00000").iterdir()}
     assert written == {"rgb", "flow_fw", "occ_fw", "meta.json"}  # the statistics' extra inputs are not written
-    export(CFG, tmp_path / "ds", 2, seed=3, outputs=["rgb", "flow_fw", "occ_fw"], progress=False)  # resume: no-op
+    # resume: a no-op
+    export_dataset(CFG, tmp_path / "ds", 2, seed=3, outputs=["rgb", "flow_fw", "occ_fw"], progress=False)
     assert json.loads((root / "manifest.json").read_text())["stats"] == got

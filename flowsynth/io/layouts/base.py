@@ -7,7 +7,7 @@ same for every layout: it gives :meth:`Layout.write` an empty staging folder, ha
 root and use ``/``.
 
 To add a layout, subclass :class:`Layout` in a new module of this package and decorate it with
-:func:`flowsynth.io.layouts.register`; the CLI's ``--layout``, :func:`flowsynth.export.export` and
+:func:`flowsynth.io.layouts.register`; the CLI's ``--layout``, :func:`flowsynth.export.export_dataset` and
 :class:`flowsynth.datasets.Exported` find it by its ``name``.
 """
 
