@@ -49,7 +49,7 @@ def cold_caches() -> None:
     from flowsynth import accel, assets  # noqa: F401  (their caches, named below, are registered on import)
     from flowsynth.caches import clear_caches
 
-    clear_caches("assets.get_asset", "accel.hulls", "accel.face_planes", "blas.topology")
+    clear_caches("assets.get_asset", "culling.hulls", "culling.face_planes", "blas.topology")
 
 
 def main() -> None:

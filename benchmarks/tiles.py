@@ -1,4 +1,4 @@
-"""Primary cast with per-screen-tile candidate lists against one list per frame (``flowsynth.accel.TILE``).
+"""Primary cast with per-screen-tile candidate lists against one list per frame (``flowsynth.tiles.TILE``).
 
 Below ``ORDERED_MAX`` instances a primary ray walks a near-to-far candidate list instead of the top-level
 BVH; the list is per TILE x TILE screen tile (the instances whose clipped hull projects onto the tile). A tile as
@@ -24,7 +24,7 @@ PINNING = pin_single_core()  # one core and one thread per library, before numpy
 
 import numpy as np
 
-from flowsynth import accel as accel_mod
+from flowsynth import tiles as tiles_mod
 from flowsynth.accel import SceneAccel
 from flowsynth.gbuffer import cast_gbuffer, scene_arrays
 
@@ -35,7 +35,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer rounds")
     args = ap.parse_args()
-    default_tile = accel_mod.TILE
+    default_tile = tiles_mod.TILE
     load_before = os.getloadavg()
     scene = raycast_scene()
     cam = scene.camera
@@ -45,11 +45,11 @@ def main() -> None:
         acc = SceneAccel(meshes, cam_T_world, world_T_obj)
 
         def cast(acc=acc, tile=tile):
-            accel_mod.TILE = tile  # read by tile_lists (cached per accel) and by primary_trace_inputs
+            tiles_mod.TILE = tile  # read by tile_lists (cached per accel)
             try:
                 return cast_gbuffer(acc, cam, want_normals=True, want_points=False, threads=1)
             finally:
-                accel_mod.TILE = default_tile
+                tiles_mod.TILE = default_tile
 
         items[name] = cast().item
         fns[name] = cast

@@ -227,8 +227,8 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
     assert any("read a G-buffer array into numpy" in b for b in rec.violations(TWIN))
 
 
-STAGES = ["gbuffer", "renderer", "flow", "shading", "finalpass", "accel", "blas", "stereo", "tracks",
-          "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/dof", "motion"]
+STAGES = ["gbuffer", "renderer", "flow", "shading", "finalpass", "accel", "tiles", "culling", "blas", "stereo",
+          "tracks", "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/dof", "motion"]
 
 
 @pytest.mark.parametrize("module", STAGES)

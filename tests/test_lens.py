@@ -492,11 +492,11 @@ def test_project_equals_kornia():
 
 @pytest.mark.parametrize("lens", [BC, KB, STRONG_BC, STRONG_KB])
 def test_lens_tile_lists_match_brute_force(lens, monkeypatch):
-    """The lens tile lists (accel._lens_tile_mask) change no bit against every instance in every tile
-    (accel.LENS_TILE_BOUNDS = False): G-buffer, flow with exact occlusion (visibility rays walk the tile of their
+    """The lens tile lists (tiles._lens_tile_mask) change no bit against every instance in every tile
+    (tiles.LENS_TILE_BOUNDS = False): G-buffer, flow with exact occlusion (visibility rays walk the tile of their
     target pixel) and rgb with sub-pixel samples at silhouettes (their blended rays walk their pixel's tile), on
     random rooms with objects; and the lists are shorter."""
-    from flowsynth import accel
+    from flowsynth import accel, tiles
     from flowsynth.gbuffer import cast_gbuffer, scene_arrays
 
     model, dist = lens
@@ -507,7 +507,7 @@ def test_lens_tile_lists_match_brute_force(lens, monkeypatch):
         scene = ds.scene(i)
         got = {}
         for brute in (False, True):
-            monkeypatch.setattr(accel, "LENS_TILE_BOUNDS", not brute)
+            monkeypatch.setattr(tiles, "LENS_TILE_BOUNDS", not brute)
             acc = accel.SceneAccel(*scene_arrays(scene))
             gb = cast_gbuffer(acc, scene.camera, want_normals=True, want_points=True)
             out = fs.render(scene, keys, edge_spp=8)

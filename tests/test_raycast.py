@@ -292,10 +292,10 @@ def test_unknown_output_key_lists_valid_ones():
 
 def test_camera_inside_room_and_mesh_across_camera_plane_match_brute_force():
     """Screen tiles list an instance by the projection of its hull clipped to the camera plane
-    (``accel._screen_bounds``): walls around the camera and a box reaching behind it must still be found
+    (``tiles._screen_bounds``): walls around the camera and a box reaching behind it must still be found
     wherever the float64 brute-force oracle hits them; the bounds hold every hit pixel and every sampled
     point of the clipped hull, and are tight enough to matter (a wall behind the camera is in no tile)."""
-    from flowsynth.accel import CLIP_Z, _screen_bounds
+    from flowsynth.tiles import CLIP_Z, _screen_bounds
     from flowsynth.assets import room_walls
 
     cam = fs.Camera.from_fov(64, 48, 70)
@@ -387,7 +387,7 @@ def test_hull_points_are_the_convex_hull_vertices():
     """The tight boxes' and silhouettes' hull points (Qhull called directly) are the rows of trimesh's
     ``mesh.convex_hull.vertices`` on every built-in asset at two sizes, and every mesh vertex lies within them
     along random directions (the support over the hull points equals that over all vertices)."""
-    from flowsynth.accel import _hull_points
+    from flowsynth.culling import hull_points
     from flowsynth.assets import BUILTIN_ASSETS, get_asset
 
     dirs = np.random.default_rng(1).normal(size=(64, 3))
@@ -395,7 +395,7 @@ def test_hull_points_are_the_convex_hull_vertices():
     for name in BUILTIN_ASSETS:
         for size in (0.37, 1.3):
             mesh = get_asset(name, size).mesh
-            hull = _hull_points(mesh)
+            hull = hull_points(mesh)
             V = np.asarray(mesh.vertices, np.float64)
             if len(V) > 64:
                 big += 1

@@ -201,13 +201,13 @@ def test_scene_flow_equals_numpy(setup, step):
 
 
 def test_culling_bounds_hold_against_brute_force():
-    """The culling data of ``SceneAccel.culling`` (flowsynth.accel._face_planes) against float64 brute force:
+    """The culling data of ``SceneAccel.culling`` (flowsynth.culling._face_planes) against float64 brute force:
     every vertex behind every face plane, inside the bounding sphere, and the inner ball free of surface
     (rays from its centre, Moller-Trumbore over every triangle, first hit no nearer than the radius; every
     ray hits: the centre is enclosed). Flat meshes (room walls) get a zero-width slab, non-convex ones no ball."""
     from oracle import ray_cast
 
-    from flowsynth.accel import _face_planes
+    from flowsynth.culling import _face_planes
     from flowsynth.assets import get_asset, room_walls
 
     rng = np.random.default_rng(0)
@@ -282,12 +282,12 @@ def test_sphere_bounded_face_planes_keep_visibility_exact(monkeypatch):
     give no inner ball, and leave the culled visibility equal to the visibility kernel's full walk."""
     from collections import OrderedDict
 
-    import flowsynth.accel as accel_mod
+    import flowsynth.culling as culling_mod
 
-    monkeypatch.setattr(accel_mod, "FACE_PLANES_BUDGET", 0)
-    monkeypatch.setattr(accel_mod, "_PLANES", OrderedDict())
+    monkeypatch.setattr(culling_mod, "FACE_PLANES_BUDGET", 0)
+    monkeypatch.setattr(culling_mod, "_PLANES", OrderedDict())
     for mesh in (trimesh.creation.icosphere(2, radius=0.6), trimesh.creation.torus(0.5, 0.15)):
-        b = accel_mod._face_planes(mesh)
+        b = culling_mod._face_planes(mesh)
         V = np.asarray(mesh.vertices, np.float32).astype(np.float64)
         assert (V @ b["planes"][:, :3].T - b["planes"][:, 3]).max() <= 0.0
         assert b["inner"] == 0.0
@@ -305,7 +305,7 @@ def test_silhouette_planes_hold_every_vertex_and_clear_only_missing_segments():
     import warp as wp
     from oracle import ray_cast
 
-    from flowsynth.accel import _silhouette_planes
+    from flowsynth.culling import _silhouette_planes
     from flowsynth.assets import get_asset
     from flowsynth.kernels.raycast import SIL_K, beyond_silhouette
 
