@@ -15,7 +15,7 @@ import trimesh
 
 from flowsynth.blas import atlas
 from flowsynth.caches import register
-from flowsynth.culling import FLAT_REL, MESH_CACHE_SIZE, culling, hull_points
+from flowsynth.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
 from flowsynth.tiles import tile_lists
@@ -138,10 +138,10 @@ class SceneAccel:
 
     def culling(self, threads: int | None = None):
         """The visibility rays' exact culling data: a ``Culling`` struct (flowsynth.kernels.raycast), built once per
-        accel by ``flowsynth.culling.culling`` (face planes, flat slabs, silhouette planes; ``threads``: those of
+        accel by ``flowsynth.culling.build_culling`` (face planes, flat slabs, silhouette planes; ``threads``: those of
         the face planes' kernel on a mesh not yet cached)."""
         if self._cull is None:
-            self._cull, self._flat = culling(self._meshes, self._cam_T_obj, threads, self.device)
+            self._cull, self._flat = build_culling(self._meshes, self._cam_T_obj, threads, self.device)
         return self._cull
 
     def tile_lists(self, camera, flat: bool = True, threads: int | None = None):

@@ -238,7 +238,7 @@ class BouncingThingsConfig:
         loaded (returns the asset keys, globs expanded) and ``texture_dir`` listed. Raises AssetError / ConfigError
         naming the path that is missing or unreadable. Constructing a config never reads files; this does."""
         from flowsynth.assets import resolve_assets
-        from flowsynth.materials import list_textures
+        from flowsynth.textures import list_textures
 
         keys = resolve_assets(self.assets, field="assets")
         if self.texture_dir is not None:

@@ -3,7 +3,7 @@
 Per mesh (cached per process, keyed by the mesh's content: ``flowsynth.meshes.freeze`` makes it read-only first) its
 convex hull's points (``hull_points``: the tight boxes of ``flowsynth.accel`` and the screen bounds of
 ``flowsynth.tiles``) and its face planes (``_face_planes``); per clip the ``Culling`` struct of the visibility rays
-(``culling``: flowsynth/kernels/reproject.py tests it before a mesh query).
+(``build_culling``: flowsynth/kernels/reproject.py tests it before a mesh query).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from flowsynth.caches import register
 from flowsynth.kernels import wp_runtime
 from flowsynth.meshes import freeze
 
-__all__ = ["FLAT_REL", "MESH_CACHE_SIZE", "culling", "hull_points"]
+__all__ = ["FLAT_REL", "MESH_CACHE_SIZE", "build_culling", "hull_points"]
 
 # Maximum number of per-mesh hulls and face planes kept per process (least recently used are dropped).
 MESH_CACHE_SIZE = 512
@@ -63,7 +63,7 @@ def _cached(cache: OrderedDict, key, make):
 
 
 
-def culling(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, threads: int | None = None,
+def build_culling(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, threads: int | None = None,
             device: str = "cpu") -> tuple:
     """The visibility rays' exact culling data of N instances in F frames (``cam_T_obj`` (F, N, 4, 4) float64): a
     ``Culling`` struct (flowsynth.kernels.raycast) on ``device``, and the (N,) bool flags of the flat instances.

@@ -43,7 +43,8 @@ from flowsynth.camera import Camera
 from flowsynth.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
-from flowsynth.materials import Light, sample_lights, sample_material
+from flowsynth.lights import Light, sample_lights
+from flowsynth.materials import sample_material
 from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, simulate
 from flowsynth.scene import Scene
 

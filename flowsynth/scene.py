@@ -74,7 +74,7 @@ class Scene:
         self.fps = float(fps)
         self.world_T_cam = np.tile(np.eye(4), (self.num_frames, 1, 1))
         self.objects: list[SceneObject] = []
-        self.lights: list = []  # flowsynth.materials.Light sources for RGB shading; empty = default_lights
+        self.lights: list = []  # flowsynth.lights.Light sources for RGB shading; empty = default_lights
         self.render_seed: int = 0  # seed of the renderer's noise (anti-aliasing, path tracing, motion blur)
         self.meta: dict = {}  # how the scene was made: config, seed, index when it was sampled
         self._assets: dict[int, tuple[int, trimesh.Trimesh]] = {}  # id(mesh) -> (asset id, cleaned mesh)
@@ -126,7 +126,7 @@ class Scene:
     def to_meta(self) -> dict:
         """Everything rendered, as a JSON-compatible dict (floats exact): camera, poses, objects (asset or mesh,
         poses, resolved material), lights, render seed and ``meta``. ``Scene.from_meta`` rebuilds it."""
-        from flowsynth.materials import Light
+        from flowsynth.lights import Light
 
         objects = []
         for o in self.objects:
@@ -151,7 +151,7 @@ class Scene:
         or a sample folder's meta.json dict (which holds it under ``provenance``). Rendering the result gives
         the sample bit for bit. Raises ConfigError when the description is not one."""
         from flowsynth.assets import get_asset
-        from flowsynth.materials import Light
+        from flowsynth.lights import Light
 
         if isinstance(meta, str):
             meta = json.loads(meta)

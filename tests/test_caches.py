@@ -134,8 +134,8 @@ def test_clear_caches_empties_every_registered_cache_and_changes_no_result(tmp_p
     filled = {n for n, c in caches.registered().items() if _size(c) > 0}
     expected = {"assets.get_asset", "assets.builtin_unit", "assets.user_meshes", "assets.room_walls",
                 "meshes.library", "culling.mesh_keys", "culling.hulls", "culling.face_planes", "blas.topology",
-                "blas.topology_of_mesh", "camera.pixel_rays", "camerapath.probe_rays", "materials.textures",
-                "materials.mip_pyramids"}
+                "blas.topology_of_mesh", "camera.pixel_rays", "camerapath.probe_rays", "textures.images",
+                "textures.mip_pyramids"}
     assert expected <= filled, f"the workload did not fill {sorted(expected - filled)}"
     assert fs.clear_caches() == sorted(caches.registered())
     assert {n: _size(c) for n, c in caches.registered().items() if _size(c)} == {}

@@ -14,7 +14,9 @@ from PIL import Image
 import flowsynth as fs
 from flowsynth.assets import ROOM_WALLS, room_walls
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.materials import Light, mip_pyramid, sample_material
+from flowsynth.lights import Light
+from flowsynth.materials import sample_material
+from flowsynth.textures import mip_pyramid
 from flowsynth.sampling import ROOM_CATEGORY, expose_lights, sample_scene, wall_distances
 from flowsynth.stats import textureless_fraction
 
