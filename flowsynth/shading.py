@@ -82,9 +82,9 @@ def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float 
 def tonemap_array(radiance, method: str = "clamp", exposure: float = 1.0, threads: int | None = None):
     """``tonemap_srgb`` of a (T, H, W) vec3 Warp array of linear radiance into a (T, 3, H, W) float32 Warp array on
     the same device, the same float64 steps in one Warp kernel pass over rows
-    (``flowsynth.kernels.shade.tonemap_kernel``); the numpy form took 0.81 s of CPU per T=24 view at 512x384
+    (``flowsynth.kernels.tonemap.tonemap_kernel``); the numpy form took 0.81 s of CPU per T=24 view at 512x384
     (docs/decisions/0013-tonemap-kernel.md)."""
-    from flowsynth.kernels.shade import tonemap_kernel
+    from flowsynth.kernels.tonemap import tonemap_kernel
 
     _check_tonemap(method, exposure)
     wp = wp_runtime()
@@ -98,9 +98,9 @@ def tonemap_array(radiance, method: str = "clamp", exposure: float = 1.0, thread
 
 
 def srgb_tables(device: str = "cpu"):
-    """``flowsynth.kernels.shade.srgb_pow_tables`` on ``device``, built once per process and device (the
+    """``flowsynth.kernels.tonemap.srgb_pow_tables`` on ``device``, built once per process and device (the
     registered cache ``shading.srgb_pow_tables``)."""
-    from flowsynth.kernels.shade import srgb_pow_tables
+    from flowsynth.kernels.tonemap import srgb_pow_tables
 
     tab = _SRGB_TABLES.get(device)
     if tab is None:

@@ -228,7 +228,8 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
 
 
 STAGES = ["gbuffer", "renderer", "flow", "shading", "finalpass", "accel", "tiles", "culling", "blas", "stereo",
-          "tracks", "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/dof", "motion"]
+          "tracks", "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
+          "motion"]
 
 
 @pytest.mark.parametrize("module", STAGES)

@@ -16,7 +16,7 @@ import flowsynth as fs
 from flowsynth.lights import Light, sample_lights
 from flowsynth.materials import resolve_material, sample_material
 from flowsynth.textures import list_textures, srgb_to_linear
-from flowsynth.kernels.shade import SrgbPow, srgb_pow, srgb_pow_tables
+from flowsynth.kernels.tonemap import SrgbPow, srgb_pow, srgb_pow_tables
 from flowsynth.shading import poses_at, tonemap_frames, tonemap_srgb
 
 LIGHT_DIR = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])  # travel direction, world frame
