@@ -171,23 +171,30 @@ def test_killed_actor_loses_nothing(cluster, tmp_path):
 
 @pytest.mark.ray
 def test_killed_driver_resumes(cluster, tmp_path):
+    """The driver SIGKILLs itself once 2 samples are journaled and placed (FLOWSYNTH_TEST_KILL_AFTER, a hook in
+    flowsynth/export.py: a crash at that point on a machine of any speed, not after a sleep), with the next jobs
+    running in its actors. Once those actors are gone, the same command resumes: the 2 samples are kept (their
+    files not written again), and the files equal a local export's byte for byte."""
     out, num = tmp_path / "ray", 8
     cmd = [sys.executable, "-m", "flowsynth.cli", "export", "--out", str(out), "--num", str(num), "--engine", "ray",
            "--address", cluster, "--outputs", OUTS, "--no-progress", *SMALL]
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 300
-    while time.time() < deadline and _done(out) < 2:
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    env = dict({k: v for k, v in os.environ.items() if k != "FLOWSYNTH_TEST_KILL_AFTER"}, PYTHONPATH=str(ROOT))
+    with open(tmp_path / "killed.err", "w") as err:  # a file, not a pipe: no process Ray started can hold it open
+        killed = subprocess.run(cmd, cwd=ROOT, env=dict(env, FLOWSYNTH_TEST_KILL_AFTER="2"),
+                                stdout=subprocess.DEVNULL, stderr=err, timeout=600)
+    assert killed.returncode == -signal.SIGKILL, (tmp_path / "killed.err").read_text()[-2000:]
     before = sorted(p.name for p in out.iterdir() if p.name.isdigit())
-    assert 2 <= len(before) < num, "the export finished before it could be killed; make it longer"
-    mtimes = {n: (out / n / "meta.json").stat().st_mtime_ns for n in before}
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
+    assert len(before) == 2 and sorted(json.loads((out / "manifest.json").read_text())["samples"]) == []
+    journaled = [json.loads(line)["sample"] for line in (out / ".journal.jsonl").read_text().splitlines()]
+    assert sorted(journaled) == before
+    deadline = time.time() + 60  # Ray kills the actors of a dead driver; wait until none can write any more
+    while _actor_pids("WriterActor") and time.time() < deadline:
+        time.sleep(0.1)
+    assert _actor_pids("WriterActor") == []
+    mtimes = {p: p.stat().st_mtime_ns for n in before for p in (out / n).iterdir()}
+    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
-    for n, m in mtimes.items():  # finished samples were kept, not generated again
-        assert (out / n / "meta.json").stat().st_mtime_ns == m
+    assert all(p.stat().st_mtime_ns == m for p, m in mtimes.items())  # kept, not generated again
     assert main(["export", "--out", str(tmp_path / "local"), "--num", str(num), "--outputs", OUTS,
                  "--no-progress", *SMALL]) == 0
     ray_tree, local = _tree(out), _tree(tmp_path / "local")
