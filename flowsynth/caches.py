@@ -17,7 +17,9 @@ on one that is not registered here (or named there as no cache: compiled kernels
 Caches keyed by a mesh object trust that the mesh does not change: ``flowsynth.meshes.freeze`` makes its vertex and
 face arrays read-only before it enters one, so an in-place edit raises instead of reusing a stale tree.
 
-This module imports only ``flowsynth.errors``: every layer may register here (docs/architecture.md).
+This module imports only ``flowsynth.errors`` and ``flowsynth.kernels.specialise`` (Warp-free: the kernels package
+imports nothing of flowsynth, so its one cache, the specialised kernels, is registered here): every layer may register
+here (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from flowsynth.errors import ConfigError
+from flowsynth.kernels import specialise
 
 __all__ = ["clear_caches", "register", "registered"]
 
@@ -71,3 +74,7 @@ def clear_caches(*names: str) -> list[str]:
     for n in chosen:
         _clearer(_REGISTRY[n])()
     return chosen
+
+
+# the kernels' one cache (flowsynth/kernels/specialise.py): Warp kernels per combination of flags
+register("kernels.specialised", specialise.KERNELS)

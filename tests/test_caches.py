@@ -26,9 +26,6 @@ NOT_CACHES = {
     "flowsynth.caches._REGISTRY": "the registry itself",
     "flowsynth.io.layouts._REGISTRY": "the export layout plug-ins by name",
     "flowsynth.kernels.wp_runtime": "Warp's initialisation, once per process",
-    "flowsynth.kernels.raycast._PRIMARY": "compiled Warp kernels per specialisation (not data)",
-    "flowsynth.kernels.reproject._PAIR": "compiled Warp kernels per specialisation (not data)",
-    "flowsynth.kernels.shade._SHADE": "compiled Warp kernels per render mode (not data)",
     "flowsynth.motion._clamp_kernel": "a compiled Warp kernel (no argument)",
     "flowsynth._flags.field_docs": "the config's field docstrings, read once from the source (no argument)",
     "flowsynth.parallel._pools": "thread pools by size (a resource, not data)",
@@ -196,3 +193,23 @@ def test_a_scene_keeps_its_own_copy_of_a_user_mesh():
     v0 = np.array(kept.vertices)
     user.vertices[:] *= 2.0  # allowed: the user's own mesh
     np.testing.assert_array_equal(kept.vertices, v0)
+
+
+def test_specialised_kernels_are_built_once_per_combination_of_flags():
+    """The primary, pair and shading kernels come from one registered cache (kernels.specialised): the same flags
+    (defaults filled in) give the same kernel object, other flags another; cleared, a builder returns Warp's same
+    kernel again (Warp keeps module="unique" kernels by content)."""
+    from flowsynth.kernels.raycast import primary_kernel
+    from flowsynth.kernels.reproject import pair_kernel
+    from flowsynth.kernels.shade import shade_kernel
+    from flowsynth.kernels.specialise import KERNELS
+
+    assert caches.registered()["kernels.specialised"] is KERNELS
+    a = primary_kernel(True, False)
+    assert primary_kernel(True, False, False) is a and primary_kernel(True, False, lens=True) is not a
+    assert pair_kernel(True, 1, False) is pair_kernel(True, 1, False, False, 0) is not pair_kernel(True, 2, False)
+    assert shade_kernel("flat") is shade_kernel("flat", False) is not shade_kernel("direct")
+    n = len(KERNELS)
+    assert n >= 6
+    fs.clear_caches("kernels.specialised")
+    assert len(KERNELS) == 0 and primary_kernel(True, False) is a

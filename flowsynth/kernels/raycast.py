@@ -20,6 +20,7 @@ from __future__ import annotations
 import warp as wp
 
 from flowsynth.kernels.blas import blas_any, blas_closest, eval_position, face_vertices
+from flowsynth.kernels.specialise import specialise
 
 __all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "tile_list", "trace_any",
            "trace_closest", "visibility_kernel"]
@@ -316,9 +317,7 @@ def pixel_ray(i: wp.int32, j: wp.int32, cam: Pinhole):
     return wp.normalize(wp.vec3(x, y, 1.0))
 
 
-_PRIMARY: dict = {}
-
-
+@specialise
 def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
 
@@ -332,10 +331,6 @@ def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
     (object-frame hit point [m], 0 = no hit) and ``normal`` (unit, reference/camera frame, facing the camera;
     0 = no hit).
     """
-    key = (bool(want_normals), bool(want_points), bool(lens))
-    if key in _PRIMARY:
-        return _PRIMARY[key]
-
     @wp.kernel(enable_backward=False, module="unique")
     def primary(
         inst: Instances,
@@ -382,7 +377,6 @@ def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
                     n = -n
                 normal[f, i, j] = n
 
-    _PRIMARY[key] = primary
     return primary
 
 

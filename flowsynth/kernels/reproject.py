@@ -40,6 +40,7 @@ import warp as wp
 from flowsynth.kernels.blas import blas_any
 from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_silhouette, box_entry_inv, inverse_dir,
                                        tile_list, trace_any)
+from flowsynth.kernels.specialise import specialise
 
 __all__ = ["LENS_CODES", "OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "lens_project", "pair_kernel", "world_points_kernel"]
 
@@ -80,9 +81,6 @@ def lens_project(model: wp.int32, k: wp.array[wp.float64], lim: wp.float64, K: w
             ad = a * thd / r
             bd = b * thd / r
     return K[0, 0] * ad + K[0, 1] * bd + K[0, 2], K[1, 1] * bd + K[1, 2], True
-
-
-_PAIR: dict = {}
 
 
 @wp.func
@@ -215,6 +213,7 @@ def affine_point(M: wp.mat44d, p: wp.vec3d):
                     M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3])
 
 
+@specialise
 def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False, lens: int = 0):
     """The pair kernel, specialised so unrequested outputs are compiled out.
 
@@ -229,10 +228,6 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
     and dc also where not valid). For occlusion="exact", ``tiles`` are the lists without flat items
     (``SceneAccel.tile_lists(camera, flat=False)``).
     """
-    key = (bool(want_flow), int(occ_mode), bool(want_dc), bool(want_sf), int(lens))
-    if key in _PAIR:
-        return _PAIR[key]
-
     @wp.kernel(enable_backward=False, module="unique")
     def pairs(
         item: wp.array3d[wp.int32],
@@ -396,7 +391,6 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                     blocked = item[r, ii, jj] < 0 or z > target_depth * (wp.float64(1.0) + depth_tol)
                 occ[t, i, j] = wp.uint8(1) if blocked else wp.uint8(0)
 
-    _PAIR[key] = pairs
     return pairs
 
 

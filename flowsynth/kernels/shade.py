@@ -30,6 +30,7 @@ from flowsynth.kernels import RENDER_MODES
 from flowsynth.kernels.blas import eval_position, face_vertices
 from flowsynth.kernels.raycast import (Instances, Pinhole, TileLists, closest_from_camera, tile_list, trace_any,
                                        trace_closest)
+from flowsynth.kernels.specialise import specialise
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
 __all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "lens_ray", "shade_kernel"]
@@ -319,9 +320,7 @@ def finite_nonneg(c: wp.vec3):
     return wp.vec3(finite_nonneg1(c[0]), finite_nonneg1(c[1]), finite_nonneg1(c[2]))
 
 
-_SHADE: dict = {}
-
-
+@specialise
 def shade_kernel(mode: str, lens: bool = False):
     """The shading kernel for render mode "flat", "direct" or "path" (other modes' code compiled out).
 
@@ -337,9 +336,6 @@ def shade_kernel(mode: str, lens: bool = False):
     the share of its samples there. The pinhole variant's code is that of before (the lens lines are
     ``wp.static`` branches).
     """
-    key = mode if not lens else (mode, True)
-    if key in _SHADE:
-        return _SHADE[key]
     if mode not in RENDER_MODES:
         raise ValueError(f"unknown render mode {mode!r}; choose from {RENDER_MODES}")
     path = mode == "path"
@@ -443,5 +439,4 @@ def shade_kernel(mode: str, lens: bool = False):
                     acc += L
             radiance[t, i, j] = finite_nonneg(acc / wp.float32(ns))
 
-    _SHADE[key] = shade
     return shade
