@@ -11,7 +11,7 @@ reports
   trimesh's CollisionManager (independent of Newton), as a fraction of the smaller object's size;
 - wall: the farthest any vertex gets outside the room, as a fraction of that object's size (0 = inside);
 - d/s: the substep displacement fraction, (2 max_speed + max_angular_speed * max_size) / (fps * substeps
-  * min_size), the quantity the automatic rule (flowsynth.motion.choose_substeps) bounds by
+  * min_size), the quantity the automatic rule (flowsynth.physics.choose_substeps) bounds by
   SUBSTEP_FRACTION. Rows marked "auto" use that rule.
 
 It also times scene sampling (``sample_layout``) and kinematic against physics motion per frame, and
@@ -95,12 +95,13 @@ def run_physics(cfg: BouncingThingsConfig, seed: int, substeps: int) -> dict:
 _MEMO_PROBE = """
 import json, sys, time
 import flowsynth.motion as motion
+import flowsynth.physics as fs_physics
 from flowsynth.sampling import sample_layout
 sys.path.insert(0, {here!r})
 from physics import SETS, make_cfg
 if {off}:
     import contextlib
-    motion.memoise_newton_kernel_factories = contextlib.nullcontext  # Newton's own behaviour: fresh kernels
+    fs_physics.memoise_newton_kernel_factories = contextlib.nullcontext  # Newton's own behaviour: fresh kernels
 cfg = make_cfg(20, SETS["primitives"] + SETS["hulls"], 2)
 times = []
 for seed in range(5):

@@ -1,6 +1,6 @@
 """The scene stage (``sample_scene``: draws, Newton physics, materials, lights) with and without Newton scene reuse.
 
-``flowsynth.motion.SCENE_REUSE`` keeps each finished Newton scene (model, collision pipeline, solver, captured
+``flowsynth.physics.SCENE_REUSE`` keeps each finished Newton scene (model, collision pipeline, solver, captured
 substep) and runs a later clip with the same key on it, reset (docs/decisions/0020-newton-scene-reuse.md). The key is
 everything but the initial state (config, substeps, contact capacity, the assets in order), so how much reuse saves
 depends on how often a dataset repeats a key: never in the default config (its assets, sizes and drawn speed band
@@ -28,7 +28,7 @@ from _common import machine_info, pin_single_core, print_table, write_json
 
 PINNING = pin_single_core()
 
-from flowsynth import motion
+from flowsynth import physics
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.sampling import sample_scene
 
@@ -48,18 +48,18 @@ class _Builds:
 
     def __init__(self) -> None:
         self.count = 0
-        init = motion.NewtonScene.__init__
+        init = physics.NewtonScene.__init__
 
         def counting(scene, *args, **kwargs):
             self.count += 1
             init(scene, *args, **kwargs)
 
-        motion.NewtonScene.__init__ = counting
+        physics.NewtonScene.__init__ = counting
 
 
 def scene_cpu(cfg: BouncingThingsConfig, indices: range, reuse: bool) -> float:
     """Process CPU seconds per sample of ``sample_scene`` over ``indices``, reuse on or off."""
-    motion.SCENE_REUSE = reuse
+    physics.SCENE_REUSE = reuse
     t0 = time.process_time()
     for i in indices:
         sample_scene(cfg, 0, i)
@@ -92,7 +92,7 @@ def main() -> None:
         rows.append({"config": name, "fresh_ms": 1e3 * f, "reused_ms": 1e3 * u, "fresh/reused": f / u,
                      "reuse_hits": 1.0 - built / clips})
         print(f"  {name}: fresh {1e3 * f:.1f} ms, reused {1e3 * u:.1f} ms", file=sys.stderr, flush=True)
-    motion.SCENE_REUSE = True
+    physics.SCENE_REUSE = True
     load_after = os.getloadavg()
     print(f"Scene stage (sample_scene) per sample, process CPU, one thread; {rounds} alternating rounds of {block} "
           f"samples; load average {load_before[0]:.2f} -> {load_after[0]:.2f}")

@@ -26,7 +26,7 @@ NOT_CACHES = {
     "flowsynth.caches._REGISTRY": "the registry itself",
     "flowsynth.io.layouts._REGISTRY": "the export layout plug-ins by name",
     "flowsynth.kernels.wp_runtime": "Warp's initialisation, once per process",
-    "flowsynth.motion._clamp_kernel": "a compiled Warp kernel (no argument)",
+    "flowsynth.physics._clamp_kernel": "a compiled Warp kernel (no argument)",
     "flowsynth._flags.field_docs": "the config's field docstrings, read once from the source (no argument)",
     "flowsynth.parallel._pools": "thread pools by size (a resource, not data)",
     "flowsynth.parallel._loaded": "which Warp kernels were loaded before a threaded launch (not data)",

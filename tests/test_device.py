@@ -229,7 +229,7 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
 
 STAGES = ["gbuffer", "renderer", "flow", "shading", "finalpass", "accel", "tiles", "culling", "blas", "stereo",
           "tracks", "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
-          "motion"]
+          "motion", "physics"]
 
 
 @pytest.mark.parametrize("module", STAGES)

@@ -129,12 +129,12 @@ def test_first_frame_is_the_initial_state(runs):
 def test_bodies_without_joints_move_as_with_free_joints(monkeypatch, name, cfg, index):
     """The bodies have no joint (faster); Newton's free joint constrains nothing, so four colliding frames
     with one per body (``add_body``, the reference) agree to float32 round-off (measured <= 6e-6)."""
-    from flowsynth import motion
+    from flowsynth import physics
 
     cfg = replace(cfg, num_frames=4)
     layout = sample_layout(cfg, 0, index)
     got = simulate(cfg, layout.assets, layout.initial)
-    monkeypatch.setattr(motion, "_FREE_JOINTS", True)
+    monkeypatch.setattr(physics, "_FREE_JOINTS", True)
     ref = simulate(cfg, layout.assets, layout.initial)
     assert not np.array_equal(got.poses[1:], got.poses[:-1])  # they move
     np.testing.assert_allclose(got.poses, ref.poses, rtol=0, atol=1e-5)
@@ -145,32 +145,32 @@ def test_bodies_without_joints_move_as_with_free_joints(monkeypatch, name, cfg, 
 @pytest.mark.parametrize("name, cfg, index", [("slow", SLOW, 0), ("fast", FAST, 1), ("falling", FALLING, 0)])
 def test_contact_capacity_never_changes_a_trajectory(monkeypatch, name, cfg, index):
     """The collision pipeline holds a few contact slots per shape (and at least (N + 1)^2, see
-    ``motion._contact_capacity``) instead of Newton's estimate (its own default, the reference here): colliding
+    ``physics._contact_capacity``) instead of Newton's estimate (its own default, the reference here): colliding
     clips come out bit for bit the same. With room for one contact
     only, the full buffer is noticed and the clip simulated again with Newton's estimate: the same again."""
-    from flowsynth import motion
+    from flowsynth import physics
 
     cfg = replace(cfg, num_frames=6)
     layout = sample_layout(cfg, 0, index)
     sims = []  # every simulation's Newton scene
 
-    class Spy(motion.NewtonScene):
+    class Spy(physics.NewtonScene):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             sims.append(self)
 
-    monkeypatch.setattr(motion, "NewtonScene", Spy)
-    monkeypatch.setattr(motion, "SCENE_REUSE", False)  # each simulation on a scene of its own
+    monkeypatch.setattr(physics, "NewtonScene", Spy)
+    monkeypatch.setattr(physics, "SCENE_REUSE", False)  # each simulation on a scene of its own
     got = simulate(cfg, layout.assets, layout.initial)
-    monkeypatch.setattr(motion, "_contact_capacity", lambda n: None)
+    monkeypatch.setattr(physics, "_contact_capacity", lambda n: None)
     ref = simulate(cfg, layout.assets, layout.initial)
-    monkeypatch.setattr(motion, "_contact_capacity", lambda n: 1)
+    monkeypatch.setattr(physics, "_contact_capacity", lambda n: 1)
     retried = simulate(cfg, layout.assets, layout.initial)
     n = len(layout.assets)
     (cap, peak), (cap_ref, peak_ref), (one, peak_one), (cap_again, _) = [
         (sim.pipeline.rigid_contact_max, int(sim.peak.numpy()[0])) for sim in sims]  # most contacts at once
     print(f"{name}: {n} objects, capacity {cap} (Newton's estimate {cap_ref}), most contacts at once {peak}")
-    assert cap == max(motion.CONTACTS_PER_SHAPE * (n + 6), (n + 1) ** 2) < cap_ref and 1 < peak == peak_ref < cap
+    assert cap == max(physics.CONTACTS_PER_SHAPE * (n + 6), (n + 1) ** 2) < cap_ref and 1 < peak == peak_ref < cap
     assert one == 1 and peak_one >= 1 and cap_again == cap_ref
     for a, b in ((got, ref), (retried, ref)):
         for k in ("poses", "velocity", "angular_velocity"):

@@ -1,6 +1,6 @@
-"""flowsynth.motion uses private corners of Newton; these tests fail loudly, naming the cause, when they move.
+"""flowsynth.physics uses private corners of Newton; these tests fail loudly, naming the cause, when they move.
 
-``motion.memoise_newton_kernel_factories`` (a context manager, open while flowsynth builds a Newton scene) wraps
+``physics.memoise_newton_kernel_factories`` (a context manager, open while flowsynth builds a Newton scene) wraps
 Newton's narrow-phase kernel factories (``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every
 CollisionPipeline flowsynth builds shares one set of kernels, and ``newton._src.sim.builder._convex_hull_adjacency``
 so each hull's edge adjacency is computed once per process (benchmarks/physics.py, "memoisation"); outside it
@@ -10,10 +10,10 @@ Either can change in any Newton release (pinned < 1.9).
 """
 
 import flowsynth as fs
-from flowsynth import motion
+from flowsynth import physics
 from flowsynth.sampling import sample_layout
 
-CAUSE = ("Newton's private narrow-phase module changed: flowsynth.motion.memoise_newton_kernel_factories "
+CAUSE = ("Newton's private narrow-phase module changed: flowsynth.physics.memoise_newton_kernel_factories "
          "(which memoises {names} in newton._src.geometry.narrow_phase) no longer applies, so every scene "
          "would recompile Newton's collision kernels. Update the patch for this Newton version, or drop it "
          "and re-measure benchmarks/physics.py.")
@@ -23,8 +23,8 @@ def test_narrow_phase_factories_exist():
     from newton._src.geometry import narrow_phase
     from newton._src.sim import builder
 
-    missing = [n for n in motion._NEWTON_KERNEL_FACTORIES if not callable(getattr(narrow_phase, n, None))]
-    missing += [n for n in motion._NEWTON_BUILDER_FUNCTIONS if not callable(getattr(builder, n, None))]
+    missing = [n for n in physics._NEWTON_KERNEL_FACTORIES if not callable(getattr(narrow_phase, n, None))]
+    missing += [n for n in physics._NEWTON_BUILDER_FUNCTIONS if not callable(getattr(builder, n, None))]
     assert not missing, CAUSE.format(names=missing)
 
 
@@ -34,13 +34,13 @@ def test_hull_adjacency_computed_once_per_hull():
 
     cfg = fs.BouncingThingsConfig(num_objects=(3, 3), num_frames=2, assets=("rock",))
     layout = sample_layout(cfg, 0, 0)
-    motion.NewtonScene(cfg, layout.assets, layout.initial, 2)
-    with motion.memoise_newton_kernel_factories():  # the memoised function is installed only inside
+    physics.NewtonScene(cfg, layout.assets, layout.initial, 2)
+    with physics.memoise_newton_kernel_factories():  # the memoised function is installed only inside
         fn = builder._convex_hull_adjacency
-    assert hasattr(fn, "cache_info"), CAUSE.format(names=list(motion._NEWTON_BUILDER_FUNCTIONS))
+    assert hasattr(fn, "cache_info"), CAUSE.format(names=list(physics._NEWTON_BUILDER_FUNCTIONS))
     hits = fn.cache_info().hits
-    motion.NewtonScene(cfg, layout.assets, layout.initial, 2)
-    assert fn.cache_info().hits > hits, CAUSE.format(names=list(motion._NEWTON_BUILDER_FUNCTIONS)) + \
+    physics.NewtonScene(cfg, layout.assets, layout.initial, 2)
+    assert fn.cache_info().hits > hits, CAUSE.format(names=list(physics._NEWTON_BUILDER_FUNCTIONS)) + \
         " (ModelBuilder.finalize no longer calls builder._convex_hull_adjacency)"
 
 
@@ -50,23 +50,23 @@ def test_pipelines_share_memoised_kernels():
     scenes = []
     for seed in (0, 1):
         layout = sample_layout(cfg, seed, 0)
-        scenes.append(motion.NewtonScene(cfg, layout.assets, layout.initial, 2))
+        scenes.append(physics.NewtonScene(cfg, layout.assets, layout.initial, 2))
     a, b = (s.pipeline.narrow_phase for s in scenes)
     for attr in ("primitive_kernel", "narrow_phase_kernel"):
         ka, kb = getattr(a, attr, None), getattr(b, attr, None)
-        assert ka is not None and ka is kb, CAUSE.format(names=list(motion._NEWTON_KERNEL_FACTORIES)) + \
+        assert ka is not None and ka is kb, CAUSE.format(names=list(physics._NEWTON_KERNEL_FACTORIES)) + \
             f" (NarrowPhase.{attr} differs between two pipelines)"
 
 
 def test_contact_estimate_is_the_pipelines_default():
-    """``motion._newton_contact_estimate`` (Newton's private estimate) is the capacity a CollisionPipeline picks when
+    """``physics._newton_contact_estimate`` (Newton's private estimate) is the capacity a CollisionPipeline picks when
     given none: flowsynth falls back to it, and compares its own capacity against it."""
     import newton
 
     cfg = fs.BouncingThingsConfig(num_objects=(5, 5), num_frames=2, assets=("box", "rock"))
     layout = sample_layout(cfg, 0, 0)
-    scene = motion.NewtonScene(cfg, layout.assets, layout.initial, 2, None)
+    scene = physics.NewtonScene(cfg, layout.assets, layout.initial, 2, None)
     default = newton.CollisionPipeline(scene.model, broad_phase="sap").rigid_contact_max
-    assert motion._newton_contact_estimate(scene.model) == default == scene.pipeline.rigid_contact_max, (
+    assert physics._newton_contact_estimate(scene.model) == default == scene.pipeline.rigid_contact_max, (
         "Newton's private newton._src.sim.collide._estimate_rigid_contact_max moved or no longer gives "
-        "CollisionPipeline's default capacity: update flowsynth.motion._newton_contact_estimate")
+        "CollisionPipeline's default capacity: update flowsynth.physics._newton_contact_estimate")

@@ -1,6 +1,6 @@
 """flowsynth patches Newton's private kernel factories only while it builds its own scenes (issue 41, item 5).
 
-``motion.memoise_newton_kernel_factories`` is a re-entrant, thread-safe context manager: inside it Newton's
+``physics.memoise_newton_kernel_factories`` is a re-entrant, thread-safe context manager: inside it Newton's
 narrow-phase kernel factories and hull adjacency are memoised; after the last one closes, Newton's module attributes
 are Newton's own function objects again (identity, the oracle here: the objects read before flowsynth touched
 Newton). The memoisation itself still holds across scenes (tests/test_newton_internals.py), and the results are
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import flowsynth as fs
-from flowsynth import motion
+from flowsynth import motion, physics
 from flowsynth.sampling import sample_layout
 
 
@@ -22,8 +22,8 @@ def _newton_attributes() -> dict[str, object]:
     from newton._src.geometry import narrow_phase
     from newton._src.sim import builder
 
-    out = {f"narrow_phase.{n}": getattr(narrow_phase, n) for n in motion._NEWTON_KERNEL_FACTORIES}
-    out.update({f"builder.{n}": getattr(builder, n) for n in motion._NEWTON_BUILDER_FUNCTIONS})
+    out = {f"narrow_phase.{n}": getattr(narrow_phase, n) for n in physics._NEWTON_KERNEL_FACTORIES}
+    out.update({f"builder.{n}": getattr(builder, n) for n in physics._NEWTON_BUILDER_FUNCTIONS})
     return out
 
 
@@ -45,14 +45,14 @@ def _cfg(**kw) -> fs.BouncingThingsConfig:
 
 def test_newton_is_its_own_after_flowsynth_builds_a_scene(originals):
     layout = sample_layout(_cfg(), 0, 0)
-    scene = motion.NewtonScene(_cfg(), layout.assets, layout.initial, 2)
+    scene = physics.NewtonScene(_cfg(), layout.assets, layout.initial, 2)
     assert _newton_attributes() == originals and all(_newton_attributes()[k] is v for k, v in originals.items())
     # ... and flowsynth's pipeline got the memoised kernels: the memo holds the very kernel object it uses
     kernel = scene.pipeline.narrow_phase.primitive_kernel
-    memo = motion._NEWTON_MEMOS[("newton._src.geometry.narrow_phase", "create_narrow_phase_primitive_kernel")]
+    memo = physics._NEWTON_MEMOS[("newton._src.geometry.narrow_phase", "create_narrow_phase_primitive_kernel")]
     assert memo.cache_info().currsize >= 1
-    with motion.memoise_newton_kernel_factories():
-        again = motion.NewtonScene(_cfg(), layout.assets, layout.initial, 2)
+    with physics.memoise_newton_kernel_factories():
+        again = physics.NewtonScene(_cfg(), layout.assets, layout.initial, 2)
     assert again.pipeline.narrow_phase.primitive_kernel is kernel
     assert all(_newton_attributes()[k] is v for k, v in originals.items())
 
@@ -64,17 +64,17 @@ def test_a_whole_sample_leaves_newton_untouched(originals):
 
 
 def test_window_is_reentrant_and_restores_on_error(originals):
-    with motion.memoise_newton_kernel_factories():
+    with physics.memoise_newton_kernel_factories():
         inside = _newton_attributes()
         assert all(inside[k] is not v and inside[k].__wrapped__ is v for k, v in originals.items())
-        with motion.memoise_newton_kernel_factories():
+        with physics.memoise_newton_kernel_factories():
             assert all(_newton_attributes()[k] is inside[k] for k in originals)
         assert all(_newton_attributes()[k] is inside[k] for k in originals)  # the outer window is still open
     assert all(_newton_attributes()[k] is v for k, v in originals.items())
-    with pytest.raises(RuntimeError, match="boom"), motion.memoise_newton_kernel_factories():
+    with pytest.raises(RuntimeError, match="boom"), physics.memoise_newton_kernel_factories():
         raise RuntimeError("boom")
     assert all(_newton_attributes()[k] is v for k, v in originals.items())
-    with motion.memoise_newton_kernel_factories():  # the same memos across windows (the kernels they hold)
+    with physics.memoise_newton_kernel_factories():  # the same memos across windows (the kernels they hold)
         assert all(_newton_attributes()[k] is inside[k] for k in originals)
 
 
@@ -89,7 +89,7 @@ def test_windows_of_many_threads(originals):
     def work() -> None:
         barrier.wait(timeout=60)
         for _ in range(rounds):
-            with motion.memoise_newton_kernel_factories():
+            with physics.memoise_newton_kernel_factories():
                 ok = all(getattr(fn, "__wrapped__", None) is originals[name]
                          for name, fn in _newton_attributes().items())
             with lock:
@@ -102,7 +102,7 @@ def test_windows_of_many_threads(originals):
         t.join(timeout=120)
     assert len(seen) == n * rounds and all(seen)
     assert all(_newton_attributes()[k] is v for k, v in originals.items())
-    assert motion._NewtonPatch.depth == 0
+    assert physics._NewtonPatch.depth == 0
 
 
 def test_memoisation_changes_no_trajectory(monkeypatch):
@@ -111,9 +111,9 @@ def test_memoisation_changes_no_trajectory(monkeypatch):
 
     cfg = _cfg(num_objects=(4, 4), assets=("box", "rock", "sphere"))
     layout = sample_layout(cfg, 3, 1)
-    monkeypatch.setattr(motion, "SCENE_REUSE", False)
+    monkeypatch.setattr(physics, "SCENE_REUSE", False)
     memo = motion.simulate(cfg, layout.assets, layout.initial)
-    monkeypatch.setattr(motion, "memoise_newton_kernel_factories", contextlib.nullcontext)
+    monkeypatch.setattr(physics, "memoise_newton_kernel_factories", contextlib.nullcontext)
     plain = motion.simulate(cfg, layout.assets, layout.initial)
     assert memo.substeps == plain.substeps
     np.testing.assert_array_equal(memo.poses, plain.poses)

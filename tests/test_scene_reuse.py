@@ -1,4 +1,4 @@
-"""Newton scene reuse (``motion.SCENE_REUSE``): a clip run on a kept scene, its arrays reset, is the clip a fresh scene
+"""Newton scene reuse (``physics.SCENE_REUSE``): a clip run on a kept scene, its arrays reset, is the clip a fresh scene
 gives, bit for bit, whatever clips ran before it.
 
 The oracle is the fresh build: the same samples made with reuse off (``SCENE_REUSE = False``, caches cleared), each
@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import flowsynth as fs
-from flowsynth import motion
+from flowsynth import motion, physics
 from flowsynth.sampling import sample_layout, sample_scene
 
 INDICES = list(range(12))
@@ -37,20 +37,20 @@ OUTPUTS = ("depth", "flow_fw", "instance")
 
 def _count_builds(monkeypatch) -> list:
     built = []
-    init = motion.NewtonScene.__init__
+    init = physics.NewtonScene.__init__
 
     def counting(self, *args, **kwargs):
         built.append(args[3])  # substeps
         init(self, *args, **kwargs)
 
-    monkeypatch.setattr(motion.NewtonScene, "__init__", counting)
+    monkeypatch.setattr(physics.NewtonScene, "__init__", counting)
     return built
 
 
 def _clips(cfg, order, reuse: bool, monkeypatch, render: bool) -> tuple[dict, int]:
     """{index: (poses (n, T, 4, 4), substeps, outputs)} of ``order``'s samples, and the Newton scenes built."""
     fs.clear_caches()
-    monkeypatch.setattr(motion, "SCENE_REUSE", reuse)
+    monkeypatch.setattr(physics, "SCENE_REUSE", reuse)
     built = _count_builds(monkeypatch)
     out = {}
     for i in order:
@@ -92,8 +92,8 @@ def test_reuse_after_a_contact_overflow(monkeypatch):
 
     def run(reuse: bool, order):
         fs.clear_caches()
-        monkeypatch.setattr(motion, "SCENE_REUSE", reuse)
-        monkeypatch.setattr(motion, "_contact_capacity", lambda n: 1)
+        monkeypatch.setattr(physics, "SCENE_REUSE", reuse)
+        monkeypatch.setattr(physics, "_contact_capacity", lambda n: 1)
         built = _count_builds(monkeypatch)
         got = {i: motion.simulate(cfg, layouts[i].assets, layouts[i].initial) for i in order}
         monkeypatch.undo()
@@ -136,19 +136,19 @@ def _arrays(scene) -> tuple[dict, set]:
 def test_a_reset_scene_equals_a_fresh_one(monkeypatch):
     """Array by array: a scene that ran one clip and was reset for another sample equals a scene built and captured
     for that sample, and so does every memory region of its captured substep."""
-    monkeypatch.setattr(motion, "SCENE_REUSE", True)
+    monkeypatch.setattr(physics, "SCENE_REUSE", True)
     cfg = replace(CONFIGS["falling_rocks"], num_objects=(3, 3))
     a, b = (sample_layout(cfg, 0, i) for i in (0, 1))
-    n_sub = motion.choose_substeps(cfg, [x.size for x in a.assets])
-    cap = motion._contact_capacity(3)
-    assert motion._scene_key(cfg, a.assets, n_sub, cap) == motion._scene_key(cfg, b.assets, n_sub, cap)
+    n_sub = physics.choose_substeps(cfg, [x.size for x in a.assets])
+    cap = physics._contact_capacity(3)
+    assert physics._scene_key(cfg, a.assets, n_sub, cap) == physics._scene_key(cfg, b.assets, n_sub, cap)
     assert not np.array_equal(a.initial.position, b.initial.position)
-    used = motion.NewtonScene(cfg, a.assets, a.initial, n_sub, cap)
+    used = physics.NewtonScene(cfg, a.assets, a.initial, n_sub, cap)
     used.reusable = True
     for _ in range(3):
         used.advance_frame()
     assert used.reset(b.initial)
-    fresh, again = (motion.NewtonScene(cfg, b.assets, b.initial, n_sub, cap) for _ in range(2))
+    fresh, again = (physics.NewtonScene(cfg, b.assets, b.initial, n_sub, cap) for _ in range(2))
     for scene in (fresh, again):
         scene.reusable = True
         scene.advance_frame()  # captures (and steps; compared below only after a reset to the start)
@@ -180,17 +180,17 @@ def test_a_reset_scene_equals_a_fresh_one(monkeypatch):
 
 
 def test_reuse_needs_warps_capture_regions():
-    """``motion._graph_memory_snapshot`` reads Warp's private ``Graph._apic_capture._regions``; without it no scene is
+    """``physics._graph_memory_snapshot`` reads Warp's private ``Graph._apic_capture._regions``; without it no scene is
     ever reused (correct, but every clip builds and captures again)."""
     import warp as wp
 
     cfg = replace(CONFIGS["spheres"], num_objects=(2, 2))
     layout = sample_layout(cfg, 0, 0)
-    scene = motion.NewtonScene(cfg, layout.assets, layout.initial, 2)
+    scene = physics.NewtonScene(cfg, layout.assets, layout.initial, 2)
     scene.advance_frame()
     regions = getattr(getattr(scene.graph, "_apic_capture", None), "_regions", None)
     assert isinstance(regions, dict) and regions, (
-        "Warp's CPU graph no longer keeps _apic_capture._regions: update flowsynth.motion._graph_memory_snapshot "
+        "Warp's CPU graph no longer keeps _apic_capture._regions: update flowsynth.physics._graph_memory_snapshot "
         f"for Warp {wp.__version__}, or Newton scenes are never reused")
     assert all(isinstance(r, tuple) and len(r) == 4 for r in regions.values())
-    assert motion._graph_memory_snapshot(scene.graph) is not None
+    assert physics._graph_memory_snapshot(scene.graph) is not None

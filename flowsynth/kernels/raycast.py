@@ -20,7 +20,7 @@ from __future__ import annotations
 import warp as wp
 
 from flowsynth.kernels.blas import blas_any, blas_closest, eval_position, face_vertices
-from flowsynth.kernels.specialise import specialise
+from flowsynth.kernels.specialise import specialised_builder
 
 __all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "tile_list", "trace_any",
            "trace_closest", "visibility_kernel"]
@@ -317,7 +317,7 @@ def pixel_ray(i: wp.int32, j: wp.int32, cam: Pinhole):
     return wp.normalize(wp.vec3(x, y, 1.0))
 
 
-@specialise
+@specialised_builder
 def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
 

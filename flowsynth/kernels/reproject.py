@@ -40,7 +40,7 @@ import warp as wp
 from flowsynth.kernels.blas import blas_any
 from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_silhouette, box_entry_inv, inverse_dir,
                                        tile_list, trace_any)
-from flowsynth.kernels.specialise import specialise
+from flowsynth.kernels.specialise import specialised_builder
 
 __all__ = ["LENS_CODES", "OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "lens_project", "pair_kernel", "world_points_kernel"]
 
@@ -213,7 +213,7 @@ def affine_point(M: wp.mat44d, p: wp.vec3d):
                     M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3])
 
 
-@specialise
+@specialised_builder
 def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False, lens: int = 0):
     """The pair kernel, specialised so unrequested outputs are compiled out.
 

@@ -30,7 +30,7 @@ from flowsynth.kernels import RENDER_MODES
 from flowsynth.kernels.blas import eval_position, face_vertices
 from flowsynth.kernels.raycast import (Instances, Pinhole, TileLists, closest_from_camera, tile_list, trace_any,
                                        trace_closest)
-from flowsynth.kernels.specialise import specialise
+from flowsynth.kernels.specialise import specialised_builder
 from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
 
 __all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "lens_ray", "shade_kernel"]
@@ -320,7 +320,7 @@ def finite_nonneg(c: wp.vec3):
     return wp.vec3(finite_nonneg1(c[0]), finite_nonneg1(c[1]), finite_nonneg1(c[2]))
 
 
-@specialise
+@specialised_builder
 def shade_kernel(mode: str, lens: bool = False):
     """The shading kernel for render mode "flat", "direct" or "path" (other modes' code compiled out).
 

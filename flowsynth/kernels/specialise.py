@@ -1,9 +1,9 @@
 """One cache of Warp kernels specialised per combination of flags (``wp.static`` branches compiled out).
 
 A kernel builder takes flags (which outputs to write, a render mode, a lens) and returns a kernel whose unrequested
-branches are compiled out. ``specialise`` makes such a builder build each combination once per process::
+branches are compiled out. ``specialised_builder`` makes such a builder build each combination once per process::
 
-    @specialise
+    @specialised_builder
     def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
         @wp.kernel(enable_backward=False, module="unique")
         def primary(...): ...
@@ -21,7 +21,7 @@ import inspect
 from collections.abc import Callable, Hashable
 from typing import Any, TypeVar
 
-__all__ = ["KERNELS", "specialise", "specialised"]
+__all__ = ["KERNELS", "specialised", "specialised_builder"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -37,7 +37,7 @@ def specialised(name: str, builder: Callable[..., Any], key: tuple[Hashable, ...
     return kernel
 
 
-def specialise(builder: F) -> F:
+def specialised_builder(builder: F) -> F:
     """A kernel builder that builds each combination of its arguments once (``specialised``, keyed by the builder's
     qualified name and its arguments, defaults filled in, so ``f(True)`` and ``f(True, False)`` share a kernel when
     False is the default)."""

@@ -1,0 +1,518 @@
+"""Rigid-body physics for BouncingThings: Newton's XPBD solver on the Warp CPU device.
+
+Colliders are the assets' primitives or convex hulls; the walls of ``cfg.object_bounds`` are static boxes.
+Substeps per frame follow :func:`choose_substeps`; after every substep each linear speed is clamped into
+[min_speed, max_speed] and each angular speed into ``angular_speed`` (docs/scenes.md). Newton is imported only
+here, on first use. Also here: the reuse of finished Newton scenes (``SCENE_REUSE``) and the memoisation of
+Newton's private kernel factories, scoped to flowsynth's own calls (``memoise_newton_kernel_factories``).
+``flowsynth.motion.simulate`` dispatches here for ``motion="physics"``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import threading
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
+from typing import ClassVar
+
+import numpy as np
+
+from flowsynth.assets import Asset, unit_hull
+from flowsynth.caches import register
+from flowsynth.config import BouncingThingsConfig
+from flowsynth.errors import ConfigError
+from flowsynth.kernels import wp_runtime
+from flowsynth.trajectory import (InitialState, Trajectory, pose_matrices, quat_to_rotation, rotation_to_quat_xyzw,
+                                  simulate_static)
+
+__all__ = [
+    "NewtonScene",
+    "choose_substeps",
+    "memoise_newton_kernel_factories",
+    "simulate_physics",
+    "wall_boxes",
+]
+
+SUBSTEP_FRACTION = 0.05
+"""Largest approach of two object surfaces within one substep, as a fraction of the smallest object size.
+benchmarks/physics.py: the first mesh penetration above 1% of a size appears at 0.17, none at <= 0.05
+(docs/decisions/0005-physics-substep-rule.md)."""
+MIN_SUBSTEPS = 2
+"""Fewest physics substeps per frame [count]."""
+MAX_SUBSTEPS = 256
+"""Most physics substeps per frame chosen automatically [count]; cfg.substeps may exceed it."""
+MARGIN_FRACTION = 0.0025
+"""Collision margin of every object collider, as a fraction of the smallest object size: colliders are
+kept twice this far apart (and this far from walls), so residual solver penetration stays in the gap."""
+XPBD_ITERATIONS = 4
+"""XPBD constraint iterations per substep [count]."""
+CONTACTS_PER_SHAPE = 4
+"""Rigid-contact slots per shape (objects and the six walls) in the collision pipeline's buffers [count], at least
+(see :func:`_contact_capacity`). The most contacts at once seen in 60 default scenes (4-12 objects, 24 frames
+each) was 14, and 36 with 40 objects: about one per shape. Newton's own estimate (1000 and up) makes every
+contact kernel of every substep walk thousands of empty slots. When some substep fills the buffer (contacts may
+then have been dropped), the clip is simulated again with Newton's estimate (:func:`simulate_physics`), so the
+capacity never changes a trajectory."""
+DENSITY = 1000.0
+"""Density of every object [kg/m^3]; mass and inertia come from the collider's convex hull."""
+EPS_SPEED = 1e-6
+"""Speeds below this [m/s] or [rad/s] have no usable direction (float32 state)."""
+_FREE_JOINTS = False
+"""Give every body a free joint (Newton's ``add_body``) instead of none (``add_link``). A free joint constrains
+nothing, but XPBD still runs a joint pass per iteration for it (a zero correction plus a pose renormalisation:
+trajectories differ by float32 round-off, tests/test_motion.py), and joints slow the model build and every
+substep (with the one-substep capture: Newton 0.099 -> 0.059 s per 2-frame 256x192 sample,
+docs/decisions/0006-newton-graph-replay.md). True only in tests comparing the two."""
+SCENE_REUSE = True
+"""Keep each finished :class:`NewtonScene` (model, collision pipeline, solver, captured substep) per process and run a
+later clip with the same key on it, its arrays reset, instead of building and capturing another: the key is the
+simulation's config, substeps, contact capacity and the assets (name, size, collider) in order, everything but the
+initial state (a scene is kept from a key's second clip on), so the trajectory is the fresh scene's bit for bit
+(tests/test_scene_reuse.py; docs/decisions/0020-newton-scene-reuse.md). False builds every clip afresh."""
+SCENE_CACHE_SIZE = 16
+"""Most Newton scenes kept for reuse per process [count], least recently used dropped first."""
+_SCENES: OrderedDict = register("physics.newton_scenes", OrderedDict())  # key -> idle NewtonScene
+# keys of the last SCENE_KEYS_SEEN clips: a scene is kept (and pays the snapshot of its captured memory, ~2% of a
+# default depth-only sample's profile) only when its key came before, so a dataset whose keys never repeat pays nothing
+_SEEN: OrderedDict = register("physics.newton_scene_keys", OrderedDict())  # key -> None
+SCENE_KEYS_SEEN = 256
+
+
+def choose_substeps(cfg: BouncingThingsConfig, sizes: Sequence[float]) -> int:
+    """Physics substeps per frame so that no two surfaces approach by more than SUBSTEP_FRACTION times the
+    smallest object size within one substep.
+
+    The fastest relative approach of two surface points is 2 max_speed + max_angular_speed * max_size
+    (each object translates at <= max_speed and a point at distance <= size/2 from the origin rotates
+    at <= angular_speed * size / 2); walls approach at half that. Result clamped to
+    [MIN_SUBSTEPS, MAX_SUBSTEPS] and rounded up to an even number (kept from when substeps ran in captured
+    pairs, so the counts did not change).
+    """
+    if len(sizes) == 0:
+        return MIN_SUBSTEPS
+    s_min, s_max = float(min(sizes)), float(max(sizes))
+    approach = 2.0 * cfg.max_speed + cfg.angular_speed[1] * s_max  # [m/s]
+    n = math.ceil(approach / cfg.fps / (SUBSTEP_FRACTION * s_min))
+    n = min(max(n, MIN_SUBSTEPS), MAX_SUBSTEPS)
+    return int(n + n % 2)
+
+
+def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
+                     num_frames: int, *, substeps: int | None = None) -> Trajectory:
+    """Rigid-body dynamics with Newton (XPBD, Warp CPU). See the module docstring and docs/scenes.md."""
+    N = len(assets)
+    if N == 0:
+        return simulate_static(initial, num_frames)
+    sizes = [a.size for a in assets]
+    n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
+    n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
+    for contact_max in (_contact_capacity(N), None):  # None: Newton's estimate, after an overflow
+        key = _scene_key(cfg, assets, n_sub, contact_max)
+        sim = _SCENES.pop(key, None) if SCENE_REUSE else None  # popped: never two clips on one scene at once
+        if sim is None or not sim.reset(initial):
+            sim = NewtonScene(cfg, assets, initial, n_sub, contact_max)
+            sim.reusable = SCENE_REUSE and key in _SEEN
+        if SCENE_REUSE:
+            _SEEN[key] = None
+            _SEEN.move_to_end(key)
+            while len(_SEEN) > SCENE_KEYS_SEEN:
+                _SEEN.popitem(last=False)
+        poses = np.empty((num_frames, N, 4, 4))
+        vel = np.empty((num_frames, N, 3))
+        ang = np.empty((num_frames, N, 3))
+        for k in range(num_frames):
+            if k > 0:
+                sim.advance_frame()
+            poses[k], vel[k], ang[k] = sim.read()
+        if SCENE_REUSE and sim.can_reset:
+            _SCENES[key] = sim
+            while len(_SCENES) > SCENE_CACHE_SIZE:
+                _SCENES.popitem(last=False)
+        if sim.contact_max is None or not sim.overflowed():  # Newton's estimate already, or nothing dropped
+            break
+    return Trajectory(poses, vel, ang, n_sub)
+
+
+def _scene_key(cfg: BouncingThingsConfig, assets: Sequence[Asset], substeps: int, contact_max: int | None) -> tuple:
+    """Everything a :class:`NewtonScene` is built from but the initial state: the whole config (hashable, frozen),
+    substeps, contact capacity, whether bodies get free joints, and per asset its name, size and collider (a
+    convex collider's Newton hull is the per-process one of its name)."""
+    shapes = tuple((a.name, float(a.size), a.collider.kind, tuple(float(x) for x in a.collider.params))
+                   for a in assets)
+    return cfg, int(substeps), contact_max, _FREE_JOINTS, shapes
+
+
+def _contact_capacity(num_objects: int) -> int:
+    """Rigid-contact slots of the first simulation of a clip with ``num_objects`` objects: CONTACTS_PER_SHAPE per
+    shape (the objects and the six wall boxes of ``wall_boxes``), and at least (N + 1)^2. The second bound keeps
+    the trajectory that of Newton's estimate bit for bit: XPBD's restitution pass hashes each body pair to slot
+    key mod capacity (key = (lo + 1)(N + 1) + hi + 1 < (N + 1)^2) and sums the pairs' corrections in slot order,
+    so slot must equal key as it does under Newton's estimate (1000 and up). :class:`NewtonScene` uses Newton's
+    estimate instead where that is no larger."""
+    return max(CONTACTS_PER_SHAPE * (num_objects + 6), (num_objects + 1) ** 2)
+
+
+def wall_boxes(cfg: BouncingThingsConfig, s_max: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, half extents) [m] of the six static wall boxes around ``cfg.object_bounds``, each thicker
+    than anything of size ``s_max`` can travel in a substep."""
+    lo, hi = (np.asarray(x, dtype=np.float64) for x in cfg.object_bounds)
+    thick = max(1.0, 2.0 * s_max)
+    centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
+    boxes = []
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            h = half + thick
+            h[axis] = thick / 2.0
+            p = centre.copy()
+            p[axis] = (lo if side < 0 else hi)[axis] + side * thick / 2.0
+            boxes.append((p, h))
+    return boxes
+
+
+class NewtonScene:
+    """A Newton model of the objects and walls, stepped one frame at a time: what ``simulate_physics`` runs
+    (public for benchmarks/physics*.py: ``advance_frame`` replays a captured ``substep``; ``read`` the state)."""
+
+    def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
+                 substeps: int, contact_max: int | None = None, device: str = "cpu") -> None:
+        wp_runtime()  # quiet Warp initialisation before Newton's import initialises it loudly
+        import newton
+        import warp as wp
+
+        try:
+            on_cpu = wp.get_device(device).is_cpu
+        except (RuntimeError, ValueError):  # a device Warp does not find
+            on_cpu = False
+        if not on_cpu:  # the state is read and reset through numpy views of its arrays
+            raise ConfigError(f"physics runs on a CPU device only (NewtonScene writes its state through numpy "
+                              f"views), got device {device!r}")
+        self.cfg, self.substeps, self.device = cfg, substeps, device
+        self.dt = 1.0 / (cfg.fps * substeps)
+        s_min = min(a.size for a in assets)
+        s_max = max(a.size for a in assets)
+        # Contact detection gap per shape; a pair's gaps add, so contacts are found before two surfaces can
+        # close twice the largest approach within one substep.
+        approach = (2.0 * cfg.max_speed + cfg.angular_speed[1] * s_max) * self.dt
+        b = newton.ModelBuilder(up_axis=newton.Axis.Z, gravity=tuple(cfg.gravity))
+        shape_cfg = newton.ModelBuilder.ShapeConfig(
+            mu=cfg.friction, restitution=cfg.restitution, density=DENSITY, gap=approach,
+            margin=MARGIN_FRACTION * s_min, mu_torsional=0.0, mu_rolling=0.0,
+        )
+        wall_cfg = newton.ModelBuilder.ShapeConfig(
+            mu=cfg.friction, restitution=cfg.restitution, density=0.0, gap=approach, margin=0.0,
+            mu_torsional=0.0, mu_rolling=0.0,
+        )
+        for p, h in wall_boxes(cfg, s_max):
+            b.add_shape_box(-1, xform=wp.transform(wp.vec3(*p), wp.quat_identity()),
+                            hx=float(h[0]), hy=float(h[1]), hz=float(h[2]), cfg=wall_cfg)
+        for i, (asset, xform) in enumerate(zip(assets, _body_xforms(initial))):
+            hull = asset.collider.hull
+            mass = DENSITY * float(hull.volume)
+            inertia = DENSITY * np.asarray(hull.moment_inertia_frame(np.eye(4)), dtype=np.float64)
+            body = (b.add_body if _FREE_JOINTS else b.add_link)(
+                xform=xform, com=wp.vec3(0.0, 0.0, 0.0),
+                mass=mass, inertia=wp.mat33(*inertia.ravel()), lock_inertia=True, label=f"object_{i}")
+            _add_collider(b, body, asset, shape_cfg)
+        with memoise_newton_kernel_factories():  # Newton's factories memoised for flowsynth's own calls only
+            self.model = b.finalize(device=self.device)
+        self.state0, self.state1 = self.model.state(), self.model.state()
+        self.control = self.model.control()
+        self._set_velocities(initial)
+        # rigid-contact capacity: contact_max slots (None: Newton's estimate); self.peak holds the most contacts
+        # any substep counted, so that overflowed() can tell when some may have been dropped
+        if contact_max is not None and contact_max >= _newton_contact_estimate(self.model):
+            contact_max = None
+        self.contact_max = contact_max
+        with memoise_newton_kernel_factories():
+            self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap", rigid_contact_max=contact_max)
+        self.peak = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self.contacts = self.pipeline.contacts()
+        self.solver = newton.solvers.SolverXPBD(self.model, iterations=XPBD_ITERATIONS,
+                                                enable_restitution=True)
+        # Last direction of motion / rotation axis, used when a speed must be raised from zero.
+        self.last_dir = wp.array(_unit_or(initial.velocity, [1.0, 0.0, 0.0]), dtype=wp.vec3, device=self.device)
+        self.last_axis = wp.array(_unit_or(initial.angular_velocity, [0.0, 0.0, 1.0]), dtype=wp.vec3,
+                                  device=self.device)
+        self.graph = None
+        self.reusable = False  # snapshot the captured substep's memory at capture, for reset()
+        self._snapshot: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+    @property
+    def can_reset(self) -> bool:
+        """The scene was asked to be reusable at its capture and its captured memory was snapshotted: ``reset``
+        can restore it."""
+        return self.reusable and self._snapshot is not None
+
+    def _set_velocities(self, initial: InitialState) -> None:
+        qd = self.state0.body_qd.numpy()  # a view of the CPU array: written in place
+        qd[:, :3] = initial.velocity
+        qd[:, 3:] = initial.angular_velocity
+
+    def reset(self, initial: InitialState) -> bool:
+        """Make this scene what a fresh one of the same key (:func:`_scene_key`) built for ``initial`` would be
+        after its capture: every memory region the captured substep reads or writes gets back the content it had
+        right after this scene's own capture, then the arrays that depend on the initial state (the model's and both
+        states' poses, state0's velocities, the last directions) are written as ``__init__`` writes them, and Newton's
+        ray-query shape BVH is refitted to the new poses. Returns False, changing nothing, when there is no capture
+        to reuse (``reusable`` was False at the capture)."""
+        import warp as wp
+
+        if self._snapshot is None or len(initial.position) != self.model.body_count:
+            return False
+        for view, saved in self._snapshot:
+            np.copyto(view, saved)
+        q = wp.array(_body_xforms(initial), dtype=wp.transform, device=self.device).numpy()
+        for arr in (self.model.body_q, self.state0.body_q, self.state1.body_q):
+            arr.numpy()[...] = q
+        self._set_velocities(initial)
+        self.last_dir.numpy()[...] = _unit_or(initial.velocity, [1.0, 0.0, 0.0])
+        self.last_axis.numpy()[...] = _unit_or(initial.angular_velocity, [0.0, 0.0, 1.0])
+        if getattr(self.model, "bvh_shapes", None) is not None:  # Newton's ray-query BVH (finalize builds it at the
+            self.model.bvh_refit_shapes(self.state0)  # initial poses; no substep reads it): at the new poses
+        return True
+
+    def advance_frame(self) -> None:
+        """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
+        times: replay skips Python launch overhead (~30 launches per substep; benchmarks/physics_graph.py
+        measures plain against replayed stepping); one substep instead of two halves the capture, a fixed
+        cost per scene (~0.02 s, a third of a 2-frame clip's physics; docs/decisions/0006-newton-graph-replay.md)."""
+        import warp as wp
+
+        if self.graph is None:
+            with wp.ScopedCapture(device=self.device) as capture:
+                self.substep()
+            self.graph = capture.graph
+            if self.reusable:
+                self._snapshot = _graph_memory_snapshot(self.graph)
+        for _ in range(self.substeps):
+            wp.capture_launch(self.graph)
+
+    def substep(self) -> None:
+        """collide and step state0 -> state1, then clamp the speeds of state1 into state0 (one launch that
+        also copies the poses back, so every substep starts from state0 and one substep can be captured)."""
+        import warp as wp
+
+        self.pipeline.collide(self.state0, self.contacts)
+        self.solver.step(self.state0, self.state1, self.control, self.contacts, self.dt)
+        cfg = self.cfg
+        wp.launch(_clamp_kernel(), dim=self.model.body_count, device=self.device,
+                  inputs=[cfg.min_speed, cfg.max_speed, cfg.angular_speed[0], cfg.angular_speed[1],
+                          self.state1.body_q, self.state1.body_qd, self.contacts.rigid_contact_count],
+                  outputs=[self.state0.body_q, self.state0.body_qd, self.last_dir, self.last_axis, self.peak])
+
+    def overflowed(self) -> bool:
+        """Did some substep fill the rigid-contact buffer? Then contacts may have been dropped: Newton's narrow
+        phase skips a pair once the count reaches the capacity (the count then stays there) or counts past it."""
+        return int(self.peak.numpy()[0]) >= self.pipeline.rigid_contact_max
+
+    def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = self.state0.body_q.numpy().astype(np.float64)  # (N, 7): px py pz qx qy qz qw
+        qd = self.state0.body_qd.numpy().astype(np.float64)
+        R = quat_to_rotation(q[:, 3:])
+        return pose_matrices(q[:, :3], R), qd[:, :3], qd[:, 3:]
+
+
+@functools.cache
+def _clamp_kernel():
+    """Warp kernel that copies each body's pose and clamps its linear and angular speed into a band,
+    keeping directions (from the solver's output state into its input state); thread 0 also keeps the most
+    rigid contacts any substep has found (``peak``).
+
+    Built on first use so that importing this module never imports Warp.
+    """
+    import warp as wp
+
+    eps = float(EPS_SPEED)
+
+    @wp.func
+    def clamp_norm(x: wp.vec3, last: wp.vec3, lo: float, hi: float):
+        n = wp.length(x)
+        d = last
+        if n > eps:
+            d = x / n
+        target = wp.clamp(n, lo, hi)
+        y = x
+        if n > eps or target > 0.0:
+            y = d * target
+        return y, d
+
+    @wp.kernel(enable_backward=False)
+    def clamp_body_speeds(
+        v_lo: float,
+        v_hi: float,
+        w_lo: float,
+        w_hi: float,
+        body_q_in: wp.array(dtype=wp.transform),
+        body_qd_in: wp.array(dtype=wp.spatial_vector),
+        contact_count: wp.array(dtype=wp.int32),
+        # outputs
+        body_q: wp.array(dtype=wp.transform),
+        body_qd: wp.array(dtype=wp.spatial_vector),
+        last_dir: wp.array(dtype=wp.vec3),
+        last_axis: wp.array(dtype=wp.vec3),
+        peak: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        if i == 0:
+            peak[0] = wp.max(peak[0], contact_count[0])
+        qd = body_qd_in[i]
+        v, dv = clamp_norm(wp.spatial_top(qd), last_dir[i], v_lo, v_hi)
+        w, dw = clamp_norm(wp.spatial_bottom(qd), last_axis[i], w_lo, w_hi)
+        body_q[i] = body_q_in[i]
+        body_qd[i] = wp.spatial_vector(v, w)
+        last_dir[i] = dv
+        last_axis[i] = dw
+
+    return clamp_body_speeds
+
+
+# Newton's narrow phase builds fresh Warp kernels from factory functions for every CollisionPipeline;
+# Warp then re-generates and re-hashes their code on first launch (0.3-3 s per scene, measured in
+# benchmarks/physics.py; docs/decisions/0007-newton-memoisation.md), although every scene asks for the same few
+# variants. These factories are pure functions of their (hashable) arguments, so one kernel per argument tuple
+# serves all pipelines.
+_NEWTON_KERNEL_FACTORIES = ("create_narrow_phase_primitive_kernel", "create_narrow_phase_kernel_gjk_mpr")
+# ModelBuilder.finalize recomputes the edge adjacency of every convex hull for every model (numpy, ~10-30 ms
+# a hull), a pure function of the hull; the hulls are the per-process newton.Mesh objects of
+# _newton_unit_hull, so one result per hull serves every model (benchmarks/physics.py, "memoisation").
+_NEWTON_BUILDER_FUNCTIONS = ("_convex_hull_adjacency",)
+# (module name, function name) -> the memoised wrapper of Newton's function (it holds the kernels / adjacencies);
+# kept across the windows of memoise_newton_kernel_factories, so that every scene of the process shares them
+_NEWTON_MEMOS: dict = register("physics.newton_memos", {})
+
+
+class _NewtonPatch:
+    """The state of memoise_newton_kernel_factories' windows: how many are open (all threads together) and what the
+    first one replaced. ``lock`` guards both, and every install and restore."""
+
+    lock: ClassVar[threading.Lock] = threading.Lock()
+    depth: ClassVar[int] = 0
+    replaced: ClassVar[list] = []  # [(module, name, Newton's function, its memoised wrapper)] while depth > 0
+
+
+def _newton_targets() -> list:
+    from newton._src.geometry import narrow_phase
+    from newton._src.sim import builder
+
+    return ([(narrow_phase, name, functools.cache) for name in _NEWTON_KERNEL_FACTORIES]
+            + [(builder, name, functools.lru_cache(maxsize=1024)) for name in _NEWTON_BUILDER_FUNCTIONS])
+
+
+@contextlib.contextmanager
+def memoise_newton_kernel_factories() -> Iterator[None]:
+    """While open, Newton's narrow-phase kernel factories and hull adjacency are memoised (one kernel per argument
+    tuple, one adjacency per hull; the memos last for the process); on leaving the last open one, Newton's module
+    attributes are its own functions again (identity). :class:`NewtonScene` builds its model and its collision
+    pipeline inside one, so flowsynth's scenes share the kernels while no other Newton user of the process sees a
+    patch outside flowsynth's calls. Re-entrant and thread-safe: a lock and a count of the open windows of all
+    threads. While one is open, another thread calling those Newton functions directly gets the memoised ones,
+    which return what the originals would (pure functions). Private Newton API: tests/test_newton_internals.py
+    fails, naming this function, when Newton renames them or stops looking them up in those modules. Why, and the
+    public hook that would replace it: docs/decisions/0007-newton-memoisation.md."""
+    _enter_newton_patch()
+    try:
+        yield
+    finally:
+        _leave_newton_patch()
+
+
+def _enter_newton_patch() -> None:
+    with _NewtonPatch.lock:
+        if _NewtonPatch.depth == 0:
+            for module, name, wrap in _newton_targets():
+                fn = getattr(module, name, None)
+                if not callable(fn):
+                    continue
+                key = (module.__name__, name)
+                memo = _NEWTON_MEMOS.get(key)
+                if memo is None or memo.__wrapped__ is not fn:  # the first window, or Newton's function changed
+                    memo = _NEWTON_MEMOS[key] = wrap(fn)
+                setattr(module, name, memo)
+                _NewtonPatch.replaced.append((module, name, fn, memo))
+        _NewtonPatch.depth += 1
+
+
+def _leave_newton_patch() -> None:
+    with _NewtonPatch.lock:
+        _NewtonPatch.depth -= 1
+        if _NewtonPatch.depth == 0:
+            for module, name, fn, memo in _NewtonPatch.replaced:
+                if getattr(module, name, None) is memo:  # what someone else put there since stays
+                    setattr(module, name, fn)
+            _NewtonPatch.replaced.clear()
+
+
+def _newton_contact_estimate(model) -> int:
+    """The rigid-contact capacity Newton's CollisionPipeline picks for ``model`` when given none. Private Newton
+    API: tests/test_newton_internals.py fails, naming this function, when it moves or stops being the default."""
+    from newton._src.sim.collide import _estimate_rigid_contact_max
+
+    return int(_estimate_rigid_contact_max(model))
+
+
+def _graph_memory_snapshot(graph) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """(numpy view, copy) of every memory region a captured Warp CPU graph touches: each array its launches were
+    given, and the scratch arrays Newton allocated while it was captured (the graph keeps those alive; no attribute
+    of the scene reaches them). None, and so no reuse, where a region cannot be read back. Private Warp API
+    (``Graph._apic_capture._regions``): tests/test_scene_reuse.py fails, naming this function, when it moves."""
+    regions = getattr(getattr(graph, "_apic_capture", None), "_regions", None)
+    if not isinstance(regions, dict) or not regions:
+        return None
+    out = []
+    for key, region in regions.items():
+        base = region[3] if isinstance(region, tuple) and len(region) == 4 else None
+        if key[0] != "warp" or base is None or not hasattr(base, "numpy") or base.ptr is None:
+            return None
+        if not base.is_contiguous:
+            return None
+        view = base.numpy()
+        out.append((view, view.copy()))
+    return out
+
+
+def _body_xforms(initial: InitialState) -> list:
+    """The bodies' initial poses as Warp transforms (float32), as the model builder is given them."""
+    import warp as wp
+
+    quats = rotation_to_quat_xyzw(initial.rotation)
+    return [wp.transform(wp.vec3(*p), wp.quat(*q)) for p, q in zip(initial.position, quats)]
+
+
+def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:
+    c = asset.collider
+    if c.kind == "box":
+        b.add_shape_box(body, hx=c.params[0], hy=c.params[1], hz=c.params[2], cfg=shape_cfg)
+    elif c.kind == "sphere":
+        b.add_shape_sphere(body, radius=c.params[0], cfg=shape_cfg)
+    elif c.kind == "capsule":
+        b.add_shape_capsule(body, radius=c.params[0], half_height=c.params[1], cfg=shape_cfg)
+    elif c.kind == "cylinder":
+        b.add_shape_cylinder(body, radius=c.params[0], half_height=c.params[1], cfg=shape_cfg)
+    elif c.kind == "cone":
+        b.add_shape_cone(body, radius=c.params[0], half_height=c.params[1], cfg=shape_cfg)
+    else:
+        s = asset.size
+        b.add_shape_convex_hull(body, mesh=_newton_unit_hull(asset.name), scale=(s, s, s), cfg=shape_cfg)
+
+
+@register("physics.newton_unit_hull")
+@functools.lru_cache(maxsize=1024)
+def _newton_unit_hull(name: str):
+    """newton.Mesh of the unit-size convex collider of asset ``name``, shared by every instance and scale
+    (Newton preprocesses each distinct hull once per model)."""
+    wp_runtime()
+    import newton
+
+    hull = unit_hull(name)
+    return newton.Mesh(np.asarray(hull.vertices, dtype=np.float32),
+                       np.asarray(hull.faces, dtype=np.int32).ravel(),
+                       compute_inertia=False)
+
+
+def _unit_or(x: np.ndarray, fallback: Sequence[float]) -> np.ndarray:
+    """Rows of x (N, 3) normalised; rows shorter than EPS_SPEED become ``fallback``."""
+    n = np.linalg.norm(x, axis=1, keepdims=True)
+    return np.where(n > EPS_SPEED, x / np.maximum(n, EPS_SPEED), np.asarray(fallback, np.float64))
