@@ -8,10 +8,15 @@ sintel, ...). This module does the bookkeeping that is the same for every layout
 
     DIR/
       manifest.json       config, seed, outputs, layout and its options, versions, num,
-                          samples: {"NNNNN": {path: {"size": bytes, "sha256": hex}}}, index: {...},
+                          samples: {"NNNNN": {path: {"size": bytes, "sha256": hex}}},
+                          cameras: {"NNNNN": {K, width, height, model, dist}}, index: {...},
                           stats (flowsynth.stats over the samples the last run generated)
       .journal.jsonl      records of samples finished since manifest.json was last rewritten
       ...                 the layout's files (paths in the manifest are relative to DIR)
+
+``cameras`` holds each sample's camera (:func:`flowsynth.writer.camera_record`: its provenance's intrinsics
+and lens, ``model`` "pinhole" and ``dist`` [] for a pinhole) in every layout, so that an export in a format
+that stores no camera (kitti, sintel, flyingchairs, flyingthings3d) still tells K and the lens of each sample.
 
 Units of work: a layout splits the export into units (``Layout.units``): one sample each, or for
 ``webdataset`` one shard of ``--shard-size`` samples. A worker (:class:`flowsynth.writer.ExportWriter`, the
@@ -29,7 +34,7 @@ the memory a sample needs, :mod:`flowsynth.memory`), and ``manifest.json`` appea
 sample is about to be moved into place: a run that fails before that leaves nothing in the way of the
 corrected command.
 
-Resume (:mod:`flowsynth.integrity`): a unit counts as done when each of its samples has a record,
+Resume (:mod:`flowsynth.integrity`): a unit counts as done when each of its samples has a record (files and camera),
 every recorded file passes the check, quick (present, recorded size) or with ``verify=True`` full
 (sha256), and the samples recorded with each file are exactly the unit's; every other unit is written
 again whole. Files that no record names are reported as foreign and left untouched.
@@ -119,10 +124,12 @@ def _place(src: Path, dst: Path) -> None:
 
 def _write_manifest(root: Path, identity: dict, num: int, samples: dict, index: dict | None = None,
                     stats: dict | None = None) -> None:
+    """``samples``: index -> record ``{"files": ..., "camera": ...}``, as the journal holds them."""
     from flowsynth.io import write_json
 
     body = dict(identity, num=num, versions=_versions(),
-                samples={f"{i:05d}": samples[i] for i in sorted(samples)}, index=index or {})
+                samples={f"{i:05d}": samples[i]["files"] for i in sorted(samples)},
+                cameras={f"{i:05d}": samples[i]["camera"] for i in sorted(samples)}, index=index or {})
     if stats is None and (root / MANIFEST).is_file():  # a run that generated nothing keeps the last stats
         stats = json.loads((root / MANIFEST).read_text()).get("stats")
     if stats is not None:  # flowsynth.stats.summarize over the samples the last run generated
@@ -131,8 +138,11 @@ def _write_manifest(root: Path, identity: dict, num: int, samples: dict, index: 
 
 
 def _recorded(root: Path, old: dict) -> dict[int, dict]:
-    """Sample records of the manifest and of the journal (a torn last journal line is ignored)."""
-    records = {int(k): v for k, v in old.get("samples", {}).items()}
+    """Sample records ``{"files": ..., "camera": ...}`` of the manifest and of the journal (a torn last journal line
+    is ignored; ``camera`` is missing from the records of an export written before cameras were recorded)."""
+    cameras = old.get("cameras", {})
+    records = {int(k): {"files": v, **({"camera": cameras[k]} if k in cameras else {})}
+               for k, v in old.get("samples", {}).items()}
     journal = root / JOURNAL
     if journal.is_file():
         for line in journal.read_text().splitlines():
@@ -140,7 +150,7 @@ def _recorded(root: Path, old: dict) -> dict[int, dict]:
                 entry = json.loads(line)
             except ValueError:
                 continue
-            records[int(entry["sample"])] = entry["files"]
+            records[int(entry.pop("sample"))] = entry
     return records
 
 
@@ -259,24 +269,26 @@ def _check_folder(root: Path, identity: dict, overwrite: bool) -> dict | None:
 def _verified(root: Path, records: dict, units: list[range], mode: str) -> dict[int, dict]:
     """The records of the samples of ``units`` whose unit is complete; says which will be written again.
 
-    A unit is complete when each of its samples has a record whose files pass the ``mode`` check, and
-    the samples recorded with each of those files are exactly the unit's (a shard written for another
-    ``num`` holds other samples).
+    A unit is complete when each of its samples has a record with a camera and files that pass the ``mode``
+    check, and the samples recorded with each of those files are exactly the unit's (a shard written for
+    another ``num`` holds other samples).
     """
     from flowsynth.integrity import sample_problem
 
     owners: dict[str, set[int]] = {}
-    for i, files in records.items():
-        for rel in files:
+    for i, rec in records.items():
+        for rel in rec["files"]:
             owners.setdefault(rel, set()).add(i)
     samples, redo = {}, []
     for unit in units:
         if not any(i in records for i in unit):
             continue
         problem = next((f"sample {i:05d} is not recorded" for i in unit if i not in records), None)
-        problem = problem or next((f"{rel} holds other samples" for i in unit for rel in records[i]
+        problem = problem or next((f"sample {i:05d} has no camera record" for i in unit
+                                   if "camera" not in records[i]), None)
+        problem = problem or next((f"{rel} holds other samples" for i in unit for rel in records[i]["files"]
                                    if owners[rel] != set(unit)), None)
-        problem = problem or next((p for i in unit if (p := sample_problem(root, records[i], mode))), None)
+        problem = problem or next((p for i in unit if (p := sample_problem(root, records[i]["files"], mode))), None)
         if problem is None:
             samples.update({i: records[i] for i in unit})
         else:
@@ -297,8 +309,8 @@ def _report_foreign(root: Path, records: dict, old: dict | None) -> None:
     from flowsynth.integrity import foreign_files
 
     known = {MANIFEST, JOURNAL, *(old or {}).get("index", {})}
-    for files in records.values():
-        known.update(files)
+    for rec in records.values():
+        known.update(rec["files"])
     foreign = foreign_files(root, known)
     if foreign:
         _note(f"{len(foreign)} foreign file{'s' if len(foreign) != 1 else ''} in {root} (not written by this "
@@ -346,20 +358,21 @@ def _run(todo: list[range], root, writer: ExportWriter, workers, progress, ident
             pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=_mp_context(),
                                        initializer=writer.start_worker)
             results = pool.map(run_job, jobs, chunksize=1)
-        for indices, staging, files, stats in results:
+        for indices, staging, files, stats, cameras in results:
             if journal is None:  # the first unit is about to be placed: now the folder is an export
                 if not (root / MANIFEST).exists():
                     _write_manifest(root, identity, num, samples)
                 journal = open(root / JOURNAL, "a")  # closed in finally
             # record first, then move: a record whose files are not all in place fails the resume check;
             # one write for the whole unit (a torn line leaves the unit incomplete, so it is written again)
-            journal.write("".join(json.dumps({"sample": f"{i:05d}", "files": files}) + "\n" for i in indices))
+            journal.write("".join(json.dumps({"sample": f"{i:05d}", "files": files, "camera": cam}) + "\n"
+                                  for i, cam in zip(indices, cameras)))
             journal.flush()
             os.fsync(journal.fileno())
             _place(Path(staging), root)
             shutil.rmtree(staging, ignore_errors=True)
-            for i, st in zip(indices, stats):
-                samples[i] = files
+            for i, st, cam in zip(indices, stats, cameras):
+                samples[i] = {"files": files, "camera": cam}
                 records.append((i, st))
             bar.update(len(indices))
             _kill_for_tests(len(records))

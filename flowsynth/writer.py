@@ -8,9 +8,13 @@ the same bytes. The dataset is built on first use in the process that runs the w
 A job is ``(indices, root)``: the sample indices of one unit (``Layout.units``: one sample for most
 layouts, a shard for ``webdataset``) and the export root. ``writer(job)`` generates the samples, lets
 the layout write them into a new hidden staging folder ``root/.tmp-NNNNN-*`` and returns
-``(indices, staging folder, {path: {"size", "sha256"}}, [flowsynth.stats.sample_record per sample])``;
-moving the files into place is the caller's job. On failure the staging folder is removed, and an
-``OSError`` becomes :class:`flowsynth.errors.StorageError` naming the sample.
+``(indices, staging folder, {path: {"size", "sha256"}}, [flowsynth.stats.sample_record per sample],
+[camera record per sample])``; moving the files into place is the caller's job. A camera record is the
+sample's provenance ``camera`` (``K``, ``width``, ``height``) with the lens ``model`` and its coefficients
+``dist`` always present (``"pinhole"`` and ``[]`` for a pinhole): the exporter keeps it in the manifest, so
+that every layout, the ones that mimic formats without a lens model included, tells each sample's camera.
+On failure the staging folder is removed, and an ``OSError`` becomes :class:`flowsynth.errors.StorageError`
+naming the sample.
 
 In a pool of worker processes, ``ProcessPoolExecutor(initializer=writer.start_worker)`` installs the
 writer as its process's writer once, and ``pool.map(run_job, jobs)`` runs jobs on it.
@@ -26,10 +30,17 @@ from pathlib import Path
 
 from flowsynth.errors import ExportError, StorageError
 
-__all__ = ["ExportWriter", "run_job"]
+__all__ = ["ExportWriter", "camera_record", "run_job"]
 
 # keys every exported sample keeps besides the requested outputs (cameras, provenance, index, seed)
 _ALWAYS_KEPT = ("index", "seed", "K", "cam_T_world", "provenance")
+
+
+def camera_record(provenance: str) -> dict:
+    """The camera of a sample's ``provenance`` (JSON string): K (3x3 list), width, height, model, dist."""
+    import json
+
+    return {"model": "pinhole", "dist": [], **json.loads(provenance)["camera"]}
 
 
 class ExportWriter:
@@ -79,17 +90,18 @@ class ExportWriter:
         global _PROCESS_WRITER
         _PROCESS_WRITER = self.open(worker_process=True)
 
-    def _samples(self, indices: Sequence[int], stats: list) -> Iterator[tuple[int, dict]]:
-        """(index, sample) of each index, made when the layout asks for it; appends each one's stats."""
+    def _samples(self, indices: Sequence[int], stats: list, cameras: list) -> Iterator[tuple[int, dict]]:
+        """(index, sample) of each index, made when the layout asks for it; appends each one's stats and camera."""
         from flowsynth.stats import sample_record
 
         for i in indices:
             t = time.perf_counter()
             sample = self._ds.sample(i)
             stats.append(sample_record(sample, time.perf_counter() - t))
+            cameras.append(camera_record(sample["provenance"]))
             yield i, {k: v for k, v in sample.items() if k in self.keep}
 
-    def __call__(self, job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict]]:
+    def __call__(self, job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict], list[dict]]:
         """Write the unit ``job = (indices, root)`` into a staging folder under root (module docstring)."""
         from flowsynth.integrity import file_records
 
@@ -98,9 +110,10 @@ class ExportWriter:
             self.open()
         staging = Path(tempfile.mkdtemp(prefix=f".tmp-{indices[0]:05d}-", dir=root))
         stats: list[dict] = []
+        cameras: list[dict] = []
         try:
-            files = self.layout.write_unit(self._samples(indices, stats), staging)
-            return indices, str(staging), file_records(staging, files), stats
+            files = self.layout.write_unit(self._samples(indices, stats, cameras), staging)
+            return indices, str(staging), file_records(staging, files), stats, cameras
         except BaseException as e:
             shutil.rmtree(staging, ignore_errors=True)
             if isinstance(e, OSError) and not isinstance(e, ExportError):
@@ -112,7 +125,7 @@ class ExportWriter:
 _PROCESS_WRITER: ExportWriter | None = None  # set in a worker process by ExportWriter.start_worker
 
 
-def run_job(job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict]]:
+def run_job(job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict], list[dict]]:
     """Run ``job`` on this worker process's writer (installed by :meth:`ExportWriter.start_worker`)."""
     if _PROCESS_WRITER is None:
         raise RuntimeError("run_job runs in a worker process started with initializer=ExportWriter.start_worker")

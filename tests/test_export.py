@@ -106,6 +106,37 @@ def test_sigkill_then_resume(tmp_path):
     assert a["samples"] == b["samples"] and a["config"] == b["config"] and a["outputs"] == b["outputs"]
 
 
+LENS = ["--camera-model", "brown_conrady", "--camera-dist=-0.2,0,0,0", "--camera-dist-max=-0.1,0.05,0.001,0.001"]
+
+
+def test_the_manifest_records_each_sample_camera_in_every_layout(tmp_path):
+    """sintel's format holds no camera, so the manifest records each sample's: an export with a lens drawn per
+    sample gives back, per sample, the K, model and coefficients that sample's scene was rendered with (the
+    stream's scene and provenance), each coefficient inside its configured range; a pinhole export records model
+    "pinhole" and no coefficients."""
+    out = tmp_path / "sintel"
+    assert main(["export", "--out", str(out), "--num", "2", "--layout", "sintel", "--no-progress", *SMALL, *LENS]) == 0
+    cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "camera_model": "brown_conrady",
+                                     "camera_dist": (-0.2, 0, 0, 0), "camera_dist_max": (-0.1, 0.05, 0.001, 0.001)})
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config"] == json.loads(json.dumps(cfg.to_dict()))
+    assert {p.name for p in (out / "Sintel" / "training").iterdir()} == {"clean", "flow", "occlusions"}
+    stream, ex = BouncingThings(cfg, outputs=["rgb", "flow_fw", "occ_fw"]), Exported(out)
+    for i in range(2):
+        cam, scene = manifest["cameras"][f"{i:05d}"], stream.scene(i)
+        assert ex.camera(i) == cam and set(cam) == {"K", "width", "height", "model", "dist"}
+        assert cam["model"] == scene.camera.model == "brown_conrady" and cam["dist"] == list(scene.camera.dist)
+        assert (cam["width"], cam["height"]) == (CFG.width, CFG.height)
+        assert torch.equal(torch.tensor(cam["K"], dtype=torch.float64), torch.from_numpy(scene.camera.K))
+        assert cam == {"model": "pinhole", "dist": [], **json.loads(stream.sample(i)["provenance"])["camera"]}
+        assert all(lo <= d <= hi for d, lo, hi in zip(cam["dist"], cfg.camera_dist, cfg.camera_dist_max))
+    assert manifest["cameras"]["00000"]["dist"] != manifest["cameras"]["00001"]["dist"]
+    assert main(["export", "--out", str(tmp_path / "pin"), "--num", "1", "--outputs", "depth", "--no-progress",
+                 *SMALL]) == 0
+    pin = Exported(tmp_path / "pin").camera(0)
+    assert (pin["model"], pin["dist"]) == ("pinhole", []) and pin["K"] == BouncingThings(CFG).scene(0).camera.K.tolist()
+
+
 def test_two_workers_match_one(tmp_path):
     from flowsynth.export import export_dataset
 

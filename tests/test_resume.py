@@ -141,6 +141,28 @@ def test_killed_at_a_known_sample_resumes_to_the_same_bytes(tmp_path):
     assert not (out / ".journal.jsonl").exists() and no_temporaries(out)
 
 
+def test_samples_without_a_camera_record_are_written_again(tmp_path, capsys):
+    """An export whose manifest records no camera for a sample (written before cameras were recorded, or edited)
+    is not complete: Exported.camera says so and how to repair it, and re-running the command writes those samples
+    again (the same bytes) and records their cameras; the samples that have one are kept."""
+    out = tmp_path / "ds"
+    assert export(out, 3) == 0
+    m = manifest(out)
+    want, files = dict(m["cameras"]), tree(out)
+    del m["cameras"]["00001"]
+    (out / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(fs.ExportError, match="records no camera for sample 00001; re-run"):
+        Exported(out).camera(1)
+    assert Exported(out).camera(2) == want["00002"]
+    kept = {p: p.stat().st_mtime_ns for n in ("00000", "00002") for p in (out / n).iterdir()}
+    capsys.readouterr()
+    assert export(out, 3) == 0
+    assert "00001 (sample 00001 has no camera record)" in capsys.readouterr().err
+    assert manifest(out)["cameras"] == want and tree(out) == files
+    assert Exported(out).camera(1) == want["00001"]
+    assert all(p.stat().st_mtime_ns == t for p, t in kept.items())
+
+
 def test_stray_folder_where_a_sample_belongs_is_not_a_sample(tmp_path, capsys):
     out = tmp_path / "ds"
     assert export(out, 2) == 0

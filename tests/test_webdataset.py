@@ -161,6 +161,38 @@ def test_exported_reads_the_stream(exported, stream):
                 assert torch.equal(a[k], b[k]), k
 
 
+def test_a_lens_camera_sits_beside_K(exported, tmp_path):
+    """A lens camera's model and coefficients are the member KEY.camera.json beside KEY.K.npy (what native writes
+    into meta.json as camera_model and camera_dist). Read with the webdataset package, they are the lens each
+    sample was rendered with (drawn per sample, inside the configured ranges) and K.npy its K; Exported gives the
+    stream's K and provenance, and camera(i) the same lens. A pinhole shard has no camera.json."""
+    import webdataset as wds
+
+    out = tmp_path / "lens"
+    assert export(out, "--camera-model", "brown_conrady", "--camera-dist=-0.2,0,0,0",
+                  "--camera-dist-max=-0.1,0.05,0.001,0.001", "--outputs", "depth,flow_fw", num=3) == 0
+    cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "camera_model": "brown_conrady",
+                                     "camera_dist": (-0.2, 0, 0, 0), "camera_dist_max": (-0.1, 0.05, 0.001, 0.001)})
+    ds, ex = BouncingThings(cfg, outputs=["depth", "flow_fw"], seed=SEED), Exported(out, verify=True)
+    items = list(wds.WebDataset([str(p) for p in shard_paths(out)], shardshuffle=False))
+    assert [item["__key__"] for item in items] == [f"{i:08d}" for i in range(3)]
+    for i, item in enumerate(items):
+        cam, want = ds.scene(i).camera, ds.sample(i)
+        lens = json.loads(item["camera.json"])
+        assert lens == {"model": "brown_conrady", "dist": list(cam.dist)}
+        assert all(lo <= d <= hi for d, lo, hi in zip(lens["dist"], cfg.camera_dist, cfg.camera_dist_max))
+        assert np.array_equal(np.load(io.BytesIO(item["k.npy"])), want["K"].numpy())
+        got = ex[i]
+        assert torch.equal(got["K"], want["K"]) and got["provenance"] == want["provenance"]
+        assert ex.camera(i) == {**json.loads(want["provenance"])["camera"], **lens}
+    with tarfile.open(shard_paths(out)[0]) as tar:
+        names = tar.getnames()
+    assert {"00000000.K.npy", "00000000.camera.json", "00000001.K.npy", "00000001.camera.json"} <= set(names)
+    for path in shard_paths(exported):
+        with tarfile.open(path) as tar:
+            assert not [n for n in tar.getnames() if n.endswith(".camera.json")]
+
+
 def test_two_workers_write_the_same_bytes(exported, tmp_path):
     assert export(tmp_path / "two", "--workers", "2") == 0
     assert [p.read_bytes() for p in shard_paths(tmp_path / "two")] == [p.read_bytes() for p in shard_paths(exported)]

@@ -17,14 +17,25 @@ class Exported(Dataset):
     """Samples of an export, with the stream's keys (``BouncingThings.sample``) for what the layout stores.
 
     The layout named in ``manifest.json`` reads each sample (``flowsynth.io.layouts``). ``native``
-    gives back every exported key: float channels bit-exact (EXR float32, JSON of float32 values),
-    ``rgb`` within 8-bit quantisation (|error| <= 0.5/255). Other layouts give back what their format
-    holds (their module docstrings say what and how exactly). Expected tree (native)::
+    and ``webdataset`` give back every exported key: float channels bit-exact (EXR float32; JSON of
+    float32 values or ``.npy``), ``rgb`` within 8-bit quantisation (|error| <= 0.5/255). Other layouts
+    give back what their format holds (their module docstrings say what and how exactly). Every
+    layout's manifest also records each sample's camera (K, size, lens model and coefficients):
+    :meth:`camera`. Expected trees::
 
-        root/
+        root/                                      native
           manifest.json
           00000/  meta.json  rgb_0000.png  flow_fw_0000.exr  ...
           00001/  ...
+
+        root/                                      webdataset (--shard-size N samples a shard)
+          manifest.json
+          shard-000000.tar   00000000.rgb_0000.png  00000000.K.npy  ...  00000001.rgb_0000.png  ...
+          shard-000001.tar   samples N .. 2N-1
+
+    A ``webdataset`` sample is read out of its shard by seeking to its members (each shard's tar
+    headers are read once, when its first sample is asked for); to stream shards in order, shuffled
+    and split by worker and rank, use :class:`flowsynth.datasets.Shards` instead.
 
     Args:
         root: export folder (the one holding ``manifest.json``).
@@ -69,6 +80,20 @@ class Exported(Dataset):
 
     def __len__(self) -> int:
         return len(self.names)
+
+    def camera(self, i: int) -> dict:
+        """Sample ``i``'s camera as the manifest records it for every layout: ``K`` (3x3 list, px), ``width``,
+        ``height``, ``model`` ("pinhole", "brown_conrady", "kannala_brandt") and ``dist`` (its coefficients in
+        OpenCV's order; [] for a pinhole). The same as the sample's provenance ``camera``, with model and dist
+        always present.
+
+        Raises ExportError for an export written before cameras were recorded (re-run its export command:
+        the resume writes those samples again)."""
+        cameras = self.manifest.get("cameras", {})
+        if self.names[i] not in cameras:
+            raise ExportError(f"{self.root}/manifest.json records no camera for sample {self.names[i]}; re-run "
+                              "the `flowsynth export` command that wrote it to record them")
+        return cameras[self.names[i]]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         from flowsynth.integrity import sample_problem

@@ -14,10 +14,15 @@ the member name up to its first dot), members sorted by name::
     00000007.rgb_0000.png  00000007.depth_0000.exr  00000007.flow_fw_0000.exr  ...   images, as ``native``
     00000007.K.npy  00000007.cam_T_world.npy  00000007.object_valid.npy  ...       tensors, numpy .npy
     00000007.index.npy  00000007.seed.npy  00000007.provenance.json                 (a scene record, JSON)
+    00000007.camera.json                                                           a lens camera only
 
 Images are the ``native`` layout's files byte for byte (flowsynth/sampleio.py: 8-bit sRGB PNG, float32
 EXR, 16-bit PNG ids and masks); cameras, object tables, point tracks, index and seed are ``.npy`` arrays
-with the stream's dtype and shape; ``provenance.json`` is the stream's provenance string. The derived
+with the stream's dtype and shape; ``provenance.json`` is the stream's provenance string. A lens camera's
+model and coefficients sit beside ``K.npy`` in ``camera.json``, ``{"model": ..., "dist": [...]}`` (OpenCV's
+order; what ``native`` writes into meta.json as ``camera_model`` and ``camera_dist``); a pinhole sample has no
+such member, as a pinhole ``meta.json`` has no such keys. Readers of the sample dict find them in the
+provenance's ``camera`` too. The derived
 files ``boxes_coco.json`` and ``tapvid.pkl`` of ``native`` are not written (their tensors are).
 
 The tar is deterministic: USTAR headers with mtime 0, uid/gid 0, empty user/group names, mode 0644, and
@@ -147,6 +152,10 @@ class WebDataset(Layout):
         if PROVENANCE_KEY in sample:
             (folder / f"{key}.provenance.json").write_text(sample[PROVENANCE_KEY], encoding="utf-8")
             out[f"{key}.provenance.json"] = "meta"
+            cam = json.loads(sample[PROVENANCE_KEY])["camera"]
+            if "model" in cam:  # a lens camera (a pinhole's provenance has no model: its shards are unchanged)
+                (folder / f"{key}.camera.json").write_text(json.dumps({"model": cam["model"], "dist": cam["dist"]}))
+                out[f"{key}.camera.json"] = "meta"
         return out
 
     def write_unit(self, samples: Iterable[tuple[int, dict[str, torch.Tensor]]], folder: Path) -> dict[str, str]:
@@ -244,6 +253,8 @@ def decode(members: dict[str, bytes]) -> dict[str, torch.Tensor]:
             out[suffix[:-4]] = torch.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
         elif suffix == "provenance.json":
             out[PROVENANCE_KEY] = data.decode("utf-8")
+        elif suffix == "camera.json":
+            continue  # the lens of the provenance's camera, for readers of the members; no key of its own
         elif _PER_FRAME.match(suffix):
             images[suffix] = data
         else:
