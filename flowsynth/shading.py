@@ -127,7 +127,7 @@ def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
     wp = wp_runtime()
     from flowsynth.kernels.raycast import TileLists
     from flowsynth.kernels.shade import ShadeScene, shade_kernel
-    from flowsynth.kernels.texture import layer_trig_kernel
+    from flowsynth.kernels.texture import Material, layer_trig_kernel
 
     T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
     lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
@@ -152,10 +152,9 @@ def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
     # (sample offsets stay within a pixel of the tile, as the lists allow) instead of the top-level BVH.
     sc.use_tiles = int(shutter == 0 and CAMERA_RAY_TILES)
     sc.tiles = accel.tile_lists(scene.camera) if sc.use_tiles else TileLists()
-    mat_f, mat_i, img_data, img_info = pack_materials(scene)
-    sc.mat_f = wp.array(mat_f, dtype=wp.float32, device=device)
-    wp.launch(layer_trig_kernel, len(mat_f), [sc.mat_f], device=device)
-    sc.mat_i = wp.array(mat_i, dtype=wp.int32, device=device)
+    mats, img_data, img_info = pack_materials(scene)
+    sc.mats = wp.array(mats, dtype=Material, device=device)
+    wp.launch(layer_trig_kernel, len(mats), [sc.mats], device=device)
     sc.img_data = wp.array(img_data, dtype=wp.vec3, device=device)
     sc.img_info = wp.array(img_info, dtype=wp.int32, device=device)
     delta = [light for light in lights if light.kind != "ambient"]
@@ -253,19 +252,19 @@ def tonemap_srgb(radiance: np.ndarray, method: str = "clamp", exposure: float = 
     return np.clip(srgb, 0.0, 1.0).astype(np.float32)
 
 
-def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Kernel tables of the objects' materials (layout in ``flowsynth.kernels.texture``).
+def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kernel tables of the objects' materials, packed by field name.
 
-    Returns mat_f (N, MAT_F) float32, mat_i (N, MAT_I) int32, img_data (P, 3) float32 linear RGB atlas of mip
+    Returns mats (N,) numpy structured array of ``flowsynth.kernels.texture.Material.numpy_dtype()`` (one per
+    object; ``wp.array(mats, dtype=Material)`` on the device), img_data (P, 3) float32 linear RGB atlas of mip
     pyramids, img_info (rows, 4) int32 (offset, width, height, levels), one row per level; a dummy one-entry
-    atlas when no object uses an image. mat_f's cos and sin columns are 0 here: ``layer_trig_kernel`` fills them
-    on the device from the angle column (numpy's cos would not give Warp's bits).
+    atlas when no object uses an image. Each layer's ``cos_angle`` and ``sin_angle`` are 0 here:
+    ``layer_trig_kernel`` fills them on the device from ``angle`` (numpy's cos would not give Warp's bits).
     """
-    from flowsynth.kernels.texture import FAMILIES, FAMILY_NONE, LAYER_F, LAYER_I, MAT_F, MAT_I
+    from flowsynth.kernels.texture import FAMILIES, FAMILY_NONE, Material
 
     N = len(scene.objects)
-    mat_f = np.zeros((max(N, 1), MAT_F), np.float32)
-    mat_i = np.zeros((max(N, 1), MAT_I), np.int32)
+    mats = np.zeros(max(N, 1), Material.numpy_dtype())
     images: dict[str, int] = {}
     pyramids: list[list[np.ndarray]] = []
     for n, obj in enumerate(scene.objects):
@@ -273,28 +272,30 @@ def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
         size = float(np.ptp(V, axis=0).max()) or 1.0
         mat = resolve_material(obj.material, instance=obj.instance, size=size)
         layers = mat["layers"] if mat["texture"] == "blend" else [mat]
-        mat_i[n, LAYER_I] = FAMILY_NONE
-        for li, layer in enumerate(layers):
-            cf, ci = li * LAYER_F, li * LAYER_I
-            mat_f[n, cf:cf + 6] = srgb_to_linear(np.asarray(layer["colors"])).reshape(-1)
-            mat_f[n, cf + 6:cf + 11] = (layer["scale"], layer["angle"], layer["gain"], layer["grain"],
-                                        layer["grain_scale"])  # cos, sin: layer_trig_kernel on the device
-            mat_i[n, ci:ci + 3] = FAMILIES[layer["texture"]], layer["octaves"], _seed32(layer["seed"])
+        mats["b"]["family"][n] = FAMILY_NONE
+        for name, layer in zip(("a", "b"), layers):
+            lay = mats[name]  # a view: writes land in mats
+            colors = srgb_to_linear(np.asarray(layer["colors"]))
+            lay["color_a"][n], lay["color_b"][n] = colors[0], colors[1]
+            for field in ("scale", "angle", "gain", "grain", "grain_scale", "octaves"):
+                lay[field][n] = layer[field]
+            lay["family"][n], lay["seed"][n] = FAMILIES[layer["texture"]], _seed32(layer["seed"])
             if layer["image"] is not None:
                 if layer["image"] not in images:
                     images[layer["image"]] = sum(len(p) for p in pyramids)
                     pyramids.append(mip_pyramid(layer["image"]))
-                mat_i[n, ci + 3] = images[layer["image"]]
-        mat_f[n, 2 * LAYER_F:] = mat.get("mask_scale", 0.0), mat["roughness"], mat["specular"]
-        mat_i[n, 2 * LAYER_I] = _seed32(mat["seed"])
+                lay["image"][n] = images[layer["image"]]
+        mats["mask_scale"][n] = mat.get("mask_scale", 0.0)
+        mats["roughness"][n], mats["specular"][n] = mat["roughness"], mat["specular"]
+        mats["mask_seed"][n] = _seed32(mat["seed"])
     levels = [lv for p in pyramids for lv in p]
     if not levels:
-        return mat_f, mat_i, np.zeros((1, 3), np.float32), np.array([[0, 1, 1, 1]], np.int32)
+        return mats, np.zeros((1, 3), np.float32), np.array([[0, 1, 1, 1]], np.int32)
     sizes = np.array([lv.shape[0] * lv.shape[1] for lv in levels])
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     counts = [len(p) for p in pyramids for _ in p]
     info = np.array([[o, lv.shape[1], lv.shape[0], c] for o, lv, c in zip(offsets, levels, counts)], np.int32)
-    return mat_f, mat_i, np.concatenate([lv.reshape(-1, 3) for lv in levels]).astype(np.float32), info
+    return mats, np.concatenate([lv.reshape(-1, 3) for lv in levels]).astype(np.float32), info
 
 
 def _seed32(seed: int) -> int:

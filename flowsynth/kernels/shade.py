@@ -31,7 +31,7 @@ from flowsynth.kernels.blas import eval_position, face_vertices
 from flowsynth.kernels.raycast import (Instances, Pinhole, TileLists, closest_from_camera, tile_list, trace_any,
                                        trace_closest)
 from flowsynth.kernels.specialise import specialised_builder
-from flowsynth.kernels.texture import COL_ROUGHNESS, COL_SPECULAR, base_color, hash3, unit
+from flowsynth.kernels.texture import Material, base_color, hash3, unit
 
 __all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "lens_ray", "shade_kernel"]
 
@@ -68,8 +68,7 @@ class ShadeScene:
 
     inst: Instances
     max_t: wp.float32
-    mat_f: wp.array2d[wp.float32]
-    mat_i: wp.array2d[wp.int32]
+    mats: wp.array[Material]  # one per instance (``flowsynth.shading.pack_materials``)
     img_data: wp.array[wp.vec3]
     img_info: wp.array2d[wp.int32]
     n_lights: wp.int32
@@ -174,8 +173,8 @@ def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: w
         n = -n
     inst = item % sc.inst.n_inst
     fw = spread / wp.sqrt(wp.max(wp.abs(cos), MIN_FOOTPRINT_COS))
-    albedo = base_color(sc.mat_f, sc.mat_i, sc.img_data, sc.img_info, inst, p_obj, n_obj, fw)
-    return n, albedo, sc.mat_f[inst, COL_SPECULAR], sc.mat_f[inst, COL_ROUGHNESS]
+    albedo = base_color(sc.mats, sc.img_data, sc.img_info, inst, p_obj, n_obj, fw)
+    return n, albedo, sc.mats[inst].specular, sc.mats[inst].roughness
 
 
 @wp.func

@@ -1,8 +1,10 @@
 """Textures evaluated in object-local coordinates, so a texture moves exactly with its object.
 
-A material is one row of two packed parameter tables (see ``flowsynth.shading.pack_materials``):
-``mat_f`` (M, MAT_F) float32 and ``mat_i`` (M, MAT_I) int32. It has two texture *layers* (a, b) and
-a blend mask; a single-layer material has layer b's family set to ``FAMILY_NONE``.
+A material is one ``Material`` struct of an array (packed by field name in ``flowsynth.shading.pack_materials``
+from a numpy structured array of ``Material.numpy_dtype()``, so the packer and the kernels share one definition of
+every field and a misnamed one fails: numpy raises on an unknown field, Warp does not compile one). It has two
+texture *layers* (``a``, ``b``, each a ``Layer``) and a blend mask; a single-layer material has layer b's family
+set to ``FAMILY_NONE``.
 
 Triplanar projection: the object-frame hit point p [m] is projected onto the planes x = 0, y = 0,
 z = 0 as (p.y, p.z), (p.z, p.x), (p.x, p.y); the three 2-D lookups are blended with weights
@@ -26,9 +28,7 @@ from __future__ import annotations
 
 import warp as wp
 
-__all__ = [
-    "FAMILIES", "FAMILY_NONE", "LAYER_F", "LAYER_I", "MAT_F", "MAT_I", "base_color", "layer_trig_kernel",
-]
+__all__ = ["FAMILIES", "FAMILY_NONE", "Layer", "Material", "base_color", "layer_trig_kernel"]
 
 # Texture families, by kernel code. "blend" is not a code: it is a material with two layers.
 FAMILIES = {"solid": 0, "noise": 1, "value": 2, "cells": 3, "stripes": 4, "checks": 5, "image": 6}
@@ -41,22 +41,40 @@ F_STRIPES = wp.constant(4)
 F_CHECKS = wp.constant(5)
 F_IMAGE = wp.constant(6)
 
-# Packed layout. Per layer, floats: colour a (3, linear RGB), colour b (3), scale [1/m], angle [rad],
-# gain (amplitude ratio of successive octaves), grain (relative amplitude), grain scale [1/m], cos and sin of
-# the angle (filled by ``layer_trig_kernel`` from the angle column, once per table instead of once per lookup);
-# ints: family, octaves, seed, image row. Per material after the two layers, floats: mask scale [1/m],
-# roughness, specular; ints: mask seed.
-LAYER_F = 13
-COL_ANGLE = wp.constant(7)
-COL_COS = wp.constant(11)
-COL_SIN = wp.constant(12)
-LAYER_I = 4
-MAT_F = 2 * LAYER_F + 3
-MAT_I = 2 * LAYER_I + 1
-COL_MASK_SCALE = wp.constant(2 * LAYER_F)
-COL_ROUGHNESS = wp.constant(2 * LAYER_F + 1)
-COL_SPECULAR = wp.constant(2 * LAYER_F + 2)
-COL_MASK_SEED = wp.constant(2 * LAYER_I)
+
+
+@wp.struct
+class Layer:
+    """One texture layer of a material."""
+
+    color_a: wp.vec3  # linear RGB
+    color_b: wp.vec3  # linear RGB
+    scale: wp.float32  # [1/m]
+    angle: wp.float32  # [rad]
+    gain: wp.float32  # amplitude ratio of successive octaves
+    grain: wp.float32  # relative amplitude of the grain
+    grain_scale: wp.float32  # [1/m]
+    # cos and sin of ``angle``, filled by ``layer_trig_kernel`` on the device (once per table instead of once per
+    # lookup; numpy's cos would not give Warp's bits)
+    cos_angle: wp.float32
+    sin_angle: wp.float32
+    family: wp.int32  # FAMILIES code, or FAMILY_NONE (layer b of a single-layer material)
+    octaves: wp.int32
+    seed: wp.int32
+    image: wp.int32  # atlas row of the image's level 0 (family "image")
+
+
+@wp.struct
+class Material:
+    """One object's material: two layers and the mask blending them, and the BRDF's parameters."""
+
+    a: Layer
+    b: Layer
+    mask_scale: wp.float32  # [1/m]
+    roughness: wp.float32
+    specular: wp.float32
+    mask_seed: wp.int32
+
 
 # Gain mapping fractal noise (roughly zero-mean, std ~0.2 before gain) to a [0, 1] mix weight.
 NOISE_GAIN = wp.constant(1.6)
@@ -215,24 +233,22 @@ def image_sample(img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], k:
 
 
 @wp.func
-def layer_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
-                img_info: wp.array2d[wp.int32], m: wp.int32, layer: wp.int32, q: wp.vec2, fw: wp.float32):
+def layer_color(lay: Layer, img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], q: wp.vec2,
+                fw: wp.float32):
     """Linear RGB of one texture layer at object-plane coordinates q [m], footprint fw [m]."""
-    cf = layer * LAYER_F
-    ci = layer * LAYER_I
-    fam = mat_i[m, ci]
-    ca = wp.vec3(mat_f[m, cf], mat_f[m, cf + 1], mat_f[m, cf + 2])
+    fam = lay.family
+    ca = lay.color_a
     if fam == F_SOLID:
         return ca
-    cb = wp.vec3(mat_f[m, cf + 3], mat_f[m, cf + 4], mat_f[m, cf + 5])
-    s = mat_f[m, cf + 6]
-    c = mat_f[m, cf + COL_COS]
-    sn = mat_f[m, cf + COL_SIN]
+    cb = lay.color_b
+    s = lay.scale
+    c = lay.cos_angle
+    sn = lay.sin_angle
     r = wp.vec2(c * q[0] - sn * q[1], sn * q[0] + c * q[1]) * s
     fc = fw * s  # footprint [cycles]
-    seed = mat_i[m, ci + 2]
+    seed = lay.seed
     if fam == F_IMAGE:
-        return image_sample(img_data, img_info, mat_i[m, ci + 3], r, fc)
+        return image_sample(img_data, img_info, lay.image, r, fc)
     v = wp.float32(0.0)
     if fam == F_STRIPES:
         v = box_stripes(r[0], fc)
@@ -241,64 +257,63 @@ def layer_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_
         b = box_stripes(0.5 * r[1], 0.5 * fc)
         v = a + b - 2.0 * a * b
     else:
-        v = fractal(r, seed, mat_i[m, ci + 1], fam, mat_f[m, cf + 8], fc)
+        v = fractal(r, seed, lay.octaves, fam, lay.gain, fc)
     col = wp.lerp(ca, cb, v)
-    grain = mat_f[m, cf + 9]
+    grain = lay.grain
     if grain > 0.0:  # fine value-noise grain multiplying the colour: 3 octaves from 1 / grain scale down
-        gs = mat_f[m, cf + 10]
+        gs = lay.grain_scale
         col = col * wp.max(1.0 + 2.0 * grain * (fractal(q * gs, seed + 1, 3, F_VALUE, 0.7, fw * gs) - 0.5), 0.0)
     return col
 
 
 @wp.func
-def planar_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
-                 img_info: wp.array2d[wp.int32], m: wp.int32, q: wp.vec2, fw: wp.float32):
+def planar_color(mat: Material, img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], q: wp.vec2,
+                 fw: wp.float32):
     """Material colour at object-plane coordinates q [m], footprint fw [m]: layer a, or a noise-masked blend
     of a and b."""
-    if mat_i[m, LAYER_I] == FAMILY_NONE:
-        return layer_color(mat_f, mat_i, img_data, img_info, m, 0, q, fw)
-    ms = mat_f[m, COL_MASK_SCALE]
-    w = wp.smoothstep(0.4, 0.6, fractal(q * ms, mat_i[m, COL_MASK_SEED], 3, F_NOISE, 0.5, fw * ms))
+    if mat.b.family == FAMILY_NONE:
+        return layer_color(mat.a, img_data, img_info, q, fw)
+    ms = mat.mask_scale
+    w = wp.smoothstep(0.4, 0.6, fractal(q * ms, mat.mask_seed, 3, F_NOISE, 0.5, fw * ms))
     # Only the layers the mask shows are looked up: where it is exactly 0 or 1, lerp(a, b, w) is a or b exactly
     # (a (1 - 0) + b 0 = a), so skipping the other changes no bit and saves a layer on most pixels.
     if w <= 0.0:
-        return layer_color(mat_f, mat_i, img_data, img_info, m, 0, q, fw)
+        return layer_color(mat.a, img_data, img_info, q, fw)
     if w >= 1.0:
-        return layer_color(mat_f, mat_i, img_data, img_info, m, 1, q, fw)
-    return wp.lerp(layer_color(mat_f, mat_i, img_data, img_info, m, 0, q, fw),
-                   layer_color(mat_f, mat_i, img_data, img_info, m, 1, q, fw), w)
+        return layer_color(mat.b, img_data, img_info, q, fw)
+    return wp.lerp(layer_color(mat.a, img_data, img_info, q, fw), layer_color(mat.b, img_data, img_info, q, fw), w)
 
 
 @wp.func
-def base_color(mat_f: wp.array2d[wp.float32], mat_i: wp.array2d[wp.int32], img_data: wp.array[wp.vec3],
-               img_info: wp.array2d[wp.int32], m: wp.int32, p: wp.vec3, n: wp.vec3, fw: wp.float32):
+def base_color(mats: wp.array[Material], img_data: wp.array[wp.vec3], img_info: wp.array2d[wp.int32], m: wp.int32,
+               p: wp.vec3, n: wp.vec3, fw: wp.float32):
     """Triplanar base colour (linear RGB) of material m at object-frame point p [m] with object-frame normal n,
     filtered over a pixel footprint fw [m]."""
+    mat = mats[m]
     w = wp.vec3(n[0] * n[0], n[1] * n[1], n[2] * n[2])
     w = wp.cw_mul(w, w)
     w = w / wp.max(w[0] + w[1] + w[2], 1.0e-30)
     col = wp.vec3(0.0)
     total = wp.float32(0.0)
     if w[0] > TRIPLANAR_MIN_WEIGHT:
-        col += w[0] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[1], p[2]), fw)
+        col += w[0] * planar_color(mat, img_data, img_info, wp.vec2(p[1], p[2]), fw)
         total += w[0]
     if w[1] > TRIPLANAR_MIN_WEIGHT:
-        col += w[1] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[2], p[0]), fw)
+        col += w[1] * planar_color(mat, img_data, img_info, wp.vec2(p[2], p[0]), fw)
         total += w[1]
     if w[2] > TRIPLANAR_MIN_WEIGHT:
-        col += w[2] * planar_color(mat_f, mat_i, img_data, img_info, m, wp.vec2(p[0], p[1]), fw)
+        col += w[2] * planar_color(mat, img_data, img_info, wp.vec2(p[0], p[1]), fw)
         total += w[2]
     return col / wp.max(total, 1.0e-30)
 
 
 @wp.kernel(enable_backward=False)
-def layer_trig_kernel(mat_f: wp.array2d[wp.float32]):
-    """Fill each layer's cos and sin columns from its angle column (one thread per material row): the same
+def layer_trig_kernel(mats: wp.array[Material]):
+    """Fill each layer's ``cos_angle`` and ``sin_angle`` from its ``angle`` (one thread per material): the same
     ``wp.cos`` / ``wp.sin`` of the same float32 angle that ``layer_color`` evaluated per lookup before, so the
     texture bits do not change (docs/decisions/0014-texture-lookups.md)."""
     m = wp.tid()
-    for layer in range(2):
-        cf = layer * LAYER_F
-        ang = mat_f[m, cf + COL_ANGLE]
-        mat_f[m, cf + COL_COS] = wp.cos(ang)
-        mat_f[m, cf + COL_SIN] = wp.sin(ang)
+    mats[m].a.cos_angle = wp.cos(mats[m].a.angle)
+    mats[m].a.sin_angle = wp.sin(mats[m].a.angle)
+    mats[m].b.cos_angle = wp.cos(mats[m].b.angle)
+    mats[m].b.sin_angle = wp.sin(mats[m].b.angle)
