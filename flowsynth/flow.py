@@ -89,7 +89,8 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         also where not valid).
     """
     from flowsynth.kernels.raycast import Culling, Instances, TileLists
-    from flowsynth.kernels.reproject import LENS_CODES, OCC_DEPTH, OCC_EXACT, OCC_NONE, pair_kernel
+    from flowsynth.kernels.reproject import (LENS_CODES, OCC_DEPTH, OCC_EXACT, OCC_NONE, PairOcclusion, PairSource,
+                                             PairTarget, pair_kernel)
 
     F, H, W = gb.shape
     want_dc = fB is not None
@@ -134,10 +135,16 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         coef[:len(lens.dist)] = lens.dist
     lens_k = wp.array(coef, dtype=wp.float64, device=dev)
     lens_lim = min(float(lens.lens_limit), 1e300) if model else 0.0
-    launch_bands(pair_kernel(flow, occ_mode, want_dc, want_sf, model), shape, 1,
-                 [item, point, face, M, N, int(src0), int(step), wp.mat33d(*np.asarray(K, np.float64).ravel()),
-                  inst, tiles, cull, VISIBILITY_REL_TOL, dist, dz, DEPTH_TEST_REL_TOL, float(fB or 0.0), sfM,
-                  lens_k, lens_lim, BAND0],
+    src = PairSource()
+    src.item, src.point, src.face, src.dist = item, point, face, dist
+    src.n_inst, src.src0, src.step = N, int(src0), int(step)
+    tgt = PairTarget()
+    tgt.cam_T_obj, tgt.K = M, wp.mat33d(*np.asarray(K, np.float64).ravel())
+    tgt.lens_k, tgt.lens_lim, tgt.fB, tgt.sfM = lens_k, lens_lim, float(fB or 0.0), sfM
+    occl = PairOcclusion()
+    occl.inst, occl.tiles, occl.cull, occl.rel_tol = inst, tiles, cull, VISIBILITY_REL_TOL
+    occl.dz, occl.depth_tol = dz, DEPTH_TEST_REL_TOL
+    launch_bands(pair_kernel(flow, occ_mode, want_dc, want_sf, model), shape, 1, [src, tgt, occl, BAND0],
                  [valid, oof, occ, fl, dc, sf], dev, threads, row_loop=True)
     res = {"valid": valid.numpy().view(bool)[:, None], "oof": oof.numpy().view(bool)[:, None]}
     if flow:

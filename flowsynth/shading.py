@@ -126,7 +126,7 @@ def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
     mapping)."""
     wp = wp_runtime()
     from flowsynth.kernels.raycast import TileLists
-    from flowsynth.kernels.shade import ShadeScene, shade_kernel
+    from flowsynth.kernels.shade import ShadeGBuffer, ShadeSampling, ShadeScene, shade_kernel
     from flowsynth.kernels.texture import Material, layer_trig_kernel
 
     T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
@@ -175,11 +175,15 @@ def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
     radiance = wp.empty((T, H, W), dtype=wp.vec3, device=device)  # the kernel writes every pixel
     lens = not scene.camera.is_pinhole  # sub-pixel rays blend the ray grid's centres (kernels/shade.lens_ray)
     cam = pinhole(scene.camera, device, pad=LENS_RAY_PAD if lens else 0)
-    launch_bands(shade_kernel(plan.render_mode, lens), (T, H, W), 1, [
-        sc, gbuf(gb.item, wp.int32, -1, edge_spp > 0), gbuf(gb.face, wp.int32, -1),
-        gbuf(gb.dist, wp.float32, 0.0), gbuf(gb.point, wp.vec3, wp.vec3(0.0)), int(reuse), cam, spp,
-        edge_spp, slices, _seed32(plan.seed),
-        int(plan.bounces), BAND0], [radiance], device, plan.threads, row_loop=True)
+    g = ShadeGBuffer()
+    g.item, g.face = gbuf(gb.item, wp.int32, -1, edge_spp > 0), gbuf(gb.face, wp.int32, -1)
+    g.dist, g.point = gbuf(gb.dist, wp.float32, 0.0), gbuf(gb.point, wp.vec3, wp.vec3(0.0))
+    g.reuse = int(reuse)
+    smp = ShadeSampling()
+    smp.spp, smp.edge_spp, smp.slices = spp, edge_spp, slices
+    smp.seed, smp.bounces = _seed32(plan.seed), int(plan.bounces)
+    launch_bands(shade_kernel(plan.render_mode, lens), (T, H, W), 1, [sc, g, cam, smp, BAND0], [radiance], device,
+                 plan.threads, row_loop=True)
     return radiance  # finite and >= 0: the kernel clamps each value (kernels/shade.finite_nonneg)
 
 

@@ -68,6 +68,18 @@ def _alias(device) -> str:
     return str(device) if device is not None else str(wp.get_device())
 
 
+def _flatten(args) -> list:
+    """Launch arguments with every Warp struct (a parameter block, ``Instances``) replaced by its fields, nested
+    structs included, so the arrays a struct carries are checked like arrays passed alone."""
+    out = []
+    for a in args:
+        if isinstance(a, wp.array) or not hasattr(a, "_ctype"):  # a Warp struct instance has a ctypes mirror
+            out.append(a)
+        else:
+            out += _flatten([v for k, v in vars(a).items() if not k.startswith("_")])
+    return out
+
+
 def _caller() -> str:
     """The innermost flowsynth function on the stack (module:function), or the test's."""
     f = sys._getframe(2)
@@ -109,7 +121,7 @@ class Recorder:
 
         def launch(kernel, dim, inputs=(), outputs=(), *args, device=None, **kwargs):
             name = getattr(kernel, "key", str(kernel))
-            rec.launches.append((name, _alias(wp.get_device(device)), _caller(), [*inputs, *outputs]))
+            rec.launches.append((name, _alias(wp.get_device(device)), _caller(), _flatten([*inputs, *outputs])))
             return orig_launch(kernel, dim, inputs, outputs, *args, device=device, **kwargs)
 
         def cast(*args, **kwargs):

@@ -42,11 +42,49 @@ from flowsynth.kernels.raycast import (Culling, Instances, TileLists, beyond_sil
                                        tile_list, trace_any)
 from flowsynth.kernels.specialise import specialised_builder
 
-__all__ = ["LENS_CODES", "OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "lens_project", "pair_kernel", "world_points_kernel"]
+__all__ = ["LENS_CODES", "OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "PairOcclusion", "PairSource", "PairTarget",
+           "lens_project", "pair_kernel", "world_points_kernel"]
 
 OCC_NONE, OCC_EXACT, OCC_DEPTH = 0, 1, 2
 # the pair kernel's lens variants (flowsynth.camera.LENS_MODELS)
 LENS_CODES = {"pinhole": 0, "brown_conrady": 1, "kannala_brandt": 2}
+
+
+@wp.struct
+class PairSource:
+    """The pair kernel's G-buffer and frames: pair t maps frame s = src0 + t into frame s + step."""
+
+    item: wp.array3d[wp.int32]  # (F, H, W) item f N + n of each pixel's hit, -1: none
+    point: wp.array3d[wp.vec3]  # (F, H, W) object-frame hit point [m]
+    face: wp.array3d[wp.int32]  # (F, H, W) hit face (the own item's cull, occlusion="exact")
+    dist: wp.array3d[wp.float32]  # (F, H, W) ray length [m] (the depth test, occlusion="depth"; else a dummy)
+    n_inst: wp.int32  # instances per frame, N
+    src0: wp.int32
+    step: wp.int32
+
+
+@wp.struct
+class PairTarget:
+    """The target view's poses and projection, the stereo baseline and the scene-flow transforms."""
+
+    cam_T_obj: wp.array2d[wp.mat44d]  # (T, N) target view from each object, float64
+    K: wp.mat33d  # intrinsics, skew included
+    lens_k: wp.array[wp.float64]  # lens coefficients (``lens_project``; 8 entries, 0 when unused)
+    lens_lim: wp.float64  # the lens model's domain bound
+    fB: wp.float64  # focal length x baseline (disparity change ``dc``)
+    sfM: wp.array2d[wp.mat44d]  # (P, N) scene-flow transforms (``sf``; a dummy when not asked)
+
+
+@wp.struct
+class PairOcclusion:
+    """What the occlusion tests read: the target view's scene (exact) or depth rays (depth)."""
+
+    inst: Instances  # the target view's instances (occlusion="exact")
+    tiles: TileLists  # its tile lists without flat items (occlusion="exact")
+    cull: Culling  # its culling tables (occlusion="exact")
+    rel_tol: wp.float32  # the visibility ray stops at (1 - rel_tol) X
+    dz: wp.array2d[wp.float64]  # (H, W) z of each pixel's unit ray (occlusion="depth")
+    depth_tol: wp.float64  # relative depth tolerance of the depth test
 
 
 @wp.func
@@ -226,29 +264,14 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
     ``flow`` (P, 2, H, W) float32, ``occ`` (uint8, oof or blocked), ``dc`` float64 disparity change, ``sf``
     (P, 3, H, W) float32 scene flow ``sfM[t, n] @ p`` (where hit, valid or not); all 0 where not hit (flow
     and dc also where not valid). For occlusion="exact", ``tiles`` are the lists without flat items
-    (``SceneAccel.tile_lists(camera, flat=False)``).
+    (``SceneAccel.tile_lists(camera, flat=False)``). Inputs: the parameter blocks ``PairSource``, ``PairTarget``
+    and ``PairOcclusion`` (fields documented there), then ``band0``.
     """
     @wp.kernel(enable_backward=False, module="unique")
     def pairs(
-        item: wp.array3d[wp.int32],
-        point: wp.array3d[wp.vec3],
-        face: wp.array3d[wp.int32],
-        cam_T_obj: wp.array2d[wp.mat44d],
-        n_inst: wp.int32,
-        src0: wp.int32,
-        step: wp.int32,
-        K: wp.mat33d,
-        inst: Instances,
-        tiles: TileLists,
-        cull: Culling,
-        rel_tol: wp.float32,
-        dist: wp.array3d[wp.float32],
-        dz: wp.array2d[wp.float64],
-        depth_tol: wp.float64,
-        fB: wp.float64,
-        sfM: wp.array2d[wp.mat44d],
-        lens_k: wp.array[wp.float64],
-        lens_lim: wp.float64,
+        src: PairSource,
+        tgt: PairTarget,
+        occl: PairOcclusion,
         band0: wp.int32,
         # outputs
         valid: wp.array3d[wp.uint8],
@@ -258,6 +281,25 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
         dc: wp.array3d[wp.float64],
         sf: wp.array4d[wp.float32],
     ):
+        item = src.item
+        point = src.point
+        face = src.face
+        dist = src.dist
+        n_inst = src.n_inst
+        src0 = src.src0
+        step = src.step
+        cam_T_obj = tgt.cam_T_obj
+        K = tgt.K
+        lens_k = tgt.lens_k
+        lens_lim = tgt.lens_lim
+        fB = tgt.fB
+        sfM = tgt.sfM
+        inst = occl.inst
+        tiles = occl.tiles
+        cull = occl.cull
+        rel_tol = occl.rel_tol
+        dz = occl.dz
+        depth_tol = occl.depth_tol
         t, i = wp.tid()
         i += band0
         s = src0 + t

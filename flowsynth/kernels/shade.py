@@ -33,7 +33,8 @@ from flowsynth.kernels.raycast import (Instances, Pinhole, TileLists, closest_fr
 from flowsynth.kernels.specialise import specialised_builder
 from flowsynth.kernels.texture import Material, base_color, hash3, unit
 
-__all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeScene", "lens_ray", "shade_kernel"]
+__all__ = ["LIGHT_DIRECTIONAL", "LIGHT_POINT", "ShadeGBuffer", "ShadeSampling", "ShadeScene", "lens_ray",
+           "shade_kernel"]
 
 LIGHT_DIRECTIONAL = 0
 LIGHT_POINT = 1
@@ -79,6 +80,28 @@ class ShadeScene:
     pix_angle: wp.float32
     tiles: TileLists  # the G-buffer cast's per-tile candidate lists (when use_tiles)
     use_tiles: wp.int32  # 1: camera rays walk ``tiles`` near to far (no motion blur: group g is frame g)
+
+
+@wp.struct
+class ShadeGBuffer:
+    """The G-buffer of the pixel-centre rays as the shading kernel reads it (a (1, 1, 1) dummy where it does not)."""
+
+    item: wp.array3d[wp.int32]  # (T, H, W) hit item, -1: none (the edge test, and the reused hit)
+    face: wp.array3d[wp.int32]  # (T, H, W) hit face (the reused hit)
+    dist: wp.array3d[wp.float32]  # (T, H, W) ray length [m] (the reused hit)
+    point: wp.array3d[wp.vec3]  # (T, H, W) object-frame hit point [m] (the reused hit)
+    reuse: wp.int32  # 1: the pixel-centre sample shades the G-buffer's hit instead of tracing (spp 1, no blur)
+
+
+@wp.struct
+class ShadeSampling:
+    """How many samples a pixel takes, their time slices, seed and path length."""
+
+    spp: wp.int32  # samples per pixel
+    edge_spp: wp.int32  # samples of a silhouette pixel when > spp (else no pixel gets extra samples)
+    slices: wp.int32  # motion-blur time slices per frame (1: none); group t * slices + s of ``ShadeScene.inst``
+    seed: wp.int32  # render seed (int32)
+    bounces: wp.int32  # path-traced bounces ("path" mode)
 
 
 @wp.func
@@ -334,6 +357,8 @@ def shade_kernel(mode: str, lens: bool = False):
     contributes black (0): an uncovered pixel is black, a pixel at the edge of the lens's image is dimmed by
     the share of its samples there. The pinhole variant's code is that of before (the lens lines are
     ``wp.static`` branches).
+
+    Inputs: ``ShadeScene``, ``ShadeGBuffer``, ``Pinhole``, ``ShadeSampling`` (fields documented there), ``band0``.
     """
     if mode not in RENDER_MODES:
         raise ValueError(f"unknown render mode {mode!r}; choose from {RENDER_MODES}")
@@ -343,21 +368,23 @@ def shade_kernel(mode: str, lens: bool = False):
     @wp.kernel(enable_backward=False, module="unique")
     def shade(
         sc: ShadeScene,
-        gb_item: wp.array3d[wp.int32],
-        gb_face: wp.array3d[wp.int32],
-        gb_dist: wp.array3d[wp.float32],
-        gb_point: wp.array3d[wp.vec3],
-        reuse: wp.int32,
+        gb: ShadeGBuffer,
         cam: Pinhole,
-        spp: wp.int32,
-        edge_spp: wp.int32,
-        slices: wp.int32,
-        seed: wp.int32,
-        bounces: wp.int32,
+        smp: ShadeSampling,
         band0: wp.int32,
         # outputs
         radiance: wp.array3d[wp.vec3],
     ):
+        gb_item = gb.item
+        gb_face = gb.face
+        gb_dist = gb.dist
+        gb_point = gb.point
+        reuse = gb.reuse
+        spp = smp.spp
+        edge_spp = smp.edge_spp
+        slices = smp.slices
+        seed = smp.seed
+        bounces = smp.bounces
         t, i = wp.tid()
         i += band0
         seed_t = wp.int32(hash3(t, 0, seed))
