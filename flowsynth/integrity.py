@@ -14,15 +14,30 @@ Files that no record names are *foreign*: reported, never touched.
 from __future__ import annotations
 
 import hashlib
+import json
 from collections.abc import Iterable
 from pathlib import Path
 
-from flowsynth.errors import ConfigError
+from flowsynth.errors import ConfigError, ExportError
 
-__all__ = ["VERIFY_MODES", "file_problem", "file_records", "foreign_files", "sample_problem"]
+__all__ = ["VERIFY_MODES", "file_problem", "file_records", "foreign_files", "read_manifest", "sample_problem"]
 
 VERIFY_MODES = ("quick", "full", "none")
 _CHUNK = 1 << 20
+
+
+def read_manifest(root: str | Path) -> dict:
+    """The ``manifest.json`` of the export folder ``root``, for a reader of the export.
+
+    Raises ExportError when there is none, or it is not JSON, saying what the folder should be."""
+    manifest = Path(root) / "manifest.json"
+    if not manifest.is_file():
+        raise ExportError(f"could not find {manifest}; is {root} a folder written by `flowsynth export`?")
+    try:
+        return json.loads(manifest.read_text())
+    except ValueError as e:
+        raise ExportError(f"{manifest} is not valid JSON ({e}); re-run the `flowsynth export` command that wrote "
+                          "it") from e
 
 
 def _sha256(path: Path) -> str:

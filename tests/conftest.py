@@ -7,6 +7,7 @@ Fixtures (use them instead of copying the values into a new test file):
 - ``small_config``: the same scene as a ``BouncingThingsConfig``; ``dataclasses.replace(small_config, num_frames=6)``
   for a variant.
 - ``layout_config``: 48x32, 3 frames, 3-4 objects moving 2-3 m/s: enough motion for the export layouts' tests.
+- ``ray_cluster``: a local 2-CPU Ray cluster for one test module (the ``ray`` module; skipped without Ray).
 
 Geometry helpers (poses, rotations, a quad mesh, brute-force flow) are plain functions in ``tests/oracle.py``.
 
@@ -68,3 +69,21 @@ def layout_config() -> fs.BouncingThingsConfig:
 
     return fs.BouncingThingsConfig(width=48, height=32, num_frames=3, motion="kinematic", num_objects=(3, 4),
                                    max_objects=4, min_speed=2.0, max_speed=3.0)
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """A local Ray cluster of 2 CPUs for the test module, whose workers import this checkout's flowsynth (the raylet
+    and every worker it starts inherit PYTHONPATH); skipped without the ray extra. Yields the ``ray`` module."""
+    ray = pytest.importorskip("ray", reason="Ray tests need the ray extra (bash scripts/setup.sh --ray)")
+    old = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = str(ROOT)
+    try:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        yield ray
+    finally:
+        ray.shutdown()
+        if old is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = old

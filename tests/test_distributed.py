@@ -53,20 +53,9 @@ def test_ray_engine_without_ray_names_the_install_command(tmp_path, monkeypatch,
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    """A local Ray cluster with 2 CPUs; its workers import this checkout's flowsynth. Yields its address."""
-    ray = pytest.importorskip("ray", reason="Ray engine tests need the ray extra (bash scripts/setup.sh --ray)")
-    old = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = str(ROOT)  # the raylet and every worker it starts inherit this
-    try:
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-        yield ray.get_runtime_context().gcs_address
-    finally:
-        ray.shutdown()
-        if old is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = old
+def cluster(ray_cluster) -> str:
+    """The address of this module's local 2-CPU Ray cluster (conftest's ``ray_cluster``)."""
+    return ray_cluster.get_runtime_context().gcs_address
 
 
 def _tree(root: Path) -> dict[str, bytes]:

@@ -9,7 +9,6 @@ workers x ranks; seeded shuffles)."""
 
 import io
 import json
-import os
 import tarfile
 from collections import Counter
 from pathlib import Path
@@ -22,7 +21,6 @@ import flowsynth as fs
 from flowsynth.cli import main
 from flowsynth.datasets import BouncingThings, Exported, Shards
 
-ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--width", "64", "--height", "48", "--num-frames", "2", "--motion", "kinematic",
          "--num-objects", "2,3", "--max-objects", "4"]
 CFG = fs.BouncingThingsConfig(width=64, height=48, num_frames=2, motion="kinematic", num_objects=(2, 3),
@@ -193,11 +191,17 @@ def test_a_lens_camera_sits_beside_K(exported, tmp_path):
             assert not [n for n in tar.getnames() if n.endswith(".camera.json")]
 
 
+def same_shards(a: Path, b: Path) -> None:
+    """The exports a and b hold the same shards byte for byte, and their manifests the same sample records and
+    cameras."""
+    assert [p.read_bytes() for p in shard_paths(a)] == [p.read_bytes() for p in shard_paths(b)]
+    ma, mb = (json.loads((r / "manifest.json").read_text()) for r in (a, b))
+    assert ma["samples"] == mb["samples"] and ma["cameras"] == mb["cameras"]
+
+
 def test_two_workers_write_the_same_bytes(exported, tmp_path):
     assert export(tmp_path / "two", "--workers", "2") == 0
-    assert [p.read_bytes() for p in shard_paths(tmp_path / "two")] == [p.read_bytes() for p in shard_paths(exported)]
-    a, b = (json.loads((r / "manifest.json").read_text())["samples"] for r in (tmp_path / "two", exported))
-    assert a == b
+    same_shards(tmp_path / "two", exported)
 
 
 def test_resume_rewrites_only_missing_damaged_or_stale_shards(exported, tmp_path, monkeypatch):
@@ -312,29 +316,25 @@ def test_shards_refuses_other_layouts(tmp_path):
         Shards(tmp_path / "n")
 
 
+def test_readers_name_a_missing_or_broken_manifest(tmp_path):
+    """Exported and Shards read an export's manifest alike (flowsynth.integrity.read_manifest): a folder without
+    one, or with one that is not JSON, is an ExportError that says what the folder should be."""
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "torn").mkdir()
+    (tmp_path / "torn" / "manifest.json").write_text('{"layout": "webdata')
+    for reader in (Exported, Shards):
+        with pytest.raises(fs.ExportError, match="could not find .*manifest.json; is .* written by `flowsynth export`"):
+            reader(tmp_path / "empty")
+        with pytest.raises(fs.ExportError, match="manifest.json is not valid JSON"):
+            reader(tmp_path / "torn")
+
+
 # -- Ray -------------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    """A local Ray cluster with 2 CPUs whose workers import this checkout's flowsynth (as in test_distributed)."""
-    ray = pytest.importorskip("ray", reason="Ray tests need the ray extra (bash scripts/setup.sh --ray)")
-    old = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = str(ROOT)
-    try:
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-        yield ray
-    finally:
-        ray.shutdown()
-        if old is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = old
-
-
 @pytest.mark.ray
-def test_ray_read_webdataset_reads_the_stream(cluster, exported, stream, tmp_path):
-    rows = cluster.data.read_webdataset([str(p) for p in shard_paths(exported)]).take_all()
+def test_ray_read_webdataset_reads_the_stream(ray_cluster, exported, stream, tmp_path):
+    rows = ray_cluster.data.read_webdataset([str(p) for p in shard_paths(exported)]).take_all()
     assert sorted(r["__key__"] for r in rows) == [f"{i:08d}" for i in range(NUM)]
     for r in rows:
         members = {k: v for k, v in r.items() if not k.startswith("__")}
@@ -342,9 +342,7 @@ def test_ray_read_webdataset_reads_the_stream(cluster, exported, stream, tmp_pat
 
 
 @pytest.mark.ray
-def test_ray_engine_writes_the_same_shards(cluster, exported, tmp_path):
+def test_ray_engine_writes_the_same_shards(ray_cluster, exported, tmp_path):
     assert export(tmp_path / "ray", "--engine", "ray") == 0
-    assert [p.read_bytes() for p in shard_paths(tmp_path / "ray")] == [p.read_bytes() for p in shard_paths(exported)]
-    a, b = (json.loads((r / "manifest.json").read_text())["samples"] for r in (tmp_path / "ray", exported))
-    assert a == b
+    same_shards(tmp_path / "ray", exported)
     assert Counter(p.name.split("-")[0] for p in (tmp_path / "ray").iterdir()) == {"manifest.json": 1, "shard": 3}

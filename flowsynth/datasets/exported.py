@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
@@ -51,14 +50,11 @@ class Exported(Dataset):
     """
 
     def __init__(self, root: str | Path, verify: str | bool = "quick") -> None:
-        from flowsynth.integrity import VERIFY_MODES, sample_problem
+        from flowsynth.integrity import VERIFY_MODES, read_manifest, sample_problem
         from flowsynth.io import layouts
 
         self.root = Path(root)
-        manifest = self.root / "manifest.json"
-        if not manifest.is_file():
-            raise ExportError(f"could not find {manifest}; is {self.root} a folder written by `flowsynth export`?")
-        self.manifest = json.loads(manifest.read_text())
+        self.manifest = read_manifest(self.root)
         name = self.manifest.get("layout")
         if name not in layouts.names():
             raise ExportError(f"{self.root} uses layout {name!r}, which this flowsynth does not know "

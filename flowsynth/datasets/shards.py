@@ -22,7 +22,6 @@ with non-persistent workers call ``set_epoch(e)`` before each epoch, as with ``D
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError, ExportError
+from flowsynth.integrity import read_manifest
 
 __all__ = ["Shards"]
 
@@ -122,10 +122,7 @@ class Shards(IterableDataset):
 def _shard_paths(source) -> list[Path]:
     if isinstance(source, (str, Path)) and Path(source).is_dir():
         root = Path(source)
-        manifest = root / "manifest.json"
-        if not manifest.is_file():
-            raise ExportError(f"could not find {manifest}; is {root} a folder written by `flowsynth export`?")
-        m = json.loads(manifest.read_text())
+        m = read_manifest(root)
         if m.get("layout") != "webdataset":
             raise ExportError(f"{root} holds a {m.get('layout')!r} export; Shards reads --layout webdataset "
                               "(flowsynth.datasets.Exported reads every layout)")

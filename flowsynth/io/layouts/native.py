@@ -22,9 +22,16 @@ import torch
 from flowsynth.io.layouts import register
 from flowsynth.io.layouts.base import Layout
 
-__all__ = ["Native"]
+__all__ = ["Native", "frame_key"]
 
 _PER_FRAME = re.compile(r"(.+)_\d{4}\.\w+$")
+
+
+def frame_key(name: str) -> str | None:
+    """The output key of a per-frame or per-pair file ``KEY_TTTT.ext`` (flowsynth/sampleio.py's names: ``rgb_0000.png``
+    -> ``rgb``, ``flow_fw_k2_0001.exr`` -> ``flow_fw_k2``); None for any other file (``meta.json``, ``tracks.npz``)."""
+    m = _PER_FRAME.match(name)
+    return m.group(1) if m else None
 
 
 @register
@@ -44,8 +51,7 @@ class Native(Layout):
         sub.mkdir()
         out = {}
         for n in write_sample(sample, sub, exr_compression=self.exr_compression):
-            m = _PER_FRAME.match(n)
-            out[f"{sub.name}/{n}"] = m.group(1) if m else n.rsplit(".", 1)[0]
+            out[f"{sub.name}/{n}"] = frame_key(n) or n.rsplit(".", 1)[0]
         return out
 
     def read(self, root: Path, files: Sequence[str]) -> dict[str, torch.Tensor]:

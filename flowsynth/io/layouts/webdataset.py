@@ -59,7 +59,7 @@ from flowsynth.errors import ConfigError, ExportError
 from flowsynth.io.atomic import atomic_path
 from flowsynth.io.layouts import register
 from flowsynth.io.layouts.base import Layout
-from flowsynth.io.layouts.native import Native
+from flowsynth.io.layouts.native import Native, frame_key
 
 __all__ = ["DEFAULT_SHARD_SIZE", "WebDataset", "decode", "iter_shard", "shard_name"]
 
@@ -71,7 +71,6 @@ training job's workers x ranks (a choice, not a measurement; WebDataset's guide 
 _SHARD_DIGITS = 6
 _KEY_DIGITS = 8
 _SHARD = re.compile(r"shard-\d{6}\.tar$")
-_PER_FRAME = re.compile(r"(.+)_\d{4}\.\w+$")  # sampleio's per-frame file names: KEY_TTTT.ext
 
 
 def shard_name(j: int) -> str:
@@ -142,7 +141,7 @@ class WebDataset(Layout):
                     if n == "meta.json":  # holds only the key list here; the member names say it
                         continue
                     (Path(tmp) / n).replace(folder / f"{key}.{n}")
-                    out[f"{key}.{n}"] = _PER_FRAME.match(n).group(1)
+                    out[f"{key}.{n}"] = frame_key(n)
         for k, v in sample.items():
             if k in tensors:
                 buf = io.BytesIO()
@@ -255,7 +254,7 @@ def decode(members: dict[str, bytes]) -> dict[str, torch.Tensor]:
             out[PROVENANCE_KEY] = data.decode("utf-8")
         elif suffix == "camera.json":
             continue  # the lens of the provenance's camera, for readers of the members; no key of its own
-        elif _PER_FRAME.match(suffix):
+        elif frame_key(suffix):
             images[suffix] = data
         else:
             raise ExportError(f"unknown webdataset member suffix {suffix!r}; was this shard written by flowsynth?")
@@ -263,7 +262,7 @@ def decode(members: dict[str, bytes]) -> dict[str, torch.Tensor]:
         with tempfile.TemporaryDirectory(prefix="flowsynth-wds-") as tmp:
             for n, data in images.items():
                 (Path(tmp) / n).write_bytes(data)
-            keys = sorted({_PER_FRAME.match(n).group(1) for n in images})
+            keys = sorted({frame_key(n) for n in images})
             (Path(tmp) / "meta.json").write_text(json.dumps({"keys": keys}))
             out.update(read_sample(Path(tmp)))
     return out
