@@ -66,8 +66,8 @@ class TileLists:
 
 @wp.func
 def tile_list(tiles_x: wp.int32, tiles_y: wp.int32, tile_shift: wp.int32, f: wp.int32, i: wp.int32, j: wp.int32):
-    """Index of the ``TileLists`` list of frame f's tile holding pixel (row i, col j). Takes the struct's scalars,
-    not the struct (a struct argument is copied per call)."""
+    """Index of the ``TileLists`` list of frame f's tile holding pixel (row i, col j), from the struct's scalars (a
+    variant taking the struct whole costs the same: docs/decisions/0021-instances-struct-convention.md)."""
     return (f * tiles_y + (i >> tile_shift)) * tiles_x + (j >> tile_shift)
 
 
