@@ -4,10 +4,11 @@ Two questions, each timed in alternating rounds (``time_round_robin(rotate=True)
 Warp CPU launch (one thread), the ratio of every round reported, not only the medians:
 
 1. ``cast``: one closest-hit ray per pixel of ``raycast_scene()`` (30 icospheres, 640x480) through the top-level BVH
-   (``trace_closest``). Variant "whole": the kernel takes ``Instances`` and hands it whole to a ``@wp.func`` that
-   unpacks it into ``trace_closest``'s arguments. Variant "fields": the kernel takes the 11 arrays and the BVH id
-   as separate arguments and hands them, separately, to a ``@wp.func`` that calls ``trace_closest``. The two write
-   the same distances (checked bit for bit).
+   Variant "whole": the kernel takes ``Instances`` and hands it whole to ``trace_closest`` (flowsynth's traversal,
+   which takes the struct since docs/decisions/0021). Variant "fields": the kernel takes the 11 arrays and the BVH
+   id as separate arguments and hands them, separately, to ``closest_fields``, the same traversal written here with
+   one argument per array (``trace_closest`` as it was until 0021). The two write the same distances (checked bit
+   for bit).
 2. ``tile``: flowsynth.kernels.raycast.tile_list's docstring says a struct argument of a ``@wp.func`` is copied per
    call, so it takes the ``TileLists`` scalars. Variant "whole": a func that takes ``TileLists`` by value and reads
    its scalars; "fields": ``tile_list`` itself. Each thread computes the list of every pixel of its row for 8
@@ -27,7 +28,8 @@ import warp as wp
 from _common import machine_info, pin_single_core, print_table, raycast_scene, time_round_robin, write_json
 
 from flowsynth.accel import SceneAccel, pinhole
-from flowsynth.kernels.raycast import Instances, Pinhole, TileLists, tile_list, trace_closest
+from flowsynth.kernels.blas import blas_closest
+from flowsynth.kernels.raycast import Instances, Pinhole, TileLists, thin_skip, tile_list, trace_closest
 
 TILE_FRAMES = 8  # frames of the tile-index kernel (one frame's work is too small to time)
 
@@ -41,8 +43,7 @@ def ray_dir(i: wp.int32, j: wp.int32, cam: Pinhole):
 
 @wp.func
 def closest_whole(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32):
-    return trace_closest(inst.bvh, inst.roots[g], inst.item_root, inst.blas_bounds, inst.blas_kids, inst.blas_tris,
-                         inst.blas_face, inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi, wp.vec3(0.0), d, max_t)
+    return trace_closest(inst, inst.roots[g], wp.vec3(0.0), d, max_t)
 
 
 @wp.func
@@ -50,7 +51,29 @@ def closest_fields(bvh: wp.uint64, root: wp.int32, item_root: wp.array[wp.int32]
                    bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3], bf: wp.array[wp.int32], obj_T_ref: wp.array[wp.mat44],
                    thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], d: wp.vec3,
                    max_t: wp.float32):
-    return trace_closest(bvh, root, item_root, bb, bk, bt, bf, obj_T_ref, thin, obj_lo, obj_hi, wp.vec3(0.0), d, max_t)
+    """``trace_closest`` with one argument per array (its form until docs/decisions/0021)."""
+    best_t = max_t
+    best_item = wp.int32(-1)
+    best_face = wp.int32(-1)
+    best_u = wp.float32(0.0)
+    best_v = wp.float32(0.0)
+    o = wp.vec3(0.0)
+    query = wp.bvh_query_ray(bvh, o, d, root)
+    item = wp.int32(0)
+    while wp.bvh_query_next(query, item, best_t):
+        X = obj_T_ref[item]
+        o_obj = wp.transform_point(X, o)
+        d_obj = wp.transform_vector(X, d)
+        if thin_skip(thin, obj_lo, obj_hi, item, o_obj, d_obj, best_t):
+            continue
+        face, t, u, v = blas_closest(bb, bk, bt, bf, item_root[item], o_obj, d_obj, best_t)
+        if face >= 0:
+            best_t = t
+            best_item = item
+            best_face = face
+            best_u = u
+            best_v = v
+    return best_item, best_t, best_face, best_u, best_v
 
 
 @wp.kernel(enable_backward=False)

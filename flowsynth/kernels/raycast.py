@@ -141,28 +141,25 @@ def thin_skip(thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.ar
 
 
 @wp.func
-def trace_closest(bvh: wp.uint64, root: wp.int32, item_root: wp.array[wp.int32], bb: wp.array[wp.vec4],
-                  bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3], bf: wp.array[wp.int32], obj_T_ref: wp.array[wp.mat44],
-                  thin: wp.array[wp.int32], obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], o: wp.vec3,
-                  d: wp.vec3, max_t: wp.float32):
-    """Closest hit along o + t d, t in [0, max_t), below BVH node ``root`` (a frame's group root).
-    Returns (item or -1, t, face, u, v). A thin instance is mesh-queried only when the ray enters its object-
-    frame box first (``thin_skip``). Takes the ``Instances`` arrays it reads, not the struct: Warp passes a
-    struct to a function by value, a copy per ray on this hot path."""
+def trace_closest(inst: Instances, root: wp.int32, o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+    """Closest hit along o + t d, t in [0, max_t), below BVH node ``root`` (a frame's group root) of ``inst``'s
+    top-level BVH. Returns (item or -1, t, face, u, v). A thin instance is mesh-queried only when the ray enters
+    its object-frame box first (``thin_skip``). Takes ``Instances`` whole (docs/decisions/0021)."""
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
     best_u = wp.float32(0.0)
     best_v = wp.float32(0.0)
-    query = wp.bvh_query_ray(bvh, o, d, root)
+    query = wp.bvh_query_ray(inst.bvh, o, d, root)
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, best_t):
-        X = obj_T_ref[item]
+        X = inst.obj_T_ref[item]
         o_obj = wp.transform_point(X, o)
         d_obj = wp.transform_vector(X, d)
-        if thin_skip(thin, obj_lo, obj_hi, item, o_obj, d_obj, best_t):
+        if thin_skip(inst.thin, inst.obj_lo, inst.obj_hi, item, o_obj, d_obj, best_t):
             continue
-        face, t, u, v = blas_closest(bb, bk, bt, bf, item_root[item], o_obj, d_obj, best_t)
+        face, t, u, v = blas_closest(inst.blas_bounds, inst.blas_kids, inst.blas_tris, inst.blas_face,
+                                     inst.item_root[item], o_obj, d_obj, best_t)
         if face >= 0:
             best_t = t
             best_item = item
@@ -173,21 +170,18 @@ def trace_closest(bvh: wp.uint64, root: wp.int32, item_root: wp.array[wp.int32],
 
 
 @wp.func
-def trace_any(bvh: wp.uint64, root: wp.int32, item_root: wp.array[wp.int32], bb: wp.array[wp.vec4],
-              bk: wp.array[wp.vec4i], bt: wp.array[wp.vec3], obj_T_ref: wp.array[wp.mat44], thin: wp.array[wp.int32],
-              obj_lo: wp.array[wp.vec3], obj_hi: wp.array[wp.vec3], o: wp.vec3, d: wp.vec3, max_t: wp.float32):
-    """True when anything below BVH node ``root`` is hit along o + t d with t in [0, max_t) (first blocker
-    ends the ray), skipping thin instances as ``trace_closest`` does. Takes the arrays it reads, like
-    ``trace_closest``."""
-    query = wp.bvh_query_ray(bvh, o, d, root)
+def trace_any(inst: Instances, root: wp.int32, o: wp.vec3, d: wp.vec3, max_t: wp.float32):
+    """True when anything below BVH node ``root`` of ``inst``'s top-level BVH is hit along o + t d with t in
+    [0, max_t) (first blocker ends the ray), skipping thin instances as ``trace_closest`` does."""
+    query = wp.bvh_query_ray(inst.bvh, o, d, root)
     item = wp.int32(0)
     while wp.bvh_query_next(query, item, max_t):
-        X = obj_T_ref[item]
+        X = inst.obj_T_ref[item]
         o_obj = wp.transform_point(X, o)
         d_obj = wp.transform_vector(X, d)
-        if thin_skip(thin, obj_lo, obj_hi, item, o_obj, d_obj, max_t):
+        if thin_skip(inst.thin, inst.obj_lo, inst.obj_hi, item, o_obj, d_obj, max_t):
             continue
-        if blas_any(bb, bk, bt, item_root[item], o_obj, d_obj, max_t):
+        if blas_any(inst.blas_bounds, inst.blas_kids, inst.blas_tris, inst.item_root[item], o_obj, d_obj, max_t):
             return True
     return False
 
@@ -239,9 +233,7 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
     queries per ray instead of one per box crossed.
     """
     if inst.use_bvh != 0:
-        return trace_closest(inst.bvh, inst.roots[g], inst.item_root, inst.blas_bounds, inst.blas_kids,
-                             inst.blas_tris, inst.blas_face, inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi,
-                             wp.vec3(0.0), d, max_t)
+        return trace_closest(inst, inst.roots[g], wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
     best_face = wp.int32(-1)
@@ -302,8 +294,7 @@ def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32)
     """``trace_any`` for a ray leaving the camera centre of frame g: the frame's instances near to far,
     first blocker ends the walk (any-hit mesh queries)."""
     if inst.use_bvh != 0:
-        return trace_any(inst.bvh, inst.roots[g], inst.item_root, inst.blas_bounds, inst.blas_kids, inst.blas_tris,
-                         inst.obj_T_ref, inst.thin, inst.obj_lo, inst.obj_hi, wp.vec3(0.0), d, max_t)
+        return trace_any(inst, inst.roots[g], wp.vec3(0.0), d, max_t)
     return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_root, inst.blas_bounds, inst.blas_kids,
                        inst.blas_tris, inst.obj_T_ref, inst.frame_items,
                        inst.frame_start[g], inst.frame_start[g + 1], d, max_t)

@@ -383,9 +383,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                         d = pf / L
                         max_t = L * (1.0 - rel_tol)
                         if inst.use_bvh != 0:
-                            blocked = trace_any(inst.bvh, inst.roots[r], inst.item_root, inst.blas_bounds,
-                                                inst.blas_kids, inst.blas_tris, inst.obj_T_ref, inst.thin,
-                                                inst.obj_lo, inst.obj_hi, wp.vec3(0.0), d, max_t)
+                            blocked = trace_any(inst, inst.roots[r], wp.vec3(0.0), d, max_t)
                         else:
                             # cheapest first: the flat groups without the own item (room walls: three dot
                             # products), then the own item's plane and the ray's inverse direction only when a

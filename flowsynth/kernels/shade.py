@@ -224,9 +224,7 @@ def direct_light(sc: ShadeScene, g: wp.int32, x: wp.vec3, n: wp.vec3, wo: wp.vec
         if ci <= 0.0:
             continue
         if shadows:
-            if trace_any(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root, sc.inst.blas_bounds, sc.inst.blas_kids,
-                         sc.inst.blas_tris, sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo, sc.inst.obj_hi, o, wi,
-                         t_max):
+            if trace_any(sc.inst, sc.inst.roots[g], o, wi, t_max):
                 continue
         L += wp.cw_mul(brdf(n, wi, wo, albedo, spec, rough), E) * ci
     return L
@@ -292,10 +290,7 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
                 break
             beta = beta / q
         o = offset_origin(x, n)
-        item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root,
-                                                 sc.inst.blas_bounds, sc.inst.blas_kids, sc.inst.blas_tris,
-                                                 sc.inst.blas_face, sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo,
-                                                 sc.inst.obj_hi, o, wi, sc.max_t)
+        item, dist, face, bu, bv = trace_closest(sc.inst, sc.inst.roots[g], o, wi, sc.max_t)
         if item < 0:
             L += clamp_indirect(wp.cw_mul(beta, sc.sky))
             break
@@ -441,11 +436,8 @@ def shade_kernel(mode: str, lens: bool = False):
                         item, dist, face, bu, bv = closest_from_camera(sc.inst, g, sc.tiles.start, sc.tiles.items, lst,
                                                                        d, sc.max_t)
                     else:
-                        item, dist, face, bu, bv = trace_closest(sc.inst.bvh, sc.inst.roots[g], sc.inst.item_root,
-                                                                 sc.inst.blas_bounds, sc.inst.blas_kids,
-                                                                 sc.inst.blas_tris, sc.inst.blas_face,
-                                                                 sc.inst.obj_T_ref, sc.inst.thin, sc.inst.obj_lo,
-                                                                 sc.inst.obj_hi, wp.vec3(0.0), d, sc.max_t)
+                        item, dist, face, bu, bv = trace_closest(sc.inst, sc.inst.roots[g], wp.vec3(0.0), d,
+                                                                 sc.max_t)
                     if item >= 0:
                         p_obj = eval_position(sc.inst.blas_tris, sc.inst.blas_slot, sc.inst.item_face0[item], face,
                                               bu, bv)
