@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from flowsynth.errors import AssetError, ConfigError
-from flowsynth.options import OPTION_NAMES, RENDER_MODES, RenderOptions
+from flowsynth.options import OPTION_NAMES, RENDER_MODES, RenderOptions, is_int
 
 __all__ = ["CAMERA_MOTIONS", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig"]
 
@@ -301,13 +301,9 @@ def _set(cfg: BouncingThingsConfig, name: str, value: Any) -> None:
     object.__setattr__(cfg, name, value)
 
 
-def _is_int(v: Any) -> bool:
-    return not isinstance(v, bool) and (isinstance(v, int) or (hasattr(v, "dtype") and v.dtype.kind in "iu"))
-
-
 def _int(cfg, name: str, lo: int, hi: int | None = None) -> int:
     v = getattr(cfg, name)
-    if not _is_int(v):
+    if not is_int(v):
         raise ConfigError(f"{name} must be an integer, got {v!r}")
     v = int(v)
     if v < lo or (hi is not None and v > hi):
@@ -320,7 +316,7 @@ def _int(cfg, name: str, lo: int, hi: int | None = None) -> int:
 def _float(cfg, name: str, value: Any = None, *, lo: float | None = None, hi: float | None = None,
            lo_open: bool = False, hi_open: bool = False) -> float:
     v = getattr(cfg, name) if value is None else value
-    if isinstance(v, bool) or not (isinstance(v, (int, float)) or _is_int(v)):
+    if isinstance(v, bool) or not (isinstance(v, (int, float)) or is_int(v)):
         raise ConfigError(f"{name} must be a number, got {v!r}")
     v = float(v)
     if not math.isfinite(v):
@@ -343,7 +339,7 @@ def _range(cfg, name: str, *, lo: float, lo_open: bool = False, integer: bool = 
     a, b = _tuple(cfg, name, 2)
     if integer:
         for x in (a, b):
-            if not _is_int(x):
+            if not is_int(x):
                 raise ConfigError(f"{name} must be two integers (min, max), got {getattr(cfg, name)!r}")
         a, b = int(a), int(b)
         if a < lo:

@@ -18,7 +18,7 @@ from flowsynth.kernels import RENDER_MODES
 
 __all__ = ["DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FINAL_OPTIONS", "MAX_BOUNCES",
            "OPTION_NAMES", "RENDER_MODES", "TONEMAPS", "TRACK_SAMPLING", "FinalPass", "RenderOptions",
-           "check_flow_gaps"]
+           "check_flow_gaps", "is_int"]
 
 # RGB options: the one definition of their choices, ranges and defaults (the models: docs/rendering.md).
 # RENDER_MODES is defined beside the kernels that implement them.
@@ -32,14 +32,14 @@ TRACK_SAMPLING = ("uniform", "objects", "edges")
 
 # ------------------------------------------------------------------------------------------ the rules
 
-def _is_int(v: Any) -> bool:
+def is_int(v: Any) -> bool:
     """An integer, Python's or numpy's, and not a bool."""
     return not isinstance(v, bool) and (isinstance(v, int) or (hasattr(v, "dtype") and v.dtype.kind in "iu"))
 
 
 def check_int(name: str, v: Any, lo: int, hi: int | None = None) -> int:
     """``v`` as an int in [lo, hi] (hi None: no upper bound); ConfigError naming ``name`` otherwise."""
-    if not _is_int(v) or int(v) < lo or (hi is not None and int(v) > hi):
+    if not is_int(v) or int(v) < lo or (hi is not None and int(v) > hi):
         bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
         raise ConfigError(f"{name} must be an integer {bound}, got {v!r}")
     return int(v)
@@ -47,7 +47,7 @@ def check_int(name: str, v: Any, lo: int, hi: int | None = None) -> int:
 
 def check_number(name: str, v: Any, lo: float | None = None, hi: float | None = None) -> float:
     """``v`` as a finite float in [lo, hi] (None: unbounded on that side); ConfigError naming ``name`` otherwise."""
-    if isinstance(v, bool) or not (isinstance(v, (int, float)) or _is_int(v) or
+    if isinstance(v, bool) or not (isinstance(v, (int, float)) or is_int(v) or
                                    (hasattr(v, "dtype") and v.dtype.kind == "f" and v.ndim == 0)):
         raise ConfigError(f"{name} must be a number, got {v!r}")
     x = float(v)
@@ -79,7 +79,7 @@ def check_flow_gaps(flow_gaps: Any) -> tuple[int, ...]:
     if isinstance(flow_gaps, (str, bytes)) or not hasattr(flow_gaps, "__iter__") or not hasattr(flow_gaps, "__len__"):
         raise ConfigError(f"flow_gaps must be a non-empty sequence of integers >= 1, e.g. (1, 2, 4); got {flow_gaps!r}")
     gaps = tuple(flow_gaps)
-    if not gaps or not all(_is_int(k) and int(k) >= 1 for k in gaps):
+    if not gaps or not all(is_int(k) and int(k) >= 1 for k in gaps):
         raise ConfigError(f"flow_gaps must be a non-empty sequence of integers >= 1, e.g. (1, 2, 4); got {flow_gaps!r}")
     return tuple(dict.fromkeys(int(k) for k in gaps))
 
