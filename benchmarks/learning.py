@@ -119,7 +119,8 @@ def build_net():
     def warp(x, flow):
         """x (B, C, h, w) sampled at pixel + flow (B, 2, h, w) [px of x]; zeros outside."""
         b, _, h, w = x.shape
-        ys, xs = torch.meshgrid(torch.arange(h, dtype=x.dtype), torch.arange(w, dtype=x.dtype), indexing="ij")
+        ys, xs = torch.meshgrid(torch.arange(h, dtype=x.dtype, device=x.device),
+                                torch.arange(w, dtype=x.dtype, device=x.device), indexing="ij")
         gx = (xs + flow[:, 0]) / max(w - 1, 1) * 2 - 1
         gy = (ys + flow[:, 1]) / max(h - 1, 1) * 2 - 1
         return F.grid_sample(x, torch.stack([gx, gy], -1), align_corners=True, padding_mode="zeros")
@@ -167,7 +168,7 @@ def build_net():
                 f1, f2 = feats[k]
                 s = 2 ** (k + 1)  # this level's stride
                 if flow is None:
-                    flow = torch.zeros(f1.shape[0], 2, *f1.shape[-2:], dtype=f1.dtype)
+                    flow = torch.zeros(f1.shape[0], 2, *f1.shape[-2:], dtype=f1.dtype, device=f1.device)
                 else:
                     flow = F.interpolate(flow, size=f1.shape[-2:], mode="bilinear", align_corners=False)
                 with torch.no_grad():  # the fixed matcher: NCC of image patches, no parameters, flow taken as given
@@ -273,10 +274,11 @@ def predict(net, img1, img2):
 
 
 def evaluate(net, test) -> float:
-    """Mean EPE [px] of ``net`` over the valid pixels of ``test`` (img1, img2, flow, valid)."""
+    """Mean EPE [px] of ``net`` over the valid pixels of ``test`` (img1, img2, flow, valid), on the net's device."""
     import torch
 
-    img1, img2, flow, valid = test
+    dev = next(net.parameters()).device
+    img1, img2, flow, valid = (x.to(dev) for x in test)
     with torch.no_grad():
         err = sum(float((torch.linalg.vector_norm(predict(net, img1[i:i + 16], img2[i:i + 16]) - flow[i:i + 16],
                                                   dim=1, keepdim=True) * valid[i:i + 16]).sum())
@@ -295,15 +297,18 @@ def batches(n: int, steps: int, batch: int, g):
         yield torch.randint(n, (batch,), generator=g) if order is None else order[step * batch:(step + 1) * batch]
 
 
-def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, threads: int = 0) -> dict:
+def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, threads: int = 0,
+          device: str = "cpu") -> dict:
     """Train a fresh net (seed) on ``data``; test EPE on every set of ``tests`` at step 0, every ``every`` steps
-    and at the end. ``threads`` > 0 sets torch's thread count (for a training process of its own)."""
+    and at the end. ``threads`` > 0 sets torch's thread count (for a training process of its own). ``device``: where
+    the net trains and tests (the net is initialised on the CPU first, so its start is the same everywhere; the data
+    stay on the CPU and each batch is moved)."""
     import torch
 
     if threads:
         torch.set_num_threads(threads)
     torch.manual_seed(seed)
-    net = build_net()
+    net = build_net().to(device)
     opt = torch.optim.Adam(net.parameters(), lr=LR)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=LR, total_steps=steps, pct_start=0.1)
     img1, img2, flow, valid = data
@@ -311,7 +316,8 @@ def train(data, tests: dict, steps: int, batch: int, seed: int, every: int, thre
     t = time.perf_counter()
     curve = [{"step": 0, "train_loss": None, **with_means({k: evaluate(net, v) for k, v in tests.items()})}]
     for step, idx in enumerate(draws, 1):
-        loss = multiscale_loss(net(img1[idx], img2[idx]), flow[idx], valid[idx])
+        loss = multiscale_loss(net(img1[idx].to(device), img2[idx].to(device)), flow[idx].to(device),
+                               valid[idx].to(device))
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -344,17 +350,27 @@ def epe_means(runs: list, kind: str, arms) -> dict:
 def train_arms(arms: dict, setting: tuple, res: dict, mags: dict, trained: dict) -> None:
     """Train the nets of ``arms`` (name -> data) at once, each in a process of its own; put each arm's curve into
     ``res``, its mean |flow| into ``mags`` and its share of pixels trained on into ``trained``. ``setting``: (tests,
-    steps, batch, seed, every, jobs, threads, multiprocessing context)."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    tests, steps, batch, seed, every, jobs, threads, ctx = setting
-    jobs = max(1, min(jobs, len(arms)))
-    with ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
-        futs = {name: ex.submit(train, data, tests, steps, batch, seed, every, max(1, threads // jobs))
-                for name, data in arms.items()}
-        res.update({name: f.result() for name, f in futs.items()})
+    steps, batch, seed, every, jobs, threads, multiprocessing context, torch device); ``jobs`` 0 trains them one
+    after another in this process."""
+    tests, steps, batch, seed, every, jobs, threads, ctx, device = setting
+    if jobs == 0:  # one after another in this process (no shared memory needed)
+        res.update({name: train(data, tests, steps, batch, seed, every, 0, device) for name, data in arms.items()})
+    else:
+        _train_in_processes(arms, setting, res)
     mags.update({name: mean_flow(d) for name, d in arms.items()})
     trained.update({name: float(d[3].mean()) for name, d in arms.items()})
+
+
+def _train_in_processes(arms: dict, setting: tuple, res: dict) -> None:
+    """train_arms' nets, ``jobs`` at once, each in a spawned process of its own."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    tests, steps, batch, seed, every, jobs, threads, ctx, device = setting
+    jobs = max(1, min(jobs, len(arms)))
+    with ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
+        futs = {name: ex.submit(train, data, tests, steps, batch, seed, every, max(1, threads // jobs), device)
+                for name, data in arms.items()}
+        res.update({name: f.result() for name, f in futs.items()})
 
 
 def final_ratios(runs: list, arm: str = "flowsynth", against: str = "chairs2d") -> dict:
@@ -452,7 +468,10 @@ def main() -> None:
     p.add_argument("--every", type=int, default=400, help="test every this many steps (the learning curve)")
     p.add_argument("--workers", type=int, default=2, help="DataLoader workers generating flowsynth pairs")
     p.add_argument("--threads", type=int, default=2, help="torch threads in all (split between --jobs)")
-    p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of its own")
+    p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of "
+                   "its own; 0: one after another in this process")
+    p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda); the "
+                   "pairs are rendered on the CPU either way")
     p.add_argument("--mask", choices=MASKS, default="valid",
                    help="pixels the loss covers in both training sets: 'valid' (flowsynth's valid_fw, every "
                         "chairs2d pixel) or 'visible' (seen in both frames); a run with 'visible' writes "
@@ -521,7 +540,7 @@ def main() -> None:
             "complete": end_load is not None, "seeds_planned": seeds,
             "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
             "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
-            "render_pass": args.render_pass,
+            "render_pass": args.render_pass, "train_device": args.device,
             "photos": list(PHOTOS), "net": NET, "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
             "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
@@ -552,7 +571,7 @@ def main() -> None:
                                                     ("motorcycle (test)", tests["stereo"]),
                                                     *((k, v) for k, v in tests.items() if k.startswith("mb_"))]}
         res, trained = {}, {}
-        setting = (tests, steps, batch, seed, every, args.jobs, args.threads, ctx)
+        setting = (tests, steps, batch, seed, every, args.jobs, args.threads, ctx, args.device)
         train_arms({"flowsynth": fs_train, "chairs2d": chairs}, setting, res, mags, trained)
         # the next pools are made once these are freed: a stream seed's two arms hold ~10 GB
         del synth, fs_valid, fs_train, sources, chairs
