@@ -165,7 +165,7 @@ class BouncingThingsConfig:
     Read when a scene is sampled, not when the config is made."""
     texture_families: tuple[str, ...] = ("noise", "value", "cells", "stripes", "checks", "blend")
     """Texture families to draw each surface's material from (non-empty; flowsynth.materials.TEXTURE_FAMILIES).
-    "solid" (one flat colour) is drawn only when listed."""
+    "solid" (one flat colour) and "leaves" (dead-leaves discs) are drawn only when listed."""
     # The final pass, output ``rgb_final`` (flowsynth/finalpass.py; models and defaults: docs/rendering.md, Final
     # pass). Only read when rgb_final is requested; the ground truth never depends on them.
     final_shutter: float = _OPT.final_shutter

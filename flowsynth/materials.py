@@ -25,9 +25,9 @@ __all__ = [
     "sample_material",
 ]
 
-TEXTURE_FAMILIES = ("solid", "noise", "value", "cells", "stripes", "checks", "blend", "image")
-# The default families to draw from: every procedural one (image textures need a folder).
-PROCEDURAL_FAMILIES = TEXTURE_FAMILIES[:-1]
+TEXTURE_FAMILIES = ("solid", "noise", "value", "cells", "stripes", "checks", "blend", "image", "leaves")
+# The default families to draw from (image textures need a folder; "leaves", dead-leaves discs, is drawn when named).
+PROCEDURAL_FAMILIES = ("solid", "noise", "value", "cells", "stripes", "checks", "blend")
 # Fallback roughness / specular weight for material dicts that leave them out.
 DEFAULT_ROUGHNESS = 0.5
 DEFAULT_SPECULAR = 0.0
@@ -64,8 +64,8 @@ def sample_material(rng: np.random.Generator, texture_families=PROCEDURAL_FAMILI
             relative to it (1-12 cycles per object).
         pixel_size: the width [m] one pixel covers on the surface at its expected viewing distance
             (distance / focal length in px). When given, pattern frequencies are set in screen terms: fractal
-            layers (noise, value, cells) span ``texture_px`` over several octaves (largest features 60-100% of
-            ``texture_px[1]``, octaves down to ``texture_px[0]``), stripes and checks have periods
+            layers (noise, value, cells, leaves) span ``texture_px`` over several octaves (largest features
+            60-100% of ``texture_px[1]``, octaves down to ``texture_px[0]``), stripes and checks have periods
             log-uniform in [max(4 texture_px[0], 8), texture_px[1] / 2] px, every procedural layer but
             "solid" gets a fine grain (amplitude 0.25-0.5, periods 4-8 ``texture_px[0]`` and two octaves
             finer), an image shows 0.7-1.4 px per texel (tiled, not stretched) and a blend's mask has
@@ -102,7 +102,8 @@ def _sample_layer(rng: np.random.Generator, family: str, files: list, size: floa
     if family == "image":
         layer["image"] = str(files[int(rng.integers(0, len(files)))])
     if px is None:
-        cycles = {"noise": (1.0, 4.0), "value": (2.0, 8.0), "cells": (3.0, 12.0), "stripes": (2.0, 10.0),
+        cycles = {"noise": (1.0, 4.0), "value": (2.0, 8.0), "cells": (3.0, 12.0), "leaves": (1.0, 4.0),
+                  "stripes": (2.0, 10.0),
                   "checks": (2.0, 8.0), "image": (0.5, 2.0), "solid": (1.0, 1.0)}[family]
         layer["scale"] = float(rng.uniform(*cycles) / size)
         return layer
@@ -110,7 +111,7 @@ def _sample_layer(rng: np.random.Generator, family: str, files: list, size: floa
     if family not in ("image", "solid"):  # fine grain: 3 octaves of value noise from 2-4 texture_px[0] down
         layer["grain"] = float(rng.uniform(0.25, 0.5))
         layer["grain_scale"] = 1.0 / (rng.uniform(4.0, 8.0) * lo * metres)
-    if family in ("noise", "value", "cells"):
+    if family in ("noise", "value", "cells", "leaves"):
         largest = hi * rng.uniform(0.6, 1.0)  # [px]
         layer["octaves"] = int(np.clip(math.floor(math.log2(largest / lo)) + 1, 1, MAX_OCTAVES))
         layer["gain"] = float(rng.uniform(0.7, 0.9))
@@ -188,7 +189,8 @@ def _resolve_layer(layer: dict, seed: int, size: float, where: str) -> dict:
         raise ConfigError(f"material {where or 'layer '}must be a dict with keys {sorted(_LAYER_KEYS)}")
     family = layer.get("texture", "noise")
     if family not in TEXTURE_FAMILIES or family == "blend":
-        raise ConfigError(f"material {where}texture must be one of {TEXTURE_FAMILIES[:-2] + ('image',)}"
+        layers = tuple(f for f in TEXTURE_FAMILIES if f != "blend")
+        raise ConfigError(f"material {where}texture must be one of {layers}"
                           f"{' or blend' if not where else ''}, got {family!r}")
     colors = np.asarray(layer.get("colors", [[0.8, 0.8, 0.8], [0.2, 0.2, 0.2]]), np.float64)
     if colors.shape in ((3,), (1, 3)):

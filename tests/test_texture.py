@@ -245,6 +245,65 @@ def test_cells_match_a_brute_force_worley_reference():
     assert agree.mean() > 0.995
 
 
+def _dead_leaves(q: np.ndarray, seed: int, octaves: int) -> np.ndarray:
+    """Brute-force dead leaves (the docstring of flowsynth.kernels.texture.dead_leaves), float64: per size k
+    (cells of 2^-k cycles), the disc of each of the 3x3 cells around the point; the covering disc of greatest
+    depth gives the value; a point no disc covers gets its Worley cell's value (seed + 104729)."""
+    unit = lambda h: (h >> np.uint32(8)).astype(np.float64) / 16777216.0
+    best = np.full(q.shape[:-1], -1.0)
+    value = np.zeros(q.shape[:-1])
+    for k in range(octaves):
+        p = q * 2.0 ** k
+        f = np.floor(p)
+        s = seed + 7919 * k
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                cx, cy = f[..., 0] + dx, f[..., 1] + dy
+                px, py = cx + unit(_hash3(cx, cy, s)), cy + unit(_hash3(cx, cy, s + 1))
+                r = 0.35 + 0.4 * unit(_hash3(cx, cy, s + 2))
+                depth = unit(_hash3(cx, cy, s + 3))
+                on_top = ((p[..., 0] - px) ** 2 + (p[..., 1] - py) ** 2 < r * r) & (depth > best)
+                best = np.where(on_top, depth, best)
+                value = np.where(on_top, unit(_hash3(cx, cy, s + 4)), value)
+    return np.where(best < 0, _worley(q, seed + 104729), value)
+
+
+def test_dead_leaves_match_a_brute_force_reference():
+    """Three sizes of "leaves" on a plane facing the camera, the finest cell (1/6 m) ~4.6 px, so no size is
+    left out: flat mode under a white ambient light renders the value itself. The numpy oracle agrees except
+    where a pixel centre lies within float32 rounding of a disc or cell border; most pixels are on a disc, some
+    on the Worley ground, and many distinct leaves show."""
+    W, H, seed, scale = 128, 96, 777, 1.5
+    mat = {"texture": "leaves", "octaves": 3, "scale": scale, "seed": seed, "colors": [[0.0] * 3, [1.0] * 3],
+           "specular": 0.0}
+    scene, P = tilted_plane(W, H, mat, tilt_deg=0.0)
+    got = to_linear(fs.render(scene, ["rgb"], render_mode="flat")["rgb"])[0]
+    q = pixel_centre_points(scene, P) * scale
+    ref = _dead_leaves(q, seed, 3)
+    ground = _dead_leaves(q, seed, 0)  # no discs at all: the Worley ground everywhere
+    agree = np.abs(got - ref) < 1e-4
+    print(f"leaves: {agree.mean():.4f} of pixels agree, {len(np.unique(np.round(ref, 6)))} distinct values, "
+          f"{(ref == ground).mean():.3f} on the ground")
+    assert len(np.unique(np.round(ref, 6))) > 60 and 0.0 < (ref == ground).mean() < 0.5
+    assert agree.mean() > 0.995
+
+
+def test_leaves_is_drawn_only_when_named():
+    """"leaves" is a texture family a config may name; the families drawn by default are unchanged (so every
+    default sample keeps its bits: benchmarks/hashes.py)."""
+    from flowsynth.materials import PROCEDURAL_FAMILIES, TEXTURE_FAMILIES, sample_material
+
+    assert "leaves" in TEXTURE_FAMILIES and "leaves" not in PROCEDURAL_FAMILIES
+    assert PROCEDURAL_FAMILIES == ("solid", "noise", "value", "cells", "stripes", "checks", "blend")
+    drawn = {sample_material(np.random.default_rng(i), ("leaves", "noise"))["texture"] for i in range(20)}
+    assert drawn == {"leaves", "noise"}
+    cfg = BouncingThingsConfig(width=64, height=48, num_frames=1, motion="static", texture_families=("leaves",))
+    walls = [o for o in sample_scene(cfg, 0, 1).objects if o.background]
+    assert all(o.material["texture"] == "leaves" for o in walls)
+    with pytest.raises(fs.ConfigError, match="leaves"):
+        BouncingThingsConfig(texture_families=("leaf",))
+
+
 def _blend_mask(q: np.ndarray, seed: int, scale: float) -> np.ndarray:
     """The blend mask w = smoothstep(0.4, 0.6, 3-octave noise) at object-plane points q (..., 2) [m], evaluated
     by a kernel of this test from ``fractal`` itself (every octave fully present), not through planar_color."""

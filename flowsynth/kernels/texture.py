@@ -31,7 +31,7 @@ import warp as wp
 __all__ = ["FAMILIES", "FAMILY_NONE", "Layer", "Material", "base_color", "layer_trig_kernel"]
 
 # Texture families, by kernel code. "blend" is not a code: it is a material with two layers.
-FAMILIES = {"solid": 0, "noise": 1, "value": 2, "cells": 3, "stripes": 4, "checks": 5, "image": 6}
+FAMILIES = {"solid": 0, "noise": 1, "value": 2, "cells": 3, "stripes": 4, "checks": 5, "image": 6, "leaves": 7}
 FAMILY_NONE = -1
 F_SOLID = wp.constant(0)
 F_NOISE = wp.constant(1)
@@ -40,6 +40,7 @@ F_CELLS = wp.constant(3)
 F_STRIPES = wp.constant(4)
 F_CHECKS = wp.constant(5)
 F_IMAGE = wp.constant(6)
+F_LEAVES = wp.constant(7)
 
 
 
@@ -83,6 +84,9 @@ TRIPLANAR_MIN_WEIGHT = wp.constant(1.0e-3)
 # Octave fading: an octave whose period spans >= FADE_HI pixel footprints is fully present, < FADE_LO absent.
 FADE_LO = wp.constant(2.0)
 FADE_HI = wp.constant(4.0)
+# Dead leaves: disc radii as a fraction of their lattice cell (a disc reaches at most one cell beyond its own).
+LEAF_RADIUS_LO = wp.constant(0.35)
+LEAF_RADIUS_HI = wp.constant(0.75)
 # Box filters narrower than this [cycles] are point samples (avoids 0/0).
 MIN_FILTER = wp.constant(1.0e-6)
 
@@ -180,6 +184,41 @@ def fractal(q: wp.vec2, seed: wp.int32, octaves: wp.int32, fam: wp.int32, gain: 
 
 
 @wp.func
+def dead_leaves(q: wp.vec2, seed: wp.int32, octaves: wp.int32, fw: wp.float32) -> wp.float32:
+    """Dead leaves, the occlusion model of natural images (Matheron; Lee, Mumford and Huang 2001): discs of
+    ``octaves`` sizes, the cells of size k halving from 1 cycle, one disc per lattice cell of each size (centre
+    anywhere in the cell, radius LEAF_RADIUS_LO-LEAF_RADIUS_HI of the cell), each with a random depth. q [cycles]
+    takes the value in [0, 1) of the uppermost disc covering it, or, where none does, of its Worley cell of the
+    largest size. Sizes whose cell spans fewer than FADE_LO footprints ``fw`` [cycles] are left out: those leaves
+    fall below the pixel grid, and the leaves under them show."""
+    best = wp.float32(-1.0)
+    val = wp.float32(0.0)
+    freq = wp.float32(1.0)
+    for o in range(wp.max(octaves, 1)):
+        if 1.0 / freq >= FADE_LO * fw:
+            p = q * freq
+            fx = wp.floor(p[0])
+            fy = wp.floor(p[1])
+            ix = wp.int32(fx)
+            iy = wp.int32(fy)
+            s = seed + 7919 * o
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    cx = fx + wp.float32(dx) + unit(hash3(ix + dx, iy + dy, s))
+                    cy = fy + wp.float32(dy) + unit(hash3(ix + dx, iy + dy, s + 1))
+                    r = LEAF_RADIUS_LO + (LEAF_RADIUS_HI - LEAF_RADIUS_LO) * unit(hash3(ix + dx, iy + dy, s + 2))
+                    if (p[0] - cx) * (p[0] - cx) + (p[1] - cy) * (p[1] - cy) < r * r:
+                        depth = unit(hash3(ix + dx, iy + dy, s + 3))
+                        if depth > best:
+                            best = depth
+                            val = unit(hash3(ix + dx, iy + dy, s + 4))
+        freq *= 2.0
+    if best < 0.0:
+        val = cells(q, seed + 104729)
+    return val
+
+
+@wp.func
 def stripe_integral(x: wp.float32) -> wp.float32:
     """Integral from 0 to x of the square wave that is 1 where frac(x) >= 1/2, else 0."""
     fx = wp.floor(x)
@@ -256,6 +295,8 @@ def layer_color(lay: Layer, img_data: wp.array[wp.vec3], img_info: wp.array2d[wp
         a = box_stripes(0.5 * r[0], 0.5 * fc)
         b = box_stripes(0.5 * r[1], 0.5 * fc)
         v = a + b - 2.0 * a * b
+    elif fam == F_LEAVES:
+        v = dead_leaves(r, seed, lay.octaves, fc)
     else:
         v = fractal(r, seed, lay.octaves, fam, lay.gain, fc)
     col = wp.lerp(ca, cb, v)
