@@ -13,7 +13,7 @@ from collections import OrderedDict
 import numpy as np
 import trimesh
 
-from flowsynth.blas import atlas
+from flowsynth.blas import atlas, corner_normals
 from flowsynth.caches import register
 from flowsynth.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
 from flowsynth.errors import ConfigError
@@ -103,7 +103,9 @@ class SceneAccel:
         self.roots = roots
         distinct = {id(m): m for m in meshes}  # instances sharing a mesh share its tree
         slot = {k: i for i, k in enumerate(distinct)}
-        self.blas = atlas(list(distinct.values()), device)
+        self._distinct = list(distinct.values())
+        self.blas = atlas(self._distinct, device)
+        self._corners = None
         which = [slot[id(m)] for m in meshes]
         self.item_root = wp.array(np.tile(self.blas["roots"][which], F), dtype=wp.int32, device=device)
         self.item_face0 = wp.array(np.tile(self.blas["face0"][which], F), dtype=wp.int32, device=device)
@@ -135,6 +137,17 @@ class SceneAccel:
         inst.blas_bounds, inst.blas_kids = self.blas["bounds"], self.blas["kids"]
         inst.blas_tris, inst.blas_face, inst.blas_slot = self.blas["tris"], self.blas["face"], self.blas["slot"]
         return inst
+
+    def corner_normals(self):
+        """Smooth shading's corner normals of every face of the atlas (``flowsynth.blas.corner_normals``): a vec3
+        Warp array, the normal of corner k of face ``face`` of an item at ``3 * (item_face0 + face) + k``; built once
+        per accel."""
+        if self._corners is None:
+            wp = wp_runtime()
+            n = [corner_normals(m).reshape(-1, 3) for m in self._distinct]
+            self._corners = wp.array(np.concatenate(n) if n else np.zeros((1, 3), np.float32), dtype=wp.vec3,
+                                     device=self.device)
+        return self._corners
 
     def culling(self, threads: int | None = None):
         """The visibility rays' exact culling data: a ``Culling`` struct (flowsynth.kernels.raycast), built once per

@@ -274,3 +274,55 @@ def atlas(meshes: list, device: str = "cpu") -> dict:
     if n_nodes:
         wp.launch(refit_kernel, dim=1, inputs=[out["kids"], out["tris"]], outputs=[out["bounds"]], device=device)
     return out
+
+
+SMOOTH_CREASE_DEG = 60.0
+"""Corner normals (smooth shading) average the faces around a vertex whose normals are within this angle [deg] of
+the corner's own face: a box's 90-degree edges stay sharp, a sphere or a cylinder's side of 8 or more segments
+shades round."""
+_CORNERS: weakref.WeakKeyDictionary = register("blas.corner_normals_of_mesh", weakref.WeakKeyDictionary())
+
+
+def corner_normals(mesh, crease_deg: float = SMOOTH_CREASE_DEG) -> np.ndarray:
+    """(F, 3, 3) float32 unit normal at each corner k of each face f of ``mesh`` (the corner at vertex
+    ``faces[f, k]``): the area-weighted mean of the normals of the faces that share the corner's position (vertices
+    at one position count as one, so a mesh split at seams still shades smooth) and lie within ``crease_deg`` of
+    face f's normal. A face of zero area joins no mean; its corners get the mean of nothing near, (0, 0, 1).
+    Remembered per mesh object, as ``_topology_of`` does."""
+    try:
+        got = _CORNERS.get(mesh)
+    except TypeError:
+        got, mesh_key = None, None
+    else:
+        mesh_key = mesh
+    if got is not None:
+        return got
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces, np.int64).reshape(-1, 3)
+    F = len(f)
+    _, pos = np.unique(np.round(v, 9), axis=0, return_inverse=True)  # one id per position
+    pos = pos.reshape(-1)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # twice the area times the unit normal
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    unit = np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
+    corner_pos = pos[f].reshape(-1)  # (3F,) the position id of every corner
+    face_of = np.repeat(np.arange(F), 3)
+    order = np.argsort(corner_pos, kind="stable")
+    sorted_pos = corner_pos[order]
+    start = np.searchsorted(sorted_pos, sorted_pos, "left")  # each sorted corner's group start
+    count = np.bincount(corner_pos)[sorted_pos]
+    acc = np.zeros((3 * F, 3))
+    cos_crease = np.cos(np.radians(crease_deg))
+    for d in range(int(count.max(initial=0))):  # the d-th corner of each corner's group
+        ok = d < count
+        ci, cj = order[ok], order[start[ok] + d]
+        fi, fj = face_of[ci], face_of[cj]
+        near = np.einsum("ij,ij->i", unit[fi], unit[fj]) >= cos_crease
+        acc[ci[near]] += fn[fj[near]]  # each corner appears once per d: no repeated index
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    out = np.where(norm > 0, acc / np.where(norm > 0, norm, 1.0), np.repeat(unit, 3, axis=0))
+    out[np.linalg.norm(out, axis=1) == 0] = (0.0, 0.0, 1.0)
+    out = out.reshape(F, 3, 3).astype(np.float32)
+    if mesh_key is not None:
+        _CORNERS[freeze(mesh_key)] = out
+    return out

@@ -155,6 +155,9 @@ class BouncingThingsConfig:
     stereo_baseline: float = _OPT.stereo_baseline
     """Distance of a rectified right camera along the left camera's +x [m], >= 0; 0 = no right camera.
     Needed (> 0) for rgb_right, depth_right, disparity* (flowsynth/stereo.py)."""
+    smooth_shading: bool = _OPT.smooth_shading
+    """Shade curved meshes with interpolated corner normals instead of flat faces (RenderOptions.smooth_shading);
+    off by default."""
     texture_px: tuple[float, float] = (2.0, 64.0)
     """(min, max) size on screen [px] of texture features at each surface's expected viewing distance: fractal
     patterns span the range over several octaves, stripes/checks and image texels fall inside it. Larger values

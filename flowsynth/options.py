@@ -13,6 +13,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import RENDER_MODES
 
@@ -66,6 +68,13 @@ def check_tuple(name: str, v: Any, n: int, lo: float, hi: float | None = None) -
     if n == 2 and out[0] > out[1]:
         raise ConfigError(f"{name}: min {out[0]} > max {out[1]}; pass (min, max) with min <= max")
     return out
+
+
+def check_bool(name: str, v: Any) -> bool:
+    """``v`` as a bool; ConfigError naming ``name`` unless it is True or False (numpy's included)."""
+    if not isinstance(v, (bool, np.bool_)):
+        raise ConfigError(f"{name} must be True or False, got {v!r}")
+    return bool(v)
 
 
 def check_choice(name: str, v: Any, options: tuple[str, ...]) -> str:
@@ -189,6 +198,10 @@ class RenderOptions:
     """Where track query points are drawn: "uniform", "objects" or "edges" (flowsynth/tracks.py)."""
     stereo_baseline: float = 0.0
     """Distance of the rectified right camera along the left camera's +x [m], finite and >= 0; 0 = none."""
+    smooth_shading: bool = False
+    """Shade with normals interpolated from the mesh's corner normals (smoothed across edges under
+    SMOOTH_CREASE_DEG), so a tessellated sphere shades round; False: flat face normals. Textures, the ``normals``
+    output and all geometry stay on the faces (docs/rendering.md, Shading normals)."""
     final_shutter: float = _FP.shutter
     """Final pass (FinalPass.shutter)."""
     final_time_samples: int = _FP.time_samples
@@ -229,6 +242,7 @@ class RenderOptions:
         set_(self, "num_tracks", check_int("num_tracks", self.num_tracks, 1))
         set_(self, "track_sampling", check_choice("track_sampling", self.track_sampling, TRACK_SAMPLING))
         set_(self, "stereo_baseline", check_number("stereo_baseline", self.stereo_baseline, 0.0))
+        set_(self, "smooth_shading", check_bool("smooth_shading", self.smooth_shading))
         fp = FinalPass.from_options({name: getattr(self, name) for name in FINAL_OPTIONS})  # FinalPass's rules
         for name in FINAL_OPTIONS:
             set_(self, name, getattr(fp, name.removeprefix("final_")))

@@ -152,6 +152,8 @@ def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
     # (sample offsets stay within a pixel of the tile, as the lists allow) instead of the top-level BVH.
     sc.use_tiles = int(shutter == 0 and CAMERA_RAY_TILES)
     sc.tiles = accel.tile_lists(scene.camera) if sc.use_tiles else TileLists()
+    sc.smooth = int(bool(plan.smooth_shading))
+    sc.corner_n = accel.corner_normals() if sc.smooth else wp.zeros(1, dtype=wp.vec3, device=device)
     mats, img_data, img_info = pack_materials(scene)
     sc.mats = wp.array(mats, dtype=Material, device=device)
     wp.launch(layer_trig_kernel, len(mats), [sc.mats], device=device)

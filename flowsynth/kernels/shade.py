@@ -80,6 +80,8 @@ class ShadeScene:
     pix_angle: wp.float32
     tiles: TileLists  # the G-buffer cast's per-tile candidate lists (when use_tiles)
     use_tiles: wp.int32  # 1: camera rays walk ``tiles`` near to far (no motion blur: group g is frame g)
+    smooth: wp.int32  # 1: shading normals interpolated from ``corner_n`` (smooth shading); 0: face normals
+    corner_n: wp.array[wp.vec3]  # corner normals, 3 per atlas face (SceneAccel.corner_normals; a dummy when off)
 
 
 @wp.struct
@@ -194,10 +196,41 @@ def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: w
     cos = wp.dot(n, d)
     if cos > 0.0:
         n = -n
+    if sc.smooth != 0:  # the corner normals at the hit's barycentric coordinates, on the face's side facing d
+        n = smooth_normal(sc, item, face, a, b, c, p_obj, n)
     inst = item % sc.inst.n_inst
     fw = spread / wp.sqrt(wp.max(wp.abs(cos), MIN_FOOTPRINT_COS))
     albedo = base_color(sc.mats, sc.img_data, sc.img_info, inst, p_obj, n_obj, fw)
     return n, albedo, sc.mats[inst].specular, sc.mats[inst].roughness
+
+
+@wp.func
+def smooth_normal(sc: ShadeScene, item: wp.int32, face: wp.int32, a: wp.vec3, b: wp.vec3, c: wp.vec3, p: wp.vec3,
+                  n_face: wp.vec3):
+    """Smooth shading: the corner normals of ``face`` blended at object-frame point p's barycentric coordinates
+    (u a + v b + (1 - u - v) c = p, as ``eval_position``), in the camera frame, flipped to the side of ``n_face``
+    (the face normal facing the ray). Falls back to ``n_face`` on a degenerate face."""
+    e0 = a - c
+    e1 = b - c
+    r = p - c
+    d00 = wp.dot(e0, e0)
+    d01 = wp.dot(e0, e1)
+    d11 = wp.dot(e1, e1)
+    det = d00 * d11 - d01 * d01
+    if det <= 0.0:
+        return n_face
+    d20 = wp.dot(r, e0)
+    d21 = wp.dot(r, e1)
+    u = (d11 * d20 - d01 * d21) / det
+    v = (d00 * d21 - d01 * d20) / det
+    k = 3 * (sc.inst.item_face0[item] + face)
+    m = u * sc.corner_n[k] + v * sc.corner_n[k + 1] + (1.0 - u - v) * sc.corner_n[k + 2]
+    if wp.length(m) <= 1.0e-12:
+        return n_face
+    ns = wp.normalize(wp.transform_vector(sc.inst.ref_T_obj[item], m))
+    if wp.dot(ns, n_face) < 0.0:
+        ns = -ns
+    return ns
 
 
 @wp.func
