@@ -374,7 +374,10 @@ def _train_in_processes(arms: dict, setting: tuple, res: dict) -> None:
 
 
 def final_ratios(runs: list, arm: str = "flowsynth", against: str = "chairs2d") -> dict:
-    """Per test, each seed's ``arm`` / ``against`` test EPE at the end of training."""
+    """Per test, each seed's ``arm`` / ``against`` test EPE at the end of training ({} when a run lacks either arm,
+    as a ``--screen`` run does)."""
+    if not all(arm in r["results"] and against in r["results"] for r in runs):
+        return {}
     return {kind: [r["results"][arm]["curve"][-1][kind] / r["results"][against]["curve"][-1][kind] for r in runs]
             for kind in test_keys(runs)}
 
@@ -504,6 +507,10 @@ def main() -> None:
                         "one of the two); the baseline keeps clean flowsynth frames as textures; use with --tag")
     p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm (default flowsynth)")
     p.add_argument("--against", default="chairs2d", help="--summarize: the denominator arm (default chairs2d)")
+    p.add_argument("--screen", action="store_true",
+                   help="a lever's screen: train the flowsynth arm alone (no 2D baseline: its pairs are neither "
+                   "rendered nor trained), to compare with the default's net of the same seed (rule 3 of "
+                   "docs/decisions/0019)")
     p.add_argument("--summarize", action="store_true",
                    help="train nothing: pool the seeds of every results/learning*.json of --mask and test the ratios")
     args = p.parse_args()
@@ -526,7 +533,10 @@ def main() -> None:
     every = min(args.every, steps)
     load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     rows, runs = [], []
-    names = ("flowsynth", "chairs2d") + (("flowsynth_photos", "chairs2d_photos") if args.photo_arms else ())
+    if args.screen and args.photo_arms:
+        p.error("--screen trains the flowsynth arm alone: leave out --photo-arms")
+    names = ("flowsynth",) if args.screen else (
+        ("flowsynth", "chairs2d") + (("flowsynth_photos", "chairs2d_photos") if args.photo_arms else ()))
     middlebury = middlebury_pairs(args.middlebury)
     ctx = tmp.get_context("spawn")
     cfg = None
@@ -540,7 +550,7 @@ def main() -> None:
             "complete": end_load is not None, "seeds_planned": seeds,
             "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
             "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
-            "render_pass": args.render_pass, "train_device": args.device,
+            "render_pass": args.render_pass, "train_device": args.device, "screen": args.screen,
             "photos": list(PHOTOS), "net": NET, "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
             "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
@@ -556,14 +566,18 @@ def main() -> None:
             p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8] or motion=\"kinematic\"")
     for seed in seeds:
         t = time.perf_counter()
-        synth, cfg = flowsynth_pairs(pool + pool // 2, seed, args.workers, args.flow_px, overrides, args.render_pass)
+        synth, cfg = flowsynth_pairs(pool + (0 if args.screen else pool // 2), seed, args.workers, args.flow_px,
+                                     overrides, args.render_pass)
         gen_s = time.perf_counter() - t
         fs_valid = tuple(x[:pool] for x in synth[:4])
         fs_train = fs_valid if args.mask == "valid" else tuple(x[:pool] for x in synth[:3] + synth[4:5])
-        sources = synth[5][pool:]  # textures from (clean) flowsynth frames not trained on
-        pilot = chairs2d_pairs(64, seed + 1, sources)
-        motion_scale = mean_flow(fs_valid) / mean_flow(pilot)  # same mean |flow| as the flowsynth pool
-        chairs = chairs2d_pairs(pool, seed, sources, motion_scale, visible=args.mask == "visible")
+        arms, motion_scale = {"flowsynth": fs_train}, None
+        if not args.screen:
+            sources = synth[5][pool:]  # textures from (clean) flowsynth frames not trained on
+            pilot = chairs2d_pairs(64, seed + 1, sources)
+            motion_scale = mean_flow(fs_valid) / mean_flow(pilot)  # same mean |flow| as the flowsynth pool
+            arms["chairs2d"] = chairs2d_pairs(pool, seed, sources, motion_scale, visible=args.mask == "visible")
+            del sources
         tests = test_sets(n_test, seed, middlebury)
         zero = {k: float((torch.linalg.vector_norm(v[2], dim=1, keepdim=True) * v[3]).sum() / v[3].sum())
                 for k, v in tests.items()}
@@ -572,9 +586,9 @@ def main() -> None:
                                                     *((k, v) for k, v in tests.items() if k.startswith("mb_"))]}
         res, trained = {}, {}
         setting = (tests, steps, batch, seed, every, args.jobs, args.threads, ctx, args.device)
-        train_arms({"flowsynth": fs_train, "chairs2d": chairs}, setting, res, mags, trained)
+        train_arms(arms, setting, res, mags, trained)
         # the next pools are made once these are freed: a stream seed's two arms hold ~10 GB
-        del synth, fs_valid, fs_train, sources, chairs
+        del synth, fs_valid, fs_train, arms
         if args.photo_arms:  # the same pool sizes, motion scale and loss mask as the two arms above
             synth_p, _ = flowsynth_pairs(pool, seed, args.workers, args.flow_px, {
                 **overrides, "texture_dir": str(photo_folder()),
@@ -593,7 +607,9 @@ def main() -> None:
         for kind in test_keys(runs[-1:]):
             row = {"seed": seed, "test": kind, "zero-flow": with_means(zero)[kind],
                    "untrained": res["flowsynth"]["curve"][0][kind]}
-            for c_fs, c_ch in zip(res["flowsynth"]["curve"][1:], res["chairs2d"]["curve"][1:]):
+            if args.screen:
+                row.update({f"fs @{c['step']}": f"{c[kind]:.3f}" for c in res["flowsynth"]["curve"][1:]})
+            for c_fs, c_ch in zip(res["flowsynth"]["curve"][1:], res.get("chairs2d", {"curve": []})["curve"][1:]):
                 row[f"fs/chairs @{c_fs['step']}"] = (f"{c_fs[kind]:.3f}/{c_ch[kind]:.3f} = "
                                                      f"{c_fs[kind] / c_ch[kind]:.3f}")
             rows.append(row)
@@ -605,7 +621,7 @@ def main() -> None:
           f"{end_load}")
     print_table(rows, list(rows[0]))
     ratios = final_ratios(runs)
-    for kind in (k for k in JUDGES if k in ratios):  # issue 38: a useful net beats zero flow and its start
+    for kind in (k for k in JUDGES if k in test_keys(runs)):  # issue 38: a useful net beats zero flow and its start
         for name in names:
             end = [r["results"][name]["curve"][-1][kind] for r in runs]
             beats = sum(e < min(with_means(r["zero_flow_epe"])[kind], r["results"][name]["curve"][0][kind])

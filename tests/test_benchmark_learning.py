@@ -125,3 +125,16 @@ def test_with_means_and_same_protocol():
     assert not learning.same_protocol(base, dict(base, flowsynth_config={"width": 128, "rest_fraction": 0.1}))
     assert not learning.same_protocol(base, dict(base, steps=2))
     assert not learning.same_protocol(base, dict(base, flowsynth_config={"width": 96}))
+
+
+def test_final_ratios_need_both_arms_and_screen_excludes_photo_arms(monkeypatch):
+    """A ``--screen`` run has the flowsynth arm alone: no ratio to the baseline is made up for it; and a screen
+    with photo arms is a usage error (exit 2)."""
+    end = lambda epe: {"curve": [{"step": 0, "stereo": 2.0}, {"step": 10, "stereo": epe}]}
+    both = [{"results": {"flowsynth": end(1.5), "chairs2d": end(2.0)}}]
+    assert learning.final_ratios(both) == {"stereo": [0.75]}
+    assert learning.final_ratios([{"results": {"flowsynth": end(1.5)}}]) == {}
+    monkeypatch.setattr(sys, "argv", ["learning.py", "--screen", "--photo-arms", "--quick"])
+    with pytest.raises(SystemExit) as e:
+        learning.main()
+    assert e.value.code == 2
