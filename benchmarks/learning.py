@@ -206,7 +206,7 @@ def multiscale_loss(preds, flow, valid):
 
 # -- data ---------------------------------------------------------------------------------------------------
 def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float] | None = None,
-                    overrides: dict | None = None, render_pass: str = "clean"):
+                    overrides: dict | None = None, render_pass: str = "clean", mixture: dict | None = None):
     """n flowsynth pairs: (img1, img2, flow, valid, visible, clean1) tensors (n, C, H, W), and the config used.
     ``valid`` is ``valid_fw`` (occluded and out-of-frame pixels included), ``visible`` is ``valid_fw & ~occ_fw``
     (as ``FlowPairs(mask="visible")``); a net trains on (img1, img2, flow, one of the two). ``flow_px``: another
@@ -214,17 +214,26 @@ def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float
     ``overrides``: other config fields of a candidate default (``--set``), resolution-free ones only.
     ``render_pass`` (PASSES): the frames are ``rgb`` ("clean"), ``rgb_final`` ("final"), or per pair one of the two
     with equal chance ("mix", drawn from ``seed``); ``clean1`` is always the clean first frame (the baseline's
-    textures)."""
+    textures). ``mixture`` (preset name -> weight): the pairs come from ``fs.datasets.Mixture`` of those presets
+    (each with ``overrides``, scaled as above; ``flow_px`` overrides each preset's own), and the config returned is
+    the first preset's."""
     import torch
     from torch.utils.data import DataLoader
 
     import flowsynth as fs
 
-    base = fs.BouncingThingsConfig.from_dict(overrides or {})
-    cfg = dataclasses.replace(base, width=W, height=H, num_frames=2,
-                              flow_px=tuple(x / SCALE for x in (flow_px or base.flow_px)))
+    def scaled(base):
+        return dataclasses.replace(base, width=W, height=H, num_frames=2,
+                                   flow_px=tuple(x / SCALE for x in (flow_px or base.flow_px)))
+
     outputs = ["rgb", "flow_fw", "valid_fw", "occ_fw"] + (["rgb_final"] if render_pass != "clean" else [])
-    ds = fs.datasets.BouncingThings(cfg, outputs=outputs, seed=seed, length=n)
+    if mixture:
+        configs = {name: scaled(fs.BouncingThingsConfig.preset(name, **(overrides or {}))) for name in mixture}
+        ds = fs.datasets.Mixture(configs, dict(mixture), outputs=outputs, seed=seed, length=n)
+        cfg = next(iter(configs.values()))
+    else:
+        cfg = scaled(fs.BouncingThingsConfig.from_dict(overrides or {}))
+        ds = fs.datasets.BouncingThings(cfg, outputs=outputs, seed=seed, length=n)
     batches = list(DataLoader(ds, batch_size=16, num_workers=workers))
     rgb = torch.cat([b["rgb"] for b in batches])
     frames = rgb
@@ -382,9 +391,10 @@ def final_ratios(runs: list, arm: str = "flowsynth", against: str = "chairs2d") 
             for kind in test_keys(runs)}
 
 
-PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "net", "flowsynth_config", "render_pass")
+PROTOCOL = ("steps", "batch", "pool", "resolution", "test_pairs", "photos", "net", "flowsynth_config", "render_pass",
+            "mixture")
 # what a file written before a PROTOCOL field existed ran under
-PROTOCOL_BEFORE = {"net": "random-v1", "render_pass": "clean"}
+PROTOCOL_BEFORE = {"net": "random-v1", "render_pass": "clean", "mixture": None}
 
 
 def same_protocol(a: dict, b: dict) -> bool:
@@ -463,6 +473,19 @@ def summarize(mask: str, pattern: str = "learning*.json", arm: str = "flowsynth"
     return {"mask": mask, "files": used, "library": library, "seeds": seeds, "protocol": protocol, "tests": out}
 
 
+def _mixture(text: str) -> dict:
+    """``--mixture``'s PRESET=WEIGHT,... as a dict (argparse type: a bad one is a usage error)."""
+    from flowsynth.config import PRESETS
+
+    out = {}
+    for item in text.split(","):
+        name, _, w = item.partition("=")
+        if name not in PRESETS or not w:
+            raise argparse.ArgumentTypeError(f"{item!r}: give PRESET=WEIGHT with a preset of {sorted(PRESETS)}")
+        out[name] = float(w)
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -507,6 +530,9 @@ def main() -> None:
                         "one of the two); the baseline keeps clean flowsynth frames as textures; use with --tag")
     p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm (default flowsynth)")
     p.add_argument("--against", default="chairs2d", help="--summarize: the denominator arm (default chairs2d)")
+    p.add_argument("--mixture", type=_mixture, default=None, metavar="PRESET=W,...",
+                   help="the flowsynth arm's pairs from fs.datasets.Mixture of these presets at these weights (e.g. "
+                   "chairs=1,default=1), each scaled as the default is")
     p.add_argument("--screen", action="store_true",
                    help="a lever's screen: train the flowsynth arm alone (no 2D baseline: its pairs are neither "
                    "rendered nor trained), to compare with the default's net of the same seed (rule 3 of "
@@ -551,6 +577,7 @@ def main() -> None:
             "mask": args.mask, "machine": machine_info(), "load": load, "end_load": end_load, "resolution": [W, H],
             "steps": steps, "every": every, "batch": batch, "pool": pool, "test_pairs": n_test,
             "render_pass": args.render_pass, "train_device": args.device, "screen": args.screen,
+            "mixture": args.mixture,
             "photos": list(PHOTOS), "net": NET, "flowsynth_config": cfg.to_dict(), "runs": runs, "ratios_final": ratios,
             "mean_ratio": {k: float(np.mean(v)) for k, v in ratios.items()}})
 
@@ -567,7 +594,7 @@ def main() -> None:
     for seed in seeds:
         t = time.perf_counter()
         synth, cfg = flowsynth_pairs(pool + (0 if args.screen else pool // 2), seed, args.workers, args.flow_px,
-                                     overrides, args.render_pass)
+                                     overrides, args.render_pass, args.mixture)
         gen_s = time.perf_counter() - t
         fs_valid = tuple(x[:pool] for x in synth[:4])
         fs_train = fs_valid if args.mask == "valid" else tuple(x[:pool] for x in synth[:3] + synth[4:5])

@@ -138,3 +138,12 @@ def test_final_ratios_need_both_arms_and_screen_excludes_photo_arms(monkeypatch)
     with pytest.raises(SystemExit) as e:
         learning.main()
     assert e.value.code == 2
+
+
+def test_mixture_argument_names_presets_and_weights():
+    import argparse
+
+    assert learning._mixture("chairs=1,default=2.5") == {"chairs": 1.0, "default": 2.5}
+    for bad in ("chair=1", "chairs", "chairs=1,"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            learning._mixture(bad)

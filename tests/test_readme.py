@@ -16,5 +16,6 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out.splitlines()
     # the printed values are the ones the README's comments state
     assert out[0] == "torch.Size([2, 2, 3, 192, 256]) torch.Size([2, 1, 2, 192, 256])"
-    assert float(out[1].split("(")[1].split(")")[0]) == 3.5
+    assert out[1] == "default 0"  # the Mixture block: index 12345 drawn from default, index 3 from chairs
+    assert float(out[2].split("(")[1].split(")")[0]) == 3.5
     assert out[-1] == "2 torch.Size([1, 2, 192, 256])"

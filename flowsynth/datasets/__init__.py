@@ -1,11 +1,12 @@
 """Datasets: ``BouncingThings`` streams generated samples; ``FlowPairs`` adapts them to torchvision's
 optical-flow tuples; ``Exported`` reads a folder written by ``flowsynth export``; ``Shards`` streams the
-shards of a ``webdataset`` export (shuffled, split by worker and rank)."""
+shards of a ``webdataset`` export (shuffled, split by worker and rank); ``Mixture`` streams samples of several
+configs (presets) by reproducible weights or a curriculum."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.flowpairs import FlowPairs
 
-__all__ = ["BouncingThings", "Exported", "FlowPairs", "Shards", "sample_seed"]
+__all__ = ["BouncingThings", "Exported", "FlowPairs", "Mixture", "Shards", "sample_seed"]
 
 
 def __getattr__(name: str):
@@ -13,6 +14,10 @@ def __getattr__(name: str):
         from flowsynth.datasets.exported import Exported
 
         return Exported
+    if name == "Mixture":
+        from flowsynth.datasets.mixture import Mixture
+
+        return Mixture
     if name == "Shards":
         from flowsynth.datasets.shards import Shards
 
