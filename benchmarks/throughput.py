@@ -22,8 +22,8 @@ benchmarks/results/throughput_lens.json.
 (caches of a long stream filled), timed by process CPU time (and wall), default threads; writes
 benchmarks/results/throughput_ratio.json. With ``--pin`` (issue 39's goal 2: at least 3.5x on one pinned core) the
 process first pins itself to one core, so each launch runs one thread; writes throughput_ratio_pinned.json. Not
-pinned, process CPU time also counts the full sample's thread overhead, which flatters the ratio (3.37x against
-2.66x pinned on 2026-11-26, on a core shared with a nice-19 job).
+pinned, process CPU time also counts the full sample's thread overhead, which flatters the ratio (3.37x unpinned
+at a259332 on 2026-11-25; 2.66-2.71x pinned at 9912c1d on 2026-11-26, a core shared with a nice-19 job).
 """
 
 from __future__ import annotations
