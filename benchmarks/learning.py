@@ -473,6 +473,34 @@ def summarize(mask: str, pattern: str = "learning*.json", arm: str = "flowsynth"
     return {"mask": mask, "files": used, "library": library, "seeds": seeds, "protocol": protocol, "tests": out}
 
 
+def screen_report(candidate: str, default: str) -> list[dict]:
+    """Rule 3 of docs/decisions/0019 for a lever's screen: per seed both files hold and per judge, the flowsynth
+    net's final test EPE in ``candidate`` and in ``default`` (results/ JSON paths), their ratio, and the verdict
+    (promising: Middlebury ratio < 0.95 and Motorcycle ratio <= 1.05). Both runs must share steps, batch, pool,
+    resolution, test pairs and net."""
+    from _common import RESULTS_DIR
+
+    runs = []
+    for f in (candidate, default):
+        path = Path(f) if Path(f).exists() else RESULTS_DIR / f
+        runs.append(json.loads(path.read_text()))
+    diff = [k for k in ("steps", "batch", "pool", "resolution", "test_pairs", "net") if runs[0][k] != runs[1][k]]
+    if diff:
+        raise SystemExit(f"--screen-report: the two runs differ in {diff}; a screen compares like with like")
+    seeds = {r["seed"]: r for r in runs[1]["runs"]}
+    rows = []
+    for r in runs[0]["runs"]:
+        if r["seed"] not in seeds:
+            continue
+        a, b = r["results"]["flowsynth"]["curve"][-1], seeds[r["seed"]]["results"]["flowsynth"]["curve"][-1]
+        ratio = {k: a[k] / b[k] for k in JUDGES if k in a and k in b}
+        promising = ratio.get("middlebury", 1.0) < 0.95 and ratio.get("stereo", 1.0) <= 1.05
+        for k in ratio:
+            rows.append({"seed": r["seed"], "judge": k, "candidate": a[k], "default": b[k], "ratio": ratio[k],
+                         "promising (rule 3)": promising})
+    return rows
+
+
 def _mixture(text: str) -> dict:
     """``--mixture``'s PRESET=WEIGHT,... as a dict (argparse type: a bad one is a usage error)."""
     from flowsynth.config import PRESETS
@@ -537,9 +565,17 @@ def main() -> None:
                    help="a lever's screen: train the flowsynth arm alone (no 2D baseline: its pairs are neither "
                    "rendered nor trained), to compare with the default's net of the same seed (rule 3 of "
                    "docs/decisions/0019)")
+    p.add_argument("--screen-report", nargs=2, metavar=("CANDIDATE", "DEFAULT"), default=None,
+                   help="trains nothing: rule 3 of docs/decisions/0019 for a lever's screen, from two results JSONs "
+                   "(paths, or names in benchmarks/results): per seed and judge, flowsynth's final EPE in each, "
+                   "their ratio and the verdict")
     p.add_argument("--summarize", action="store_true",
                    help="train nothing: pool the seeds of every results/learning*.json of --mask and test the ratios")
     args = p.parse_args()
+    if args.screen_report:
+        rows = screen_report(*args.screen_report)
+        print_table(rows, ["seed", "judge", "candidate", "default", "ratio", "promising (rule 3)"])
+        return
     if args.summarize:
         name = "learning_summary" + ("" if args.mask == "valid" else f"_{args.mask}")
         write_json(name + (f"_{args.tag}" if args.tag else ""),

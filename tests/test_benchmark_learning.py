@@ -147,3 +147,27 @@ def test_mixture_argument_names_presets_and_weights():
     for bad in ("chair=1", "chairs", "chairs=1,"):
         with pytest.raises(argparse.ArgumentTypeError):
             learning._mixture(bad)
+
+
+def test_screen_report_applies_rule_3(tmp_path):
+    """Rule 3 (docs/decisions/0019): promising when the candidate's Middlebury EPE is below 0.95 of the default's
+    and its Motorcycle EPE not above 1.05 of it; the ratios are the final curve points', seed by seed; runs of
+    different protocols are refused."""
+    import json
+
+    def run(path, stereo, mb, steps=1200):
+        end = {"step": steps, "stereo": stereo, "middlebury": mb}
+        path.write_text(json.dumps({"steps": steps, "batch": 8, "pool": 9600, "resolution": [128, 96],
+                                    "test_pairs": 100, "net": "ncc-v2",
+                                    "runs": [{"seed": 0, "results": {"flowsynth": {"curve": [end]}}}]}))
+        return str(path)
+
+    default = run(tmp_path / "d.json", 2.0, 1.5)
+    rows = learning.screen_report(run(tmp_path / "a.json", 2.1, 1.35), default)
+    assert [r["judge"] for r in rows] == ["stereo", "middlebury"]
+    assert rows[0]["ratio"] == pytest.approx(1.05) and rows[1]["ratio"] == pytest.approx(0.9)
+    assert all(r["promising (rule 3)"] for r in rows)
+    assert not learning.screen_report(run(tmp_path / "b.json", 2.2, 1.35), default)[0]["promising (rule 3)"]
+    assert not learning.screen_report(run(tmp_path / "c.json", 1.0, 1.45), default)[0]["promising (rule 3)"]
+    with pytest.raises(SystemExit, match="steps"):
+        learning.screen_report(run(tmp_path / "e.json", 1.0, 1.0, steps=800), default)
