@@ -234,18 +234,27 @@ def flowsynth_pairs(n: int, seed: int, workers: int, flow_px: tuple[float, float
     else:
         cfg = scaled(fs.BouncingThingsConfig.from_dict(overrides or {}))
         ds = fs.datasets.BouncingThings(cfg, outputs=outputs, seed=seed, length=n)
-    batches = list(DataLoader(ds, batch_size=16, num_workers=workers))
-    rgb = torch.cat([b["rgb"] for b in batches])
-    frames = rgb
-    if render_pass != "clean":
-        final = torch.cat([b["rgb_final"] for b in batches])
-        pick = (torch.ones(len(rgb), dtype=torch.bool) if render_pass == "final" else
-                torch.rand(len(rgb), generator=torch.Generator().manual_seed(40_000 + seed)) < 0.5)
-        frames = torch.where(pick[:, None, None, None, None], final, rgb)
-    valid = torch.cat([b["valid_fw"][:, 0] for b in batches])
-    visible = valid & ~torch.cat([b["occ_fw"][:, 0] for b in batches])
-    return (frames[:, 0], frames[:, 1], torch.cat([b["flow_fw"][:, 0] for b in batches]), valid.float(),
-            visible.float(), rgb[:, 0]), cfg
+    # filled batch by batch (each array once in memory: a final or mix pool of 14,400 pairs, collected whole and
+    # then concatenated, held ~24 GB and was killed for memory on a 24 GiB machine)
+    frames = torch.empty(n, 2, 3, H, W)
+    clean1 = frames[:, 0] if render_pass == "clean" else torch.empty(n, 3, H, W)
+    flow, valid, visible = torch.empty(n, 2, H, W), torch.empty(n, 1, H, W), torch.empty(n, 1, H, W)
+    pick = (torch.ones(n, dtype=torch.bool) if render_pass == "final" else
+            torch.rand(n, generator=torch.Generator().manual_seed(40_000 + seed)) < 0.5)
+    o = 0
+    for b in DataLoader(ds, batch_size=16, num_workers=workers):
+        k = len(b["rgb"])
+        rgb = b["rgb"]
+        if render_pass != "clean":
+            frames[o:o + k] = torch.where(pick[o:o + k, None, None, None, None], b["rgb_final"], rgb)
+            clean1[o:o + k] = rgb[:, 0]
+        else:
+            frames[o:o + k] = rgb
+        flow[o:o + k] = b["flow_fw"][:, 0]
+        valid[o:o + k] = b["valid_fw"][:, 0]
+        visible[o:o + k] = b["valid_fw"][:, 0] & ~b["occ_fw"][:, 0]
+        o += k
+    return (frames[:, 0], frames[:, 1], flow, valid, visible, clean1), cfg
 
 
 def base_families() -> tuple:
