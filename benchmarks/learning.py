@@ -510,6 +510,31 @@ def screen_report(candidate: str, default: str) -> list[dict]:
     return rows
 
 
+def plot_judge_curves(name: str, pattern: str) -> list:
+    """One plot per real judge (results/NAME_JUDGE.png): test EPE against training step of every arm and seed of
+    the results files matching ``pattern``, each line labelled by its file's tag, arm and seed; the untrained start
+    is the step-0 point. Returns the paths written (none without matplotlib)."""
+    from _common import RESULTS_DIR, plot_curves
+
+    files = sorted(RESULTS_DIR.glob(pattern))
+    paths = []
+    for judge in JUDGES:
+        series = {}
+        for f in files:
+            d = json.loads(f.read_text())
+            tag = f.stem.removeprefix("learning_")
+            for r in d.get("runs", []):
+                for arm, res in r["results"].items():
+                    pts = [(c["step"], c[judge]) for c in res["curve"] if judge in c]
+                    if pts:
+                        series[f"{tag} {arm} s{r['seed']}"] = tuple(zip(*pts))
+        if series:
+            path = plot_curves(f"{name}_{judge}", series, "training step", f"{judge} test EPE [px]", logx=False,
+                               logy=False, title=f"{judge}: the learning curves ({pattern})")
+            paths += [path] if path else []
+    return paths
+
+
 def _mixture(text: str) -> dict:
     """``--mixture``'s PRESET=WEIGHT,... as a dict (argparse type: a bad one is a usage error)."""
     from flowsynth.config import PRESETS
@@ -574,6 +599,9 @@ def main() -> None:
                    help="a lever's screen: train the flowsynth arm alone (no 2D baseline: its pairs are neither "
                    "rendered nor trained), to compare with the default's net of the same seed (rule 3 of "
                    "docs/decisions/0019)")
+    p.add_argument("--plot", default=None, metavar="NAME",
+                   help="trains nothing: per real judge, results/NAME_JUDGE.png, the learning curves of every arm "
+                   "and seed in the results files matching --files")
     p.add_argument("--screen-report", nargs=2, metavar=("CANDIDATE", "DEFAULT"), default=None,
                    help="trains nothing: rule 3 of docs/decisions/0019 for a lever's screen, from two results JSONs "
                    "(paths, or names in benchmarks/results): per seed and judge, flowsynth's final EPE in each, "
@@ -581,6 +609,10 @@ def main() -> None:
     p.add_argument("--summarize", action="store_true",
                    help="train nothing: pool the seeds of every results/learning*.json of --mask and test the ratios")
     args = p.parse_args()
+    if args.plot:
+        for path in plot_judge_curves(args.plot, args.files):
+            print(f"wrote {path}")
+        return
     if args.screen_report:
         rows = screen_report(*args.screen_report)
         print_table(rows, ["seed", "judge", "candidate", "default", "ratio", "promising (rule 3)"])

@@ -171,3 +171,19 @@ def test_screen_report_applies_rule_3(tmp_path):
     assert not learning.screen_report(run(tmp_path / "c.json", 1.0, 1.45), default)[0]["promising (rule 3)"]
     with pytest.raises(SystemExit, match="steps"):
         learning.screen_report(run(tmp_path / "e.json", 1.0, 1.0, steps=800), default)
+
+
+def test_plot_judge_curves_draws_each_judge(tmp_path, monkeypatch):
+    """--plot writes one PNG per real judge from the results files it matches (matplotlib, the bench extra)."""
+    import json
+
+    import _common
+
+    pytest.importorskip("matplotlib")
+    monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)
+    curve = [{"step": s, "stereo": 2.0 - s / 1000, "middlebury": 1.6 - s / 2000} for s in (0, 400, 800)]
+    (tmp_path / "learning_x_s0.json").write_text(json.dumps(
+        {"runs": [{"seed": 0, "results": {"flowsynth": {"curve": curve}, "chairs2d": {"curve": curve}}}]}))
+    paths = learning.plot_judge_curves("curves", "learning_x_*.json")
+    assert sorted(p.name for p in paths) == ["curves_middlebury.png", "curves_stereo.png"]
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in paths)
