@@ -117,7 +117,11 @@ class Recorder:
 
         def numpy(self_):
             rec.numpy_calls.append((id(self_), _caller()))
-            return orig_numpy(self_)
+            rec._depth += 1  # reading a device array back stages it through a host array made inside numpy()
+            try:
+                return orig_numpy(self_)
+            finally:
+                rec._depth -= 1
 
         def launch(kernel, dim, inputs=(), outputs=(), *args, device=None, **kwargs):
             name = getattr(kernel, "key", str(kernel))
@@ -139,6 +143,7 @@ class Recorder:
         return [a for gb in self.gbuffers for a in (gb.dist, gb.item, gb.face, gb.point, gb.normal) if a is not None]
 
     def violations(self, device: str) -> list[str]:
+        device = device if device == TWIN else str(wp.get_device(device))  # "cuda" is recorded as "cuda:0"
         bad = [f"{who} allocated an array on {dev}" for dev, who, _ in self.allocs if dev != device]
         for name, dev, who, args in self.launches:
             if dev != device:
