@@ -179,7 +179,6 @@ def test_plot_judge_curves_draws_each_judge(tmp_path, monkeypatch):
 
     import _common
 
-    pytest.importorskip("matplotlib")
     monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)
     curve = [{"step": s, "stereo": 2.0 - s / 1000, "middlebury": 1.6 - s / 2000} for s in (0, 400, 800)]
     (tmp_path / "learning_x_s0.json").write_text(json.dumps(
