@@ -226,13 +226,19 @@ def _topology_of(mesh, v: np.ndarray, f: np.ndarray) -> Topology:
     seen in an earlier scene skips the face hash and vertex comparison. The mesh is frozen when it is remembered
     (``flowsynth.meshes.freeze``: changing it afterwards raises instead of reusing a stale tree); objects that take
     no weak reference are not remembered."""
+    return _per_mesh(_OF_MESH, mesh, lambda: topology(v, f))
+
+
+def _per_mesh(cache: weakref.WeakKeyDictionary, mesh, make):
+    """``make()`` remembered in ``cache`` per mesh object, the mesh frozen when remembered
+    (``flowsynth.meshes.freeze``); an object that takes no weak reference is not remembered."""
     try:
-        top = _OF_MESH.get(mesh)
+        got = cache.get(mesh)
     except TypeError:
-        return topology(v, f)
-    if top is None:
-        top = _OF_MESH[freeze(mesh)] = topology(v, f)
-    return top
+        return make()
+    if got is None:
+        got = cache[freeze(mesh)] = make()
+    return got
 
 
 def atlas(meshes: list, device: str = "cpu") -> dict:
@@ -288,15 +294,13 @@ def corner_normals(mesh, crease_deg: float = SMOOTH_CREASE_DEG) -> np.ndarray:
     ``faces[f, k]``): the area-weighted mean of the normals of the faces that share the corner's position (vertices
     at one position count as one, so a mesh split at seams still shades smooth) and lie within ``crease_deg`` of
     face f's normal. A face of zero area joins no mean; its corners get the mean of nothing near, (0, 0, 1).
-    Remembered per mesh object, as ``_topology_of`` does."""
-    try:
-        got = _CORNERS.get(mesh)
-    except TypeError:
-        got, mesh_key = None, None
-    else:
-        mesh_key = mesh
-    if got is not None:
-        return got
+    Remembered per mesh object (``_per_mesh``) at the default crease; another crease is computed afresh."""
+    if crease_deg != SMOOTH_CREASE_DEG:
+        return _corner_normals(mesh, crease_deg)
+    return _per_mesh(_CORNERS, mesh, lambda: _corner_normals(mesh, crease_deg))
+
+
+def _corner_normals(mesh, crease_deg: float) -> np.ndarray:
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces, np.int64).reshape(-1, 3)
     F = len(f)
@@ -322,7 +326,4 @@ def corner_normals(mesh, crease_deg: float = SMOOTH_CREASE_DEG) -> np.ndarray:
     norm = np.linalg.norm(acc, axis=1, keepdims=True)
     out = np.where(norm > 0, acc / np.where(norm > 0, norm, 1.0), np.repeat(unit, 3, axis=0))
     out[np.linalg.norm(out, axis=1) == 0] = (0.0, 0.0, 1.0)
-    out = out.reshape(F, 3, 3).astype(np.float32)
-    if mesh_key is not None:
-        _CORNERS[freeze(mesh_key)] = out
-    return out
+    return out.reshape(F, 3, 3).astype(np.float32)

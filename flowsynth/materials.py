@@ -103,8 +103,7 @@ def _sample_layer(rng: np.random.Generator, family: str, files: list, size: floa
         layer["image"] = str(files[int(rng.integers(0, len(files)))])
     if px is None:
         cycles = {"noise": (1.0, 4.0), "value": (2.0, 8.0), "cells": (3.0, 12.0), "leaves": (1.0, 4.0),
-                  "stripes": (2.0, 10.0),
-                  "checks": (2.0, 8.0), "image": (0.5, 2.0), "solid": (1.0, 1.0)}[family]
+                  "stripes": (2.0, 10.0), "checks": (2.0, 8.0), "image": (0.5, 2.0), "solid": (1.0, 1.0)}[family]
         layer["scale"] = float(rng.uniform(*cycles) / size)
         return layer
     metres, lo, hi = px
