@@ -174,15 +174,43 @@ def test_screen_report_applies_rule_3(tmp_path):
 
 
 def test_plot_judge_curves_draws_each_judge(tmp_path, monkeypatch):
-    """--plot writes one PNG per real judge from the results files it matches (matplotlib, the bench extra)."""
+    """--plot hands one plot per real judge, every arm and seed of the matched files a series, to the shared
+    plot_curves (matplotlib, the bench extra, draws it; the PNG itself is checked where matplotlib is installed)."""
     import json
 
     import _common
 
     monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)
+    drawn = {}
+
+    def record(name, series, *args, **kwargs):
+        drawn[name] = series
+        return tmp_path / f"{name}.png"
+
+    monkeypatch.setattr(_common, "plot_curves", record)
     curve = [{"step": s, "stereo": 2.0 - s / 1000, "middlebury": 1.6 - s / 2000} for s in (0, 400, 800)]
     (tmp_path / "learning_x_s0.json").write_text(json.dumps(
-        {"runs": [{"seed": 0, "results": {"flowsynth": {"curve": curve}, "chairs2d": {"curve": curve}}}]}))
+        {"runs": [{"seed": 0, "results": {"flowsynth": {"curve": curve}, "chairs2d": {"curve": curve[:2]}}}]}))
+    (tmp_path / "learning_y_s0.json").write_text("{}")  # not matched by the pattern
     paths = learning.plot_judge_curves("curves", "learning_x_*.json")
     assert sorted(p.name for p in paths) == ["curves_middlebury.png", "curves_stereo.png"]
-    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in paths)
+    assert drawn["curves_stereo"] == {"x_s0 flowsynth s0": ((0, 400, 800), (2.0, 1.6, 1.2)),
+                                      "x_s0 chairs2d s0": ((0, 400), (2.0, 1.6))}
+    steps = (0, 400, 800)
+    assert drawn["curves_middlebury"]["x_s0 flowsynth s0"] == (steps, tuple(1.6 - s / 2000 for s in steps))
+
+
+def test_plot_judge_curves_writes_png(tmp_path, monkeypatch):
+    """With matplotlib (the bench extra) the plots are PNG files."""
+    import json
+
+    import _common
+
+    pytest.importorskip("matplotlib", reason="plots need the bench extra (bash scripts/setup.sh --bench)")
+    monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)
+    curve = [{"step": s, "stereo": 2.0 - s / 1000} for s in (0, 400)]
+    runs = [{"seed": 0, "results": {"a": {"curve": curve}}}]
+    (tmp_path / "learning_x_s0.json").write_text(json.dumps({"runs": runs}))
+    paths = learning.plot_judge_curves("curves", "learning_x_*.json")
+    assert [p.name for p in paths] == ["curves_stereo.png"]
+    assert paths[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
