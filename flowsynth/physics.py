@@ -79,6 +79,25 @@ _SCENES: OrderedDict = register("physics.newton_scenes", OrderedDict())  # key -
 # default depth-only sample's profile) only when its key came before, so a dataset whose keys never repeat pays nothing
 _SEEN: OrderedDict = register("physics.newton_scene_keys", OrderedDict())  # key -> None
 SCENE_KEYS_SEEN = 256
+FREE_FLIGHT = True
+"""Run each clip first on a bodies-only Newton model (:class:`NewtonScene` with ``colliders=False``: the same bodies,
+no colliders, walls or collision pipeline; kept per object count and substeps, ``FREE_CACHE_SIZE``) and keep that
+trajectory when it is clear of contact: at the start of every substep, what the full model's collision pipeline
+would be given, each pair of colliders and each collider and wall lie more than ``CLEARANCE_FACTOR`` times their
+contact range apart (:func:`clear_of_contact`). The full model would then find no contact in any substep, and its
+solver runs the same kernels on the same numbers, so the trajectory is the full model's bit for bit
+(tests/test_free_flight.py); otherwise the clip runs on the full model. docs/decisions/0022-free-flight.md."""
+CLEARANCE_FACTOR = 1.25
+"""Free flight holds only where every gap exceeds this many times the contact range, plus CLEARANCE_SLACK: the sum of
+the two shapes' margins and detection gaps, within which Newton's narrow phase writes a contact (speculative contacts
+are off) [ratio]."""
+CLEARANCE_SLACK = 1e-3
+"""Absolute part of the clearance free flight needs [m] (float32 geometry, Newton's 1e-4 enlargement of shapes
+without margin)."""
+FREE_CACHE_SIZE = 128
+"""Most bodies-only Newton scenes kept per process [count] (one per object count and substeps in use; a few
+hundred kB each), least recently used dropped first."""
+_FREE: OrderedDict = register("physics.newton_free_scenes", OrderedDict())  # key -> idle bodies-only NewtonScene
 
 
 def choose_substeps(cfg: BouncingThingsConfig, sizes: Sequence[float]) -> int:
@@ -109,6 +128,10 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     sizes = [a.size for a in assets]
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
     n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
+    if FREE_FLIGHT:
+        free = _free_flight(cfg, assets, initial, num_frames, n_sub)
+        if free is not None:
+            return free
     for contact_max in (_contact_capacity(N), None):  # None: Newton's estimate, after an overflow
         key = _scene_key(cfg, assets, n_sub, contact_max)
         sim = _SCENES.pop(key, None) if SCENE_REUSE else None  # popped: never two clips on one scene at once
@@ -134,6 +157,119 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
         if sim.contact_max is None or not sim.overflowed():  # Newton's estimate already, or nothing dropped
             break
     return Trajectory(poses, vel, ang, n_sub)
+
+
+def _free_flight(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState, num_frames: int,
+                 n_sub: int) -> Trajectory | None:
+    """The clip on a bodies-only scene (``FREE_FLIGHT``), or None when some substep comes within contact range."""
+    key = (len(assets), n_sub, cfg.fps, tuple(cfg.gravity), cfg.restitution, cfg.friction, _FREE_JOINTS)
+    sim = _FREE.pop(key, None)  # popped: never two clips on one scene at once
+    if sim is None or not sim.reset(initial, assets):
+        sim = NewtonScene(cfg, assets, initial, n_sub, colliders=False)
+        sim.reusable = True
+    sim.band.numpy()[...] = _speed_band(cfg)
+    N = len(assets)
+    poses = np.empty((num_frames, N, 4, 4))
+    vel = np.empty((num_frames, N, 3))
+    ang = np.empty((num_frames, N, 3))
+    track = [sim.state0.body_q.numpy().copy()]  # every substep's start pose, as collide() would see it
+    for k in range(num_frames):
+        if k > 0:
+            sim.advance_frame(track)
+        poses[k], vel[k], ang[k] = sim.read()
+    if sim.can_reset:
+        _FREE[key] = sim
+        while len(_FREE) > FREE_CACHE_SIZE:
+            _FREE.popitem(last=False)
+    if not clear_of_contact(cfg, assets, np.stack(track), n_sub):
+        return None
+    return Trajectory(poses, vel, ang, n_sub)
+
+
+def contact_range(cfg: BouncingThingsConfig, assets: Sequence[Asset], substeps: int) -> tuple[np.ndarray, float]:
+    """(per object, wall) contact range [m] of a clip's colliders: each shape's margin plus detection gap, as
+    :class:`NewtonScene` sets them; two shapes are paired by Newton's broad phase within the sum of theirs."""
+    s_min = min(a.size for a in assets)
+    s_max = max(a.size for a in assets)
+    approach = (2.0 * cfg.max_speed + cfg.angular_speed[1] * s_max) / (cfg.fps * substeps)
+    return np.full(len(assets), MARGIN_FRACTION * s_min + approach), approach
+
+
+@functools.lru_cache(maxsize=4096)
+def _support_points(name: str, size: float, kind: str, params: tuple) -> tuple[np.ndarray, float, float]:
+    """(points (K, 3), radius, bounding radius) whose Minkowski sum contains the collider of an asset (its name,
+    size, collider kind and params) in its object frame [m]: a polytope's vertices with radius 0 (box, convex hull), or
+    a segment on z swept by a radius (sphere, capsule; cylinder and cone lie inside the capsule of their radius and
+    half height). The bounding radius bounds the collider about the origin."""
+    if kind == "box":
+        pts, rad = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * np.array(params), 0.0
+    elif kind == "sphere":
+        pts, rad = np.zeros((1, 3)), float(params[0])
+    elif kind in ("capsule", "cylinder", "cone"):
+        pts, rad = np.array([[0.0, 0.0, -params[1]], [0.0, 0.0, params[1]]]), float(params[0])
+    else:
+        pts, rad = np.asarray(unit_hull(name).vertices, dtype=np.float64) * size, 0.0
+    pts.flags.writeable = False
+    return pts, rad, float(np.linalg.norm(pts, axis=1).max()) + rad
+
+
+def clear_of_contact(cfg: BouncingThingsConfig, assets: Sequence[Asset], body_q: np.ndarray, substeps: int) -> bool:
+    """Are the colliders at every pose of ``body_q`` (S, N, 7: px py pz qx qy qz qw, Newton's state) further than
+    ``CLEARANCE_FACTOR`` times their contact range (:func:`contact_range`) plus ``CLEARANCE_SLACK`` from each other and
+    from the walls of ``cfg.object_bounds``? Bounding spheres decide where they can; elsewhere a lower bound of the
+    distance decides: the pair's separation along the line between the origins or along a world axis, or the object's
+    extent along each world axis against the walls (support functions of :func:`_support_points`). So True is
+    conservative."""
+    q = np.asarray(body_q, dtype=np.float64)
+    S, N = q.shape[:2]
+    reach, wall_gap = contact_range(cfg, assets, substeps)
+    supports = [_support_points(a.name, float(a.size), a.collider.kind, tuple(map(float, a.collider.params)))
+                for a in assets]
+    rad = np.array([r for _, r, _ in supports])
+    bound = np.array([b for _, _, b in supports])
+    centre = q[..., :3]
+
+    def rotated(s: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """Support points of objects n at poses s, about their origins in world axes (M, K, 3), padded by repeats."""
+        K = max(len(supports[k][0]) for k in set(n.tolist()))
+        pts = np.stack([np.resize(supports[k][0], (K, 3)) if len(supports[k][0]) < K else supports[k][0] for k in n])
+        return np.matmul(pts, np.transpose(quat_to_rotation(q[s, n, 3:]), (0, 2, 1)))
+
+    lo, hi = (np.asarray(x, dtype=np.float64) for x in cfg.object_bounds)
+    need = (CLEARANCE_FACTOR * (reach + wall_gap) + CLEARANCE_SLACK)[None, :, None]
+    outer = (centre - bound[:, None] - need < lo) | (centre + bound[:, None] + need > hi)  # (S, N, 3)
+    if outer.any():
+        s, n = np.nonzero(outer.any(-1))
+        w = rotated(s, n)
+        extra = (rad[n] + need[0, n, 0])[:, None]
+        if ((centre[s, n] + w.max(1) + extra > hi).any() or (centre[s, n] + w.min(1) - extra < lo).any()):
+            return False
+    if N < 2:
+        return True
+    i, j = np.triu_indices(N, 1)
+    need = CLEARANCE_FACTOR * (reach[i] + reach[j]) + CLEARANCE_SLACK
+    d = centre[:, j] - centre[:, i]  # (S, P, 3)
+    dist = np.linalg.norm(d, axis=-1)
+    near = dist <= bound[i] + bound[j] + need
+    if not near.any():
+        return True
+    s, p = np.nonzero(near)
+    a, b = i[p], j[p]
+    rel_a, rel_b = rotated(s, a), rotated(s, b)  # (M, K, 3)
+    dm = d[s, p]
+    axes = np.concatenate([(dm / np.maximum(dist[s, p], 1e-12)[:, None])[:, None],
+                           np.broadcast_to(np.eye(3), (len(s), 3, 3))], axis=1)  # (M, 4, 3)
+    pa = np.matmul(axes, np.transpose(rel_a, (0, 2, 1)))  # (M, 4, K) projections
+    pb = np.matmul(axes, np.transpose(rel_b, (0, 2, 1)))
+    along = np.einsum("mxc,mc->mx", axes, dm)
+    radii = (rad[a] + rad[b])[:, None]
+    sep = np.maximum(along + pb.min(-1) - pa.max(-1), -along - pb.max(-1) + pa.min(-1)) - radii  # b beyond a, or a
+    return bool((sep.max(-1) > need[p]).all())  # beyond b, along the best of the four axes
+
+
+def _speed_band(cfg: BouncingThingsConfig) -> np.ndarray:
+    """The clamp kernel's band: min and max linear speed [m/s], then angular speed [rad/s]."""
+    return np.array([cfg.min_speed, cfg.max_speed, *cfg.angular_speed], dtype=np.float32)
 
 
 def _scene_key(cfg: BouncingThingsConfig, assets: Sequence[Asset], substeps: int, contact_max: int | None) -> tuple:
@@ -177,7 +313,7 @@ class NewtonScene:
     (public for benchmarks/physics*.py: ``advance_frame`` replays a captured ``substep``; ``read`` the state)."""
 
     def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
-                 substeps: int, contact_max: int | None = None, device: str = "cpu") -> None:
+                 substeps: int, contact_max: int | None = None, device: str = "cpu", colliders: bool = True) -> None:
         wp_runtime()  # quiet Warp initialisation before Newton's import initialises it loudly
         import newton
         import warp as wp
@@ -205,17 +341,20 @@ class NewtonScene:
             mu=cfg.friction, restitution=cfg.restitution, density=0.0, gap=approach, margin=0.0,
             mu_torsional=0.0, mu_rolling=0.0,
         )
-        for p, h in wall_boxes(cfg, s_max):
-            b.add_shape_box(-1, xform=wp.transform(wp.vec3(*p), wp.quat_identity()),
-                            hx=float(h[0]), hy=float(h[1]), hz=float(h[2]), cfg=wall_cfg)
-        for i, (asset, xform) in enumerate(zip(assets, _body_xforms(initial))):
-            hull = asset.collider.hull
-            mass = DENSITY * float(hull.volume)
-            inertia = DENSITY * np.asarray(hull.moment_inertia_frame(np.eye(4)), dtype=np.float64)
+        if colliders:
+            for p, h in wall_boxes(cfg, s_max):
+                b.add_shape_box(-1, xform=wp.transform(wp.vec3(*p), wp.quat_identity()),
+                                hx=float(h[0]), hy=float(h[1]), hz=float(h[2]), cfg=wall_cfg)
+        else:  # one static shape, as the walls are: XPBD then runs its restitution pass as with colliders (no
+            b.add_shape_sphere(-1, radius=1.0, cfg=wall_cfg)  # collision pipeline runs, so it meets nothing)
+        for i, (asset, xform, (mass, inertia)) in enumerate(zip(assets, _body_xforms(initial), _mass_props(assets))):
             body = (b.add_body if _FREE_JOINTS else b.add_link)(
                 xform=xform, com=wp.vec3(0.0, 0.0, 0.0),
                 mass=mass, inertia=wp.mat33(*inertia.ravel()), lock_inertia=True, label=f"object_{i}")
-            _add_collider(b, body, asset, shape_cfg)
+            if colliders:
+                _add_collider(b, body, asset, shape_cfg)
+        self._inertia_checks = (b.balance_inertia, b.bound_mass or 0.0, b.bound_inertia or 0.0,
+                                b.inertia_relative_tolerance, b.inertia_absolute_tolerance, b.inertia_correction)
         with memoise_newton_kernel_factories():  # Newton's factories memoised for flowsynth's own calls only
             self.model = b.finalize(device=self.device)
         self.state0, self.state1 = self.model.state(), self.model.state()
@@ -223,13 +362,20 @@ class NewtonScene:
         self._set_velocities(initial)
         # rigid-contact capacity: contact_max slots (None: Newton's estimate); self.peak holds the most contacts
         # any substep counted, so that overflowed() can tell when some may have been dropped
-        if contact_max is not None and contact_max >= _newton_contact_estimate(self.model):
+        if colliders and contact_max is not None and contact_max >= _newton_contact_estimate(self.model):
             contact_max = None
         self.contact_max = contact_max
-        with memoise_newton_kernel_factories():
-            self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap", rigid_contact_max=contact_max)
         self.peak = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.contacts = self.pipeline.contacts()
+        if colliders:
+            with memoise_newton_kernel_factories():
+                self.pipeline = newton.CollisionPipeline(self.model, broad_phase="sap",
+                                                         rigid_contact_max=contact_max)
+            self.contacts = self.pipeline.contacts()
+        else:  # an empty contact buffer: the solver runs its contact kernels on no contacts, as the full model's does
+            self.pipeline = None
+            self.contacts = newton.Contacts(contact_max or _contact_capacity(len(assets)), 0, device=self.device,
+                                            requested_attributes=self.model.get_requested_contact_attributes())
+        self.band = wp.array(_speed_band(cfg), dtype=wp.float32, device=self.device)  # the clamp's, read per launch
         self.solver = newton.solvers.SolverXPBD(self.model, iterations=XPBD_ITERATIONS,
                                                 enable_restitution=True)
         # Last direction of motion / rotation axis, used when a speed must be raised from zero.
@@ -251,19 +397,24 @@ class NewtonScene:
         qd[:, :3] = initial.velocity
         qd[:, 3:] = initial.angular_velocity
 
-    def reset(self, initial: InitialState) -> bool:
+    def reset(self, initial: InitialState, assets: Sequence[Asset] | None = None) -> bool:
         """Make this scene what a fresh one of the same key (:func:`_scene_key`) built for ``initial`` would be
         after its capture: every memory region the captured substep reads or writes gets back the content it had
         right after this scene's own capture, then the arrays that depend on the initial state (the model's and both
         states' poses, state0's velocities, the last directions) are written as ``__init__`` writes them, and Newton's
         ray-query shape BVH is refitted to the new poses. Returns False, changing nothing, when there is no capture
-        to reuse (``reusable`` was False at the capture)."""
+        to reuse (``reusable`` was False at the capture). A scene without colliders takes the bodies' masses and
+        inertias of ``assets`` too, through the kernels ``ModelBuilder.finalize`` derives the inverses with."""
         import warp as wp
 
         if self._snapshot is None or len(initial.position) != self.model.body_count:
             return False
+        if self.pipeline is None and assets is None:
+            raise ValueError("a scene without colliders is reset with the clip's assets (their masses)")
         for view, saved in self._snapshot:
             np.copyto(view, saved)
+        if self.pipeline is None:
+            self._set_masses(assets)
         q = wp.array(_body_xforms(initial), dtype=wp.transform, device=self.device).numpy()
         for arr in (self.model.body_q, self.state0.body_q, self.state1.body_q):
             arr.numpy()[...] = q
@@ -274,7 +425,24 @@ class NewtonScene:
             self.model.bvh_refit_shapes(self.state0)  # initial poses; no substep reads it): at the new poses
         return True
 
-    def advance_frame(self) -> None:
+    def _set_masses(self, assets: Sequence[Asset]) -> None:
+        """Write the bodies' masses and inertias as ``finalize`` does, then the inverses and the solver's effective
+        inverses by the same kernels."""
+        import warp as wp
+        from newton._src.sim.builder import compute_body_inverses_kernel, validate_and_correct_inertia_kernel
+
+        m = self.model
+        props = _mass_props(assets)
+        m.body_mass.numpy()[...] = np.array([mass for mass, _ in props], dtype=np.float32)
+        m.body_inertia.numpy()[...] = np.array([inertia for _, inertia in props], dtype=np.float32)
+        count = wp.zeros(1, dtype=wp.int32, device=self.device)
+        wp.launch(validate_and_correct_inertia_kernel, dim=m.body_count, device=self.device,
+                  inputs=[m.body_mass, m.body_inertia, *self._inertia_checks, count])
+        wp.launch(compute_body_inverses_kernel, dim=m.body_count, device=self.device,
+                  inputs=[m.body_mass, m.body_inertia], outputs=[m.body_inv_mass, m.body_inv_inertia])
+        self.solver._refresh_kinematic_state()
+
+    def advance_frame(self, track: list | None = None) -> None:
         """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
         times: replay skips Python launch overhead (~30 launches per substep; benchmarks/physics_graph.py
         measures plain against replayed stepping); one substep instead of two halves the capture, a fixed
@@ -287,20 +455,25 @@ class NewtonScene:
             self.graph = capture.graph
             if self.reusable:
                 self._snapshot = _graph_memory_snapshot(self.graph)
-        for _ in range(self.substeps):
+        if track is None:
+            for _ in range(self.substeps):
+                wp.capture_launch(self.graph)
+            return
+        view = self.state0.body_q.numpy()
+        for _ in range(self.substeps):  # track: each substep's resulting poses appended (a copy of state0)
             wp.capture_launch(self.graph)
+            track.append(view.copy())
 
     def substep(self) -> None:
         """collide and step state0 -> state1, then clamp the speeds of state1 into state0 (one launch that
         also copies the poses back, so every substep starts from state0 and one substep can be captured)."""
         import warp as wp
 
-        self.pipeline.collide(self.state0, self.contacts)
+        if self.pipeline is not None:
+            self.pipeline.collide(self.state0, self.contacts)
         self.solver.step(self.state0, self.state1, self.control, self.contacts, self.dt)
-        cfg = self.cfg
         wp.launch(_clamp_kernel(), dim=self.model.body_count, device=self.device,
-                  inputs=[cfg.min_speed, cfg.max_speed, cfg.angular_speed[0], cfg.angular_speed[1],
-                          self.state1.body_q, self.state1.body_qd, self.contacts.rigid_contact_count],
+                  inputs=[self.band, self.state1.body_q, self.state1.body_qd, self.contacts.rigid_contact_count],
                   outputs=[self.state0.body_q, self.state0.body_qd, self.last_dir, self.last_axis, self.peak])
 
     def overflowed(self) -> bool:
@@ -341,10 +514,7 @@ def _clamp_kernel():
 
     @wp.kernel(enable_backward=False)
     def clamp_body_speeds(
-        v_lo: float,
-        v_hi: float,
-        w_lo: float,
-        w_hi: float,
+        band: wp.array(dtype=float),  # min, max linear speed; min, max angular speed
         body_q_in: wp.array(dtype=wp.transform),
         body_qd_in: wp.array(dtype=wp.spatial_vector),
         contact_count: wp.array(dtype=wp.int32),
@@ -359,8 +529,8 @@ def _clamp_kernel():
         if i == 0:
             peak[0] = wp.max(peak[0], contact_count[0])
         qd = body_qd_in[i]
-        v, dv = clamp_norm(wp.spatial_top(qd), last_dir[i], v_lo, v_hi)
-        w, dw = clamp_norm(wp.spatial_bottom(qd), last_axis[i], w_lo, w_hi)
+        v, dv = clamp_norm(wp.spatial_top(qd), last_dir[i], band[0], band[1])
+        w, dw = clamp_norm(wp.spatial_bottom(qd), last_axis[i], band[2], band[3])
         body_q[i] = body_q_in[i]
         body_qd[i] = wp.spatial_vector(v, w)
         last_dir[i] = dv
@@ -479,6 +649,12 @@ def _body_xforms(initial: InitialState) -> list:
 
     quats = rotation_to_quat_xyzw(initial.rotation)
     return [wp.transform(wp.vec3(*p), wp.quat(*q)) for p, q in zip(initial.position, quats)]
+
+
+def _mass_props(assets: Sequence[Asset]) -> list[tuple[float, np.ndarray]]:
+    """(mass [kg], inertia about the origin (3, 3) [kg m^2]) of each asset's collider hull at DENSITY."""
+    return [(DENSITY * float(a.collider.hull.volume),
+             DENSITY * np.asarray(a.collider.hull.moment_inertia_frame(np.eye(4)), dtype=np.float64)) for a in assets]
 
 
 def _add_collider(b, body: int, asset: Asset, shape_cfg) -> None:

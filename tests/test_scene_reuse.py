@@ -51,6 +51,7 @@ def _clips(cfg, order, reuse: bool, monkeypatch, render: bool) -> tuple[dict, in
     """{index: (poses (n, T, 4, 4), substeps, outputs)} of ``order``'s samples, and the Newton scenes built."""
     fs.clear_caches()
     monkeypatch.setattr(physics, "SCENE_REUSE", reuse)
+    monkeypatch.setattr(physics, "FREE_FLIGHT", False)  # every clip on the full model (tests/test_free_flight.py)
     built = _count_builds(monkeypatch)
     out = {}
     for i in order:
@@ -94,6 +95,7 @@ def test_reuse_after_a_contact_overflow(monkeypatch):
         fs.clear_caches()
         monkeypatch.setattr(physics, "SCENE_REUSE", reuse)
         monkeypatch.setattr(physics, "_contact_capacity", lambda n: 1)
+        monkeypatch.setattr(physics, "FREE_FLIGHT", False)
         built = _count_builds(monkeypatch)
         got = {i: motion.simulate(cfg, layouts[i].assets, layouts[i].initial) for i in order}
         monkeypatch.undo()

@@ -1,0 +1,155 @@
+"""Free flight (``physics.FREE_FLIGHT``): a clip whose colliders stay out of contact range at every substep runs on a
+bodies-only Newton model, and its trajectory is the full model's bit for bit.
+
+Oracles:
+- the full model: the same clips with free flight off (walls, colliders and collision pipeline built); trajectories
+  must be equal exactly, and the full model must have found no contact in any clip free flight kept;
+- python-fcl's GJK distance between the colliders: wherever ``clear_of_contact`` says clear, the true distance
+  exceeds the clearance it claims; two spheres, and a box against a wall, at distances either side of the threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import fcl
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import flowsynth as fs
+from flowsynth import physics
+from flowsynth.assets import Asset, Collider, get_asset, unit_hull
+from flowsynth.motion import simulate
+from flowsynth.sampling import sample_layout
+
+FIELDS = ("poses", "velocity", "angular_velocity", "substeps")
+CONFIGS = {
+    "default": fs.BouncingThingsConfig(width=64, height=48, num_frames=2),
+    # every primitive kind, falling under gravity for four frames: gravity bends the paths between frames
+    "primitives_gravity": fs.BouncingThingsConfig(width=64, height=48, num_frames=4, flow_px=None,
+                                                  assets=("box", "sphere", "cylinder", "capsule", "cone"),
+                                                  num_objects=(3, 6), gravity=(0.0, 0.0, -9.81),
+                                                  restitution=0.6, friction=0.3, min_speed=0.5, max_speed=4.0),
+}
+
+
+def _clips(cfg, indices):
+    """(simulation config, layout) of each index, as sample_scene simulates it."""
+    out = []
+    for i in indices:
+        layout = sample_layout(cfg, 0, i)
+        sim_cfg = cfg
+        if cfg.flow_px is not None:
+            speed = np.linalg.norm(layout.initial.velocity, axis=1)
+            sim_cfg = replace(cfg, min_speed=float(speed.min()), max_speed=float(speed.max()))
+        out.append((sim_cfg, layout))
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_free_flight_equals_the_full_model(name, monkeypatch):
+    clips = _clips(CONFIGS[name], range(16))
+    kept = []
+    free_flight = physics._free_flight
+    monkeypatch.setattr(physics, "_free_flight", lambda *a: kept.append(free_flight(*a)) or kept[-1])
+    peaks = []
+    advance = physics.NewtonScene.advance_frame
+
+    def spy(scene, *args):  # the full model's most contacts in any substep, per clip
+        advance(scene, *args)
+        if scene.pipeline is not None:
+            peaks.append(int(scene.peak.numpy()[0]))
+
+    monkeypatch.setattr(physics.NewtonScene, "advance_frame", spy)
+    fs.clear_caches()
+    monkeypatch.setattr(physics, "FREE_FLIGHT", False)
+    full = []
+    for sim_cfg, layout in clips:
+        peaks.clear()
+        full.append((simulate(sim_cfg, layout.assets, layout.initial), max(peaks)))
+    monkeypatch.setattr(physics, "FREE_FLIGHT", True)
+    for order in (clips, clips[::-1]):  # the second pass runs on kept bodies-only scenes, reset
+        got = [simulate(sim_cfg, layout.assets, layout.initial) for sim_cfg, layout in order]
+        for g, (want, peak), free in zip(got, full if order is clips else full[::-1], kept[-len(clips):]):
+            for f in FIELDS:
+                assert np.array_equal(getattr(g, f), getattr(want, f)), f
+            if free is not None:
+                assert peak == 0, "free flight kept a clip in which the full model found a contact"
+    decided = [k is not None for k in kept[:len(clips)]]
+    assert 0 < sum(decided) < len(clips), f"{sum(decided)} of {len(clips)} clips in free flight: nothing compared"
+    assert len(physics._FREE) < 2 * len(clips)
+
+
+def _fcl(asset: Asset, q: np.ndarray) -> fcl.CollisionObject:
+    c = asset.collider
+    if c.kind == "sphere":
+        geom = fcl.Sphere(c.params[0])
+    elif c.kind == "box":
+        geom = fcl.Box(*(2.0 * np.asarray(c.params)))
+    else:
+        hull = unit_hull(asset.name)
+        v = np.asarray(hull.vertices) * asset.size
+        f = np.asarray(hull.faces)
+        geom = fcl.Convex(v, len(f), np.hstack([np.full((len(f), 1), 3), f]).ravel())
+    R = Rotation.from_quat(q[3:]).as_matrix()
+    return fcl.CollisionObject(geom, fcl.Transform(R, q[:3]))
+
+
+def _distance(a, qa, b, qb) -> float:
+    return fcl.distance(_fcl(a, qa), _fcl(b, qb), fcl.DistanceRequest(), fcl.DistanceResult())
+
+
+def test_clear_of_contact_is_conservative_against_fcl():
+    """Random poses of two rocks, far to touching: each pair called clear is further apart than the clearance."""
+    cfg = fs.BouncingThingsConfig(room_size=(40.0, 40.0, 40.0), camera_clearance=1.0)
+    rng = np.random.default_rng(0)
+    assets = [get_asset("rock", 1.0), get_asset("crystal", 0.8)]
+    reach, _ = physics.contact_range(cfg, assets, 8)
+    need = physics.CLEARANCE_FACTOR * reach.sum() + physics.CLEARANCE_SLACK
+    lo, hi = (np.asarray(x) for x in cfg.object_bounds)
+    centre = (lo + hi) / 2
+    verdicts = []
+    for _ in range(300):
+        q = np.zeros((1, 2, 7))
+        q[0, :, :3] = centre + np.stack([np.zeros(3), rng.normal(size=3) * rng.uniform(0.5, 1.5) / 1.7])
+        q[0, :, 3:] = Rotation.random(2, random_state=rng).as_quat()
+        clear = physics.clear_of_contact(cfg, assets, q, 8)
+        dist = _distance(assets[0], q[0, 0], assets[1], q[0, 1])
+        if clear:
+            assert dist > need, (dist, need)
+        verdicts.append((clear, dist > need * 1.5))
+    assert any(c for c, _ in verdicts) and any(not c for c, _ in verdicts)
+    # tight where the true distance is large: most pairs well clear are called clear
+    assert np.mean([c for c, far in verdicts if far]) > 0.6
+
+
+def _sphere(r: float) -> Asset:
+    a = get_asset("sphere", 2.0 * r)
+    assert a.collider == Collider("sphere", (r,), a.collider.hull) and a.size == pytest.approx(2.0 * r)
+    return a
+
+
+def test_clear_of_contact_spheres_and_walls_at_the_threshold():
+    cfg = fs.BouncingThingsConfig(room_size=(10.0, 8.0, 6.0))
+    a = _sphere(0.3)
+    reach, _ = physics.contact_range(cfg, [a, a], 8)
+    need = physics.CLEARANCE_FACTOR * 2 * reach[0] + physics.CLEARANCE_SLACK
+    lo, hi = (np.asarray(x) for x in cfg.object_bounds)
+    centre = (lo + hi) / 2
+    for surface_gap, want in ((need * 1.01, True), (need * 0.99, False)):
+        q = np.zeros((1, 2, 7))
+        q[..., 6] = 1.0
+        q[0, 0, :3] = centre
+        q[0, 1, :3] = centre + np.array([0.6 + surface_gap, 0.0, 0.0])
+        assert physics.clear_of_contact(cfg, [a, a], q, 8) is want
+    box = get_asset("box", 1.0)
+    hx = box.collider.params[0]
+    box_reach, box_wall = physics.contact_range(cfg, [box], 8)
+    wall_need = physics.CLEARANCE_FACTOR * (box_reach[0] + box_wall) + physics.CLEARANCE_SLACK
+    for surface_gap, want in ((wall_need * 1.01, True), (wall_need * 0.99, False)):
+        q = np.zeros((1, 1, 7))
+        q[..., 6] = 1.0
+        q[0, 0, :3] = centre
+        q[0, 0, 0] = hi[0] - hx - surface_gap  # the +x face of the unrotated box, surface_gap from the wall
+        assert physics.clear_of_contact(cfg, [box], q, 8) is want
