@@ -103,16 +103,17 @@ def skip_savings(cfg, n: int) -> list[dict]:
     return rows
 
 
-def alternate(streams: dict, n: int, warm_stream: str, warm: int = 30) -> dict:
+def alternate(streams: dict, n: int, warm_stream: str | tuple, warm: int = 30) -> dict:
     """Process CPU and wall seconds per sample of each stream of ``streams`` (name -> BouncingThings), the same
     indices alternated (the order flips every index), after ``warm`` samples of other indices from
-    ``streams[warm_stream]`` (asset BVHs, hulls and Newton's per-hull data cached, as in a long stream) and one
-    sample of each stream (kernel load)."""
+    ``streams[warm_stream]`` (asset BVHs, hulls and Newton's per-hull data and kernel variants cached, as in a long
+    stream; each of several warm streams samples them) and one sample of each stream (kernel load)."""
     import os
 
     load0 = os.getloadavg()[0]
-    for i in range(warm):
-        streams[warm_stream].sample(5000 + i)
+    for name in (warm_stream,) if isinstance(warm_stream, str) else warm_stream:
+        for i in range(warm):
+            streams[name].sample(5000 + i)
     for ds in streams.values():
         ds.sample(0)
     cpu = dict.fromkeys(streams, 0.0)
@@ -128,21 +129,58 @@ def alternate(streams: dict, n: int, warm_stream: str, warm: int = 30) -> dict:
             "load_average": [load0, os.getloadavg()[0]]}
 
 
+class _FreeFlight:
+    """A stream sampled with ``physics.FREE_FLIGHT`` set to ``on`` for its own samples only; counts its clips and
+    those that free flight kept."""
+
+    def __init__(self, ds, on: bool) -> None:
+        self.ds, self.on, self.clips, self.free = ds, on, 0, 0
+
+    def sample(self, i: int):
+        from flowsynth import physics
+
+        old, run = physics.FREE_FLIGHT, physics._free_flight
+
+        def counted(*args):
+            got = run(*args)
+            self.free += got is not None
+            return got
+
+        physics.FREE_FLIGHT, physics._free_flight = self.on, counted
+        try:
+            self.clips += 1
+            return self.ds.sample(i)
+        finally:
+            physics.FREE_FLIGHT, physics._free_flight = old, run
+
+
 def depth_vs_full(n: int) -> dict:
-    """Issue 13's "skipping pays": the depth-only and the full stream at 256x192, T=2 (``alternate``)."""
+    """Issue 13's "skipping pays": the depth-only and the full stream at 256x192, T=2 (``alternate``), each with free
+    flight (``physics.FREE_FLIGHT``, the default) and without it."""
     import flowsynth as fs
     from flowsynth.plan import CORE_OUTPUTS
 
-    streams = {
-        "depth": fs.datasets.BouncingThings(fs.BouncingThingsConfig(width=256, height=192, num_frames=2),
-                                            outputs=["depth"], seed=0, start=4000),
-        "everything+direct rgb": fs.datasets.BouncingThings(
+    streams = {}
+    for on in (True, False):
+        tail = "" if on else ", no free flight"
+        streams["depth" + tail] = _FreeFlight(fs.datasets.BouncingThings(
+            fs.BouncingThingsConfig(width=256, height=192, num_frames=2), outputs=["depth"], seed=0, start=4000), on)
+        streams["everything+direct rgb" + tail] = _FreeFlight(fs.datasets.BouncingThings(
             fs.BouncingThingsConfig(width=256, height=192, num_frames=2, render_mode="direct"),
-            outputs=list(CORE_OUTPUTS), seed=0, start=4000),
-    }
-    r = alternate(streams, n, "depth")
-    return {**r, "full/depth cpu": r["cpu"]["everything+direct rgb"] / r["cpu"]["depth"],
-            "full/depth wall": r["wall"]["everything+direct rgb"] / r["wall"]["depth"]}
+            outputs=list(CORE_OUTPUTS), seed=0, start=4000), on)
+    # warm-up without free flight meets Newton's kernel variants (built per new shape-type mix, ~0.25 s each) as the
+    # full model always did; with it, the bodies-only scenes of a long stream are kept
+    r = alternate(streams, n, ("depth, no free flight", "depth"), warm=40)
+    for row in r["rows"]:
+        st = streams[row["outputs"]]
+        row["free flight"] = f"{st.free}/{st.clips}" if st.on else "off"  # warm-up clips included
+    cpu, wall = r["cpu"], r["wall"]
+    return {**r, "full/depth cpu": cpu["everything+direct rgb"] / cpu["depth"],
+            "full/depth wall": wall["everything+direct rgb"] / wall["depth"],
+            "full/depth cpu, no free flight": (cpu["everything+direct rgb, no free flight"]
+                                               / cpu["depth, no free flight"]),
+            "depth: free flight / none": cpu["depth"] / cpu["depth, no free flight"],
+            "full: free flight / none": cpu["everything+direct rgb"] / cpu["everything+direct rgb, no free flight"]}
 
 
 def edge_cost(n: int, size: tuple[int, int], mode: str) -> dict:
@@ -251,8 +289,10 @@ def main() -> None:
         r = depth_vs_full(args.samples or 12)
         print(f"\nDepth-only vs full stream, 256x192, T=2, {r['samples']} samples each alternated, after "
               f"{r['warm']} warm-up samples; load average {r['load_average'][0]:.2f} -> {r['load_average'][1]:.2f}")
-        print_table(r["rows"], ["outputs", "cpu s/sample", "wall s/sample"])
-        print(f"full/depth: {r['full/depth cpu']:.3g} (process CPU), {r['full/depth wall']:.3g} (wall)")
+        print_table(r["rows"], ["outputs", "cpu s/sample", "wall s/sample", "free flight"])
+        print(f"full/depth: {r['full/depth cpu']:.3g} (process CPU), {r['full/depth wall']:.3g} (wall); without free "
+              f"flight {r['full/depth cpu, no free flight']:.3g} (process CPU). Free flight / none, process CPU: "
+              f"depth {r['depth: free flight / none']:.3f}, full {r['full: free flight / none']:.3f}")
         write_json("throughput_ratio" + ("_pinned" if args.pin else ""), {"machine": machine_info(),
                                                                          "pinning": pinning, **r})
         return

@@ -98,6 +98,14 @@ FREE_CACHE_SIZE = 128
 """Most bodies-only Newton scenes kept per process [count] (one per object count and substeps in use; a few
 hundred kB each), least recently used dropped first."""
 _FREE: OrderedDict = register("physics.newton_free_scenes", OrderedDict())  # key -> idle bodies-only NewtonScene
+FREE_FLIGHT_ODDS = 0.2
+"""Free flight is tried while the running share of clips it kept (this process's clips of the same frame count, a
+moving average over about ten) is at least this [ratio]; below it, every ``FREE_FLIGHT_PROBE``-th clip still tries,
+so the share follows the stream. Long clips rarely stay clear of contact, and a failed try costs its reset and
+replays; a kept one saves the full model's build (benchmarks/throughput.py --ratio). Only time depends on this:
+either path gives the same trajectory."""
+FREE_FLIGHT_PROBE = 8
+_FREE_ODDS: dict = register("physics.free_flight_odds", {})  # num_frames -> [moving share kept, clips since a try]
 
 
 def choose_substeps(cfg: BouncingThingsConfig, sizes: Sequence[float]) -> int:
@@ -128,10 +136,14 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     sizes = [a.size for a in assets]
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
     n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
-    if FREE_FLIGHT:
-        free = _free_flight(cfg, assets, initial, num_frames, n_sub)
-        if free is not None:
-            return free
+    if FREE_FLIGHT and num_frames > 1:
+        odds = _FREE_ODDS.setdefault(num_frames, [1.0, 0])
+        odds[1] += 1
+        if odds[0] >= FREE_FLIGHT_ODDS or odds[1] >= FREE_FLIGHT_PROBE:
+            free = _free_flight(cfg, assets, initial, num_frames, n_sub)
+            odds[:] = [0.9 * odds[0] + 0.1 * (free is not None), 0]
+            if free is not None:
+                return free
     for contact_max in (_contact_capacity(N), None):  # None: Newton's estimate, after an overflow
         key = _scene_key(cfg, assets, n_sub, contact_max)
         sim = _SCENES.pop(key, None) if SCENE_REUSE else None  # popped: never two clips on one scene at once
@@ -161,7 +173,8 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
 
 def _free_flight(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState, num_frames: int,
                  n_sub: int) -> Trajectory | None:
-    """The clip on a bodies-only scene (``FREE_FLIGHT``), or None when some substep comes within contact range."""
+    """The clip on a bodies-only scene (``FREE_FLIGHT``), or None as soon as some substep's poses come within
+    contact range (checked frame by frame, so a clip that meets a contact early costs little)."""
     key = (len(assets), n_sub, cfg.fps, tuple(cfg.gravity), cfg.restitution, cfg.friction, _FREE_JOINTS)
     sim = _FREE.pop(key, None)  # popped: never two clips on one scene at once
     if sim is None or not sim.reset(initial, assets):
@@ -172,18 +185,22 @@ def _free_flight(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: In
     poses = np.empty((num_frames, N, 4, 4))
     vel = np.empty((num_frames, N, 3))
     ang = np.empty((num_frames, N, 3))
-    track = [sim.state0.body_q.numpy().copy()]  # every substep's start pose, as collide() would see it
+    track = [sim.state0.body_q.numpy().copy()]  # every substep's start poses, as collide() would see them
+    clear = True
     for k in range(num_frames):
         if k > 0:
+            # the poses collided so far: all but the newest, which starts the next frame (or meets no collide())
             sim.advance_frame(track)
+            clear = clear_of_contact(cfg, assets, np.stack(track[:-1]), n_sub)
+            del track[:-1]
+            if not clear:
+                break
         poses[k], vel[k], ang[k] = sim.read()
     if sim.can_reset:
         _FREE[key] = sim
         while len(_FREE) > FREE_CACHE_SIZE:
             _FREE.popitem(last=False)
-    if not clear_of_contact(cfg, assets, np.stack(track), n_sub):
-        return None
-    return Trajectory(poses, vel, ang, n_sub)
+    return Trajectory(poses, vel, ang, n_sub) if clear else None
 
 
 def contact_range(cfg: BouncingThingsConfig, assets: Sequence[Asset], substeps: int) -> tuple[np.ndarray, float]:
@@ -195,54 +212,68 @@ def contact_range(cfg: BouncingThingsConfig, assets: Sequence[Asset], substeps: 
     return np.full(len(assets), MARGIN_FRACTION * s_min + approach), approach
 
 
+@register("physics.support_points")
 @functools.lru_cache(maxsize=4096)
-def _support_points(name: str, size: float, kind: str, params: tuple) -> tuple[np.ndarray, float, float]:
-    """(points (K, 3), radius, bounding radius) whose Minkowski sum contains the collider of an asset (its name,
-    size, collider kind and params) in its object frame [m]: a polytope's vertices with radius 0 (box, convex hull), or
-    a segment on z swept by a radius (sphere, capsule; cylinder and cone lie inside the capsule of their radius and
-    half height). The bounding radius bounds the collider about the origin."""
+def _support_points(name: str, size: float, kind: str, params: tuple) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The collider of an asset (its name, size, collider kind and params) in its object frame [m] as (points (K, 3),
+    disc radii (K,), radius, bounding radius): the convex hull of the points, each swept by a disc of its radius in
+    the object's xy plane, then by a ball of the radius. Box and convex hull: vertices; sphere: the centre and a
+    ball; capsule: the axis segment and a ball; cylinder: the end centres with discs; cone: the base centre with
+    a disc and the apex. The support along a unit axis u is max_k p_k.u + disc_k |u_xy| + radius, exact for each
+    kind. The bounding radius bounds the collider about the origin."""
     if kind == "box":
         pts, rad = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * np.array(params), 0.0
+        disc = np.zeros(8)
     elif kind == "sphere":
-        pts, rad = np.zeros((1, 3)), float(params[0])
+        pts, disc, rad = np.zeros((1, 3)), np.zeros(1), float(params[0])
     elif kind in ("capsule", "cylinder", "cone"):
-        pts, rad = np.array([[0.0, 0.0, -params[1]], [0.0, 0.0, params[1]]]), float(params[0])
+        r, h = float(params[0]), float(params[1])
+        pts = np.array([[0.0, 0.0, -h], [0.0, 0.0, h]])
+        disc, rad = {"capsule": ([0.0, 0.0], r), "cylinder": ([r, r], 0.0), "cone": ([r, 0.0], 0.0)}[kind]
+        disc = np.array(disc)
     else:
         pts, rad = np.asarray(unit_hull(name).vertices, dtype=np.float64) * size, 0.0
-    pts.flags.writeable = False
-    return pts, rad, float(np.linalg.norm(pts, axis=1).max()) + rad
+        disc = np.zeros(len(pts))
+    pts.flags.writeable = disc.flags.writeable = False
+    # a disc's rim point is perpendicular to z, its centre on z for every kind with a disc
+    return pts, disc, rad, float(np.sqrt((pts ** 2).sum(1) + disc ** 2).max()) + rad
 
 
 def clear_of_contact(cfg: BouncingThingsConfig, assets: Sequence[Asset], body_q: np.ndarray, substeps: int) -> bool:
     """Are the colliders at every pose of ``body_q`` (S, N, 7: px py pz qx qy qz qw, Newton's state) further than
     ``CLEARANCE_FACTOR`` times their contact range (:func:`contact_range`) plus ``CLEARANCE_SLACK`` from each other and
-    from the walls of ``cfg.object_bounds``? Bounding spheres decide where they can; elsewhere a lower bound of the
-    distance decides: the pair's separation along the line between the origins or along a world axis, or the object's
-    extent along each world axis against the walls (support functions of :func:`_support_points`). So True is
-    conservative."""
+    from the walls of ``cfg.object_bounds``? Bounding spheres decide where they can. Elsewhere the exact extent along
+    each world axis decides against the walls, and for a pair, a lower bound of the distance: their separation along
+    the line between the origins, a world axis or an axis of either object (support functions of
+    :func:`_support_points`). So True is conservative."""
     q = np.asarray(body_q, dtype=np.float64)
     S, N = q.shape[:2]
     reach, wall_gap = contact_range(cfg, assets, substeps)
     supports = [_support_points(a.name, float(a.size), a.collider.kind, tuple(map(float, a.collider.params)))
                 for a in assets]
-    rad = np.array([r for _, r, _ in supports])
-    bound = np.array([b for _, _, b in supports])
+    bound = np.array([sup[3] for sup in supports])
     centre = q[..., :3]
 
-    def rotated(s: np.ndarray, n: np.ndarray) -> np.ndarray:
-        """Support points of objects n at poses s, about their origins in world axes (M, K, 3), padded by repeats."""
+    def extent(s: np.ndarray, n: np.ndarray, R: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(lowest, highest) projection, each (M, X), of objects n at poses s (rotations R (M, 3, 3)) onto unit axes
+        (M, X, 3)."""
         K = max(len(supports[k][0]) for k in set(n.tolist()))
-        pts = np.stack([np.resize(supports[k][0], (K, 3)) if len(supports[k][0]) < K else supports[k][0] for k in n])
-        return np.matmul(pts, np.transpose(quat_to_rotation(q[s, n, 3:]), (0, 2, 1)))
+        pts = np.stack([np.resize(supports[k][0], (K, 3)) for k in n])  # padded by repeats
+        disc = np.stack([np.resize(supports[k][1], K) for k in n])
+        rad = np.array([supports[k][2] for k in n])[:, None]
+        proj = np.matmul(axes, np.matmul(R, np.transpose(pts, (0, 2, 1))))  # (M, X, K)
+        flat = np.sqrt(np.clip(1.0 - np.einsum("mxc,mc->mx", axes, R[:, :, 2]) ** 2, 0.0, 1.0))  # |u_xy|, object
+        wide = flat[:, :, None] * disc[:, None, :]
+        at = np.einsum("mxc,mc->mx", axes, centre[s, n])
+        return at + (proj - wide).min(-1) - rad, at + (proj + wide).max(-1) + rad
 
     lo, hi = (np.asarray(x, dtype=np.float64) for x in cfg.object_bounds)
-    need = (CLEARANCE_FACTOR * (reach + wall_gap) + CLEARANCE_SLACK)[None, :, None]
-    outer = (centre - bound[:, None] - need < lo) | (centre + bound[:, None] + need > hi)  # (S, N, 3)
+    need = CLEARANCE_FACTOR * (reach + wall_gap) + CLEARANCE_SLACK
+    outer = (centre - (bound + need)[:, None] < lo) | (centre + (bound + need)[:, None] > hi)  # (S, N, 3)
     if outer.any():
         s, n = np.nonzero(outer.any(-1))
-        w = rotated(s, n)
-        extra = (rad[n] + need[0, n, 0])[:, None]
-        if ((centre[s, n] + w.max(1) + extra > hi).any() or (centre[s, n] + w.min(1) - extra < lo).any()):
+        low, high = extent(s, n, quat_to_rotation(q[s, n, 3:]), np.broadcast_to(np.eye(3), (len(s), 3, 3)))
+        if (high + need[n, None] > hi).any() or (low - need[n, None] < lo).any():
             return False
     if N < 2:
         return True
@@ -255,16 +286,14 @@ def clear_of_contact(cfg: BouncingThingsConfig, assets: Sequence[Asset], body_q:
         return True
     s, p = np.nonzero(near)
     a, b = i[p], j[p]
-    rel_a, rel_b = rotated(s, a), rotated(s, b)  # (M, K, 3)
-    dm = d[s, p]
-    axes = np.concatenate([(dm / np.maximum(dist[s, p], 1e-12)[:, None])[:, None],
-                           np.broadcast_to(np.eye(3), (len(s), 3, 3))], axis=1)  # (M, 4, 3)
-    pa = np.matmul(axes, np.transpose(rel_a, (0, 2, 1)))  # (M, 4, K) projections
-    pb = np.matmul(axes, np.transpose(rel_b, (0, 2, 1)))
-    along = np.einsum("mxc,mc->mx", axes, dm)
-    radii = (rad[a] + rad[b])[:, None]
-    sep = np.maximum(along + pb.min(-1) - pa.max(-1), -along - pb.max(-1) + pa.min(-1)) - radii  # b beyond a, or a
-    return bool((sep.max(-1) > need[p]).all())  # beyond b, along the best of the four axes
+    R_a, R_b = quat_to_rotation(q[s, a, 3:]), quat_to_rotation(q[s, b, 3:])
+    axes = np.concatenate([(d[s, p] / np.maximum(dist[s, p], 1e-12)[:, None])[:, None],
+                           np.broadcast_to(np.eye(3), (len(s), 3, 3)),
+                           np.transpose(R_a, (0, 2, 1)), np.transpose(R_b, (0, 2, 1))], axis=1)  # (M, 10, 3) unit
+    low_a, high_a = extent(s, a, R_a, axes)
+    low_b, high_b = extent(s, b, R_b, axes)
+    sep = np.maximum(low_b - high_a, low_a - high_b)  # b beyond a, or a beyond b, along each axis
+    return bool((sep.max(-1) > need[p]).all())
 
 
 def _speed_band(cfg: BouncingThingsConfig) -> np.ndarray:

@@ -82,11 +82,15 @@ def test_free_flight_equals_the_full_model(name, monkeypatch):
 
 
 def _fcl(asset: Asset, q: np.ndarray) -> fcl.CollisionObject:
+    """The asset's collider at pose q (px py pz qx qy qz qw) as an fcl object (fcl's capsule, cylinder and cone are
+    centred on their axis as Newton's and flowsynth's are)."""
     c = asset.collider
     if c.kind == "sphere":
         geom = fcl.Sphere(c.params[0])
     elif c.kind == "box":
         geom = fcl.Box(*(2.0 * np.asarray(c.params)))
+    elif c.kind in ("capsule", "cylinder", "cone"):
+        geom = getattr(fcl, c.kind.capitalize())(c.params[0], 2.0 * c.params[1])
     else:
         hull = unit_hull(asset.name)
         v = np.asarray(hull.vertices) * asset.size
@@ -100,28 +104,59 @@ def _distance(a, qa, b, qb) -> float:
     return fcl.distance(_fcl(a, qa), _fcl(b, qb), fcl.DistanceRequest(), fcl.DistanceResult())
 
 
+KINDS = ("rock", "crystal", "box", "sphere", "capsule", "cylinder", "cone")
+
+
 def test_clear_of_contact_is_conservative_against_fcl():
-    """Random poses of two rocks, far to touching: each pair called clear is further apart than the clearance."""
+    """Random pairs of every collider kind in random poses, far to touching: each pair called clear is further apart
+    than the clearance, and most pairs well clear are called clear."""
     cfg = fs.BouncingThingsConfig(room_size=(40.0, 40.0, 40.0), camera_clearance=1.0)
     rng = np.random.default_rng(0)
-    assets = [get_asset("rock", 1.0), get_asset("crystal", 0.8)]
-    reach, _ = physics.contact_range(cfg, assets, 8)
-    need = physics.CLEARANCE_FACTOR * reach.sum() + physics.CLEARANCE_SLACK
     lo, hi = (np.asarray(x) for x in cfg.object_bounds)
     centre = (lo + hi) / 2
     verdicts = []
-    for _ in range(300):
+    for _ in range(400):
+        assets = [get_asset(str(k), float(rng.uniform(0.5, 1.2))) for k in rng.choice(KINDS, 2)]
+        reach, _ = physics.contact_range(cfg, assets, 8)
+        need = physics.CLEARANCE_FACTOR * reach.sum() + physics.CLEARANCE_SLACK
         q = np.zeros((1, 2, 7))
-        q[0, :, :3] = centre + np.stack([np.zeros(3), rng.normal(size=3) * rng.uniform(0.5, 1.5) / 1.7])
+        q[0, 1, :3] = rng.normal(size=3) * rng.uniform(0.3, 1.2) / 1.7
+        q[0, :, :3] += centre
         q[0, :, 3:] = Rotation.random(2, random_state=rng).as_quat()
         clear = physics.clear_of_contact(cfg, assets, q, 8)
         dist = _distance(assets[0], q[0, 0], assets[1], q[0, 1])
         if clear:
-            assert dist > need, (dist, need)
+            assert dist > need, (dist, need, [a.name for a in assets])
         verdicts.append((clear, dist > need * 1.5))
     assert any(c for c, _ in verdicts) and any(not c for c, _ in verdicts)
-    # tight where the true distance is large: most pairs well clear are called clear
-    assert np.mean([c for c, far in verdicts if far]) > 0.6
+    assert np.mean([c for c, far in verdicts if far]) > 0.8
+
+
+def test_clear_of_contact_walls_against_fcl():
+    """Each kind in random poses near the +x wall: called clear only where fcl's distance to the wall's plane (a
+    thin box) exceeds the clearance; and called clear where it is well clear."""
+    cfg = fs.BouncingThingsConfig(room_size=(10.0, 8.0, 6.0))
+    rng = np.random.default_rng(1)
+    lo, hi = (np.asarray(x) for x in cfg.object_bounds)
+    centre = (lo + hi) / 2
+    wall = fcl.CollisionObject(fcl.Box(0.02, 100.0, 100.0), fcl.Transform(np.eye(3), [hi[0] + 0.01, 0.0, 0.0]))
+    verdicts = []
+    for _ in range(300):
+        asset = get_asset(str(rng.choice(KINDS)), float(rng.uniform(0.5, 1.2)))
+        reach, wall_gap = physics.contact_range(cfg, [asset], 8)
+        need = physics.CLEARANCE_FACTOR * (reach[0] + wall_gap) + physics.CLEARANCE_SLACK
+        q = np.zeros((1, 1, 7))
+        q[0, 0, :3] = centre
+        q[0, 0, 0] = hi[0] - rng.uniform(0.0, asset.size)
+        q[0, 0, 3:] = Rotation.random(random_state=rng).as_quat()
+        clear = physics.clear_of_contact(cfg, [asset], q, 8)
+        obj = _fcl(asset, q[0, 0])
+        dist = fcl.distance(obj, wall, fcl.DistanceRequest(), fcl.DistanceResult())
+        if clear:
+            assert dist > need, (dist, need, asset.name)
+        verdicts.append((clear, dist > need + 1e-6))
+    assert any(c for c, _ in verdicts) and any(not c for c, _ in verdicts)
+    assert all(c for c, far in verdicts if far)  # the extent along an axis is exact: every clear one is called
 
 
 def _sphere(r: float) -> Asset:
