@@ -11,6 +11,10 @@ cache kept warm across rounds, as in a stream), on the same indices, and reports
 over rounds), the ratio fresh / reused, and the share of clips that found a scene to reuse. Run
 ``taskset -c 0 python benchmarks/scene_setup.py [--quick]``. Prints a table and writes
 ``benchmarks/results/scene_setup.json``.
+
+``--free-flight`` compares instead the scene stage of the default config (2, 4 and 8 frames) with free flight
+(``physics.FREE_FLIGHT``: clips clear of contact on a bodies-only model; docs/decisions/0022-free-flight.md) and
+without, and writes ``benchmarks/results/scene_setup_free_flight.json``.
 """
 
 from __future__ import annotations
@@ -66,13 +70,61 @@ def scene_cpu(cfg: BouncingThingsConfig, indices: range, reuse: bool) -> float:
     return (time.process_time() - t0) / len(indices)
 
 
+def free_flight(rounds: int, block: int, warm: int) -> None:
+    """``--free-flight``: the scene stage of the default config at 2, 4 and 8 frames with free flight
+    (``physics.FREE_FLIGHT``) and without, alternating rounds of ``block`` indices after ``warm`` samples with it
+    (its bodies-only scenes kept, as in a long stream); and the share of clips free flight kept."""
+    kept = {"clips": 0, "kept": 0}
+    run = physics._free_flight
+
+    def counted(*args):
+        got = run(*args)
+        kept["clips"] += 1
+        kept["kept"] += got is not None
+        return got
+
+    physics._free_flight = counted
+    load_before = os.getloadavg()
+    rows = []
+    for frames in (2, 4, 8):
+        cfg = BouncingThingsConfig(width=256, height=192, num_frames=frames)
+        physics.FREE_FLIGHT = True
+        scene_cpu(cfg, range(10_000, 10_000 + warm), True)
+        on, off = [], []
+        kept.update(clips=0, kept=0)
+        for r in range(rounds):
+            indices = range(r * block, (r + 1) * block)
+            for flag in ((False, True) if r % 2 == 0 else (True, False)):
+                physics.FREE_FLIGHT = flag
+                (on if flag else off).append(scene_cpu(cfg, indices, True))
+        f, n = statistics.median(on), statistics.median(off)
+        rows.append({"frames": frames, "without_ms": 1e3 * n, "free_flight_ms": 1e3 * f, "free/without": f / n,
+                     "tried": kept["clips"] / (rounds * block), "kept": kept["kept"] / (rounds * block)})
+        print(f"  {frames} frames: without {1e3 * n:.1f} ms, free flight {1e3 * f:.1f} ms", file=sys.stderr, flush=True)
+    physics.FREE_FLIGHT, physics._free_flight = True, run
+    load_after = os.getloadavg()
+    print(f"Scene stage (sample_scene) per sample of the default config at 256x192, process CPU, one thread; "
+          f"{rounds} alternating rounds of {block} samples after {warm} with free flight; load average "
+          f"{load_before[0]:.2f} -> {load_after[0]:.2f}. tried / kept: shares of the clips free flight ran / kept")
+    print_table(rows, ["frames", "without_ms", "free_flight_ms", "free/without", "tried", "kept"])
+    path = write_json("scene_setup_free_flight", {"machine": machine_info(), "pinning": PINNING, "rounds": rounds,
+                                                  "block": block, "warm": warm, "load_before": load_before,
+                                                  "load_after": load_after, "rows": rows})
+    print(f"wrote {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="2 rounds of 3 samples per config")
     ap.add_argument("--rounds", type=int, default=6)
     ap.add_argument("--block", type=int, default=10, help="samples per round and mode")
+    ap.add_argument("--free-flight", action="store_true",
+                    help="the default config at 2, 4 and 8 frames with free flight and without (docs/decisions/0022)")
     args = ap.parse_args()
     rounds, block = (2, 3) if args.quick else (args.rounds, args.block)
+    if args.free_flight:
+        free_flight(rounds, block, 3 if args.quick else 60)
+        return
     load_before = os.getloadavg()
     builds = _Builds()
     rows = []

@@ -104,7 +104,7 @@ moving average over about ten) is at least this [ratio]; below it, every ``FREE_
 so the share follows the stream. Long clips rarely stay clear of contact, and a failed try costs its reset and
 replays; a kept one saves the full model's build (benchmarks/throughput.py --ratio). Only time depends on this:
 either path gives the same trajectory."""
-FREE_FLIGHT_PROBE = 8
+FREE_FLIGHT_PROBE = 16
 _FREE_ODDS: dict = register("physics.free_flight_odds", {})  # num_frames -> [moving share kept, clips since a try]
 
 
