@@ -18,7 +18,7 @@ from flowsynth.caches import register
 from flowsynth.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
-from flowsynth.tiles import tile_lists
+from flowsynth.tiles import posed_hull, tile_lists
 
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH
 # (``flowsynth.tiles``).
@@ -74,10 +74,12 @@ class SceneAccel:
         hi = np.empty((F, N, 3))
         scale = np.empty((F, N, 1))
         v_lo, v_hi = np.empty((N, 3)), np.empty((N, 3))  # object-frame boxes: those of the hull points
+        self._posed = []  # each instance's hull points in the camera frames (F, K, 3): the screen bounds' too
         for n, m in enumerate(meshes):  # tight boxes: the posed hull vertices, not the posed local box
             hull = hull_points(m)
             v_lo[n], v_hi[n] = hull.min(0), hull.max(0)
-            pts = np.matmul(hull, np.swapaxes(cam_T_obj[:, n, :3, :3], 1, 2)) + cam_T_obj[:, n, None, :3, 3]
+            pts = posed_hull(hull, cam_T_obj[:, n])
+            self._posed.append(pts)
             lo[:, n], hi[:, n] = pts.min(1), pts.max(1)
             scale[:, n, 0] = (hi[:, n] - lo[:, n]).max(-1) + np.abs(pts).max((1, 2))
         pad = BOX_PAD_REL * scale + 1e-30
@@ -172,7 +174,8 @@ class SceneAccel:
                     local = order - (np.arange(self.F) * self.N)[:, None]
                     keep = ~self._flat[local]  # (F, N): the same instances are flat in every frame
                     order = order[keep].reshape(self.F, -1)
-            self._tiles[key] = tile_lists(self._meshes, self._cam_T_obj, order, camera, self._bounds, self.device)
+            self._tiles[key] = tile_lists(self._meshes, self._cam_T_obj, order, camera, self._bounds, self.device,
+                                          self._posed)
         return self._tiles[key]
 
 

@@ -21,13 +21,13 @@ TILE = 16  # a power of two: the kernels find a pixel's tile by a shift
 
 
 def tile_lists(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, order: np.ndarray | None, camera,
-               bounds: dict, device: str = "cpu"):
+               bounds: dict, device: str = "cpu", posed: list | None = None):
     """The per-(frame, screen tile) candidate lists of N instances in F frames (``cam_T_obj`` (F, N, 4, 4)): a
     ``TileLists`` struct (flowsynth.kernels.raycast) on ``device`` holding, per tile, the instances of ``order``
     (F, N') (global item indices near to far: all N, or those that are not flat) whose hull, clipped to z >=
     ``CLIP_Z``, projects within a pixel of the tile (``_screen_bounds``), near to far. ``order`` None: empty
     lists (the rays walk the BVH). ``bounds``: the caller's memo of screen bounds per camera (keyed by its size,
-    K and lens)."""
+    K and lens). ``posed``: each instance's hull points already posed by ``posed_hull`` (the accel's), or None."""
     from flowsynth.kernels.raycast import TileLists
 
     wp = wp_runtime()
@@ -39,11 +39,11 @@ def tile_lists(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, order: np.n
         kb = (camera.width, camera.height, camera.K.tobytes(), camera.model, camera.dist)
         if camera.is_pinhole:
             if kb not in bounds:
-                bounds[kb] = _screen_bounds(meshes, cam_T_obj, camera.K)
+                bounds[kb] = _screen_bounds(meshes, cam_T_obj, camera.K, posed)
             start, items, tx, ty = _tile_lists(bounds[kb], order, camera.width, camera.height, TILE)
         else:  # a lens model: rays' normalised coordinates per tile against the hulls' (_lens_tile_mask)
             if kb not in bounds:
-                bounds[kb] = _screen_bounds(meshes, cam_T_obj, np.eye(3))
+                bounds[kb] = _screen_bounds(meshes, cam_T_obj, np.eye(3), posed)
             mask = _lens_tile_mask(bounds[kb], order, camera, TILE)
             start, items = _csr_lists(mask, order)
             ty, tx = mask.shape[2:]
@@ -61,17 +61,24 @@ CLIP_Z = 1e-9
 CLIP_MAX_POINTS = 64
 
 
-def _screen_bounds(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, K: np.ndarray) -> np.ndarray:
+def posed_hull(hull: np.ndarray, cam_T_obj: np.ndarray) -> np.ndarray:
+    """Hull points (K, 3) in the camera frames of one instance's ``cam_T_obj`` (F, 4, 4): (F, K, 3) float64."""
+    return np.matmul(hull, np.swapaxes(cam_T_obj[:, :3, :3], 1, 2)) + cam_T_obj[:, None, :3, 3]
+
+
+def _screen_bounds(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, K: np.ndarray,
+                   posed: list | None = None) -> np.ndarray:
     """(F, N, 4) float64 (u_min, u_max, v_min, v_max) [px] of the projection of each instance's convex hull
     clipped to z >= ``CLIP_Z`` (camera frame of ``cam_T_obj`` (F, N, 4, 4)), NaN where nothing of it lies
     there. The clipped hull is the convex hull of its points with z >= CLIP_Z and of the points where the
     segments between a point in front and one behind cross z = CLIP_Z; perspective projection keeps convex
     sets convex, so the bounds of those points' projections bound every hit a camera ray can make. A hull
-    of more than ``CLIP_MAX_POINTS`` points reaching behind the plane gets infinite bounds (every tile)."""
+    of more than ``CLIP_MAX_POINTS`` points reaching behind the plane gets infinite bounds (every tile).
+    ``posed``: the instances' hull points posed by ``posed_hull`` where the caller has them."""
     F, N = cam_T_obj.shape[:2]
     out = np.full((F, N, 4), np.nan)
     for n, m in enumerate(meshes):
-        P = np.matmul(hull_points(m), np.swapaxes(cam_T_obj[:, n, :3, :3], 1, 2)) + cam_T_obj[:, n, None, :3, 3]
+        P = posed_hull(hull_points(m), cam_T_obj[:, n]) if posed is None else posed[n]
         z = P[..., 2]
         front = z >= CLIP_Z  # (F, V)
         pts, ok = P, front
