@@ -74,16 +74,7 @@ def free_flight(rounds: int, block: int, warm: int) -> None:
     """``--free-flight``: the scene stage of the default config at 2, 4 and 8 frames with free flight
     (``physics.FREE_FLIGHT``) and without, alternating rounds of ``block`` indices after ``warm`` samples with it
     (its bodies-only scenes kept, as in a long stream); and the share of clips free flight kept."""
-    kept = {"clips": 0, "kept": 0}
-    run = physics._free_flight
-
-    def counted(*args):
-        got = run(*args)
-        kept["clips"] += 1
-        kept["kept"] += got is not None
-        return got
-
-    physics._free_flight = counted
+    counts = physics.FREE_FLIGHT_COUNTS
     load_before = os.getloadavg()
     rows = []
     for frames in (2, 4, 8):
@@ -91,7 +82,7 @@ def free_flight(rounds: int, block: int, warm: int) -> None:
         physics.FREE_FLIGHT = True
         scene_cpu(cfg, range(10_000, 10_000 + warm), True)
         on, off = [], []
-        kept.update(clips=0, kept=0)
+        tried0, kept0 = counts["tried"], counts["kept"]
         for r in range(rounds):
             indices = range(r * block, (r + 1) * block)
             for flag in ((False, True) if r % 2 == 0 else (True, False)):
@@ -99,9 +90,10 @@ def free_flight(rounds: int, block: int, warm: int) -> None:
                 (on if flag else off).append(scene_cpu(cfg, indices, True))
         f, n = statistics.median(on), statistics.median(off)
         rows.append({"frames": frames, "without_ms": 1e3 * n, "free_flight_ms": 1e3 * f, "free/without": f / n,
-                     "tried": kept["clips"] / (rounds * block), "kept": kept["kept"] / (rounds * block)})
+                     "tried": (counts["tried"] - tried0) / (rounds * block),
+                     "kept": (counts["kept"] - kept0) / (rounds * block)})
         print(f"  {frames} frames: without {1e3 * n:.1f} ms, free flight {1e3 * f:.1f} ms", file=sys.stderr, flush=True)
-    physics.FREE_FLIGHT, physics._free_flight = True, run
+    physics.FREE_FLIGHT = True
     load_after = os.getloadavg()
     print(f"Scene stage (sample_scene) per sample of the default config at 256x192, process CPU, one thread; "
           f"{rounds} alternating rounds of {block} samples after {warm} with free flight; load average "

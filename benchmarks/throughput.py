@@ -133,7 +133,7 @@ def alternate(streams: dict, n: int, warm_stream: str | tuple, warm: int = 30) -
 
 class _FreeFlight:
     """A stream sampled with ``physics.FREE_FLIGHT`` set to ``on`` for its own samples only; counts its clips and
-    those that free flight kept."""
+    those that free flight kept (``physics.FREE_FLIGHT_COUNTS``)."""
 
     def __init__(self, ds, on: bool) -> None:
         self.ds, self.on, self.clips, self.free = ds, on, 0, 0
@@ -141,19 +141,14 @@ class _FreeFlight:
     def sample(self, i: int):
         from flowsynth import physics
 
-        old, run = physics.FREE_FLIGHT, physics._free_flight
-
-        def counted(*args):
-            got = run(*args)
-            self.free += got is not None
-            return got
-
-        physics.FREE_FLIGHT, physics._free_flight = self.on, counted
+        old, kept = physics.FREE_FLIGHT, physics.FREE_FLIGHT_COUNTS["kept"]
+        physics.FREE_FLIGHT = self.on
         try:
             self.clips += 1
             return self.ds.sample(i)
         finally:
-            physics.FREE_FLIGHT, physics._free_flight = old, run
+            physics.FREE_FLIGHT = old
+            self.free += physics.FREE_FLIGHT_COUNTS["kept"] - kept
 
 
 def depth_vs_full(n: int) -> dict:

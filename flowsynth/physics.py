@@ -105,6 +105,8 @@ so the share follows the stream. Long clips rarely stay clear of contact, and a 
 replays; a kept one saves the full model's build (benchmarks/throughput.py --ratio). Only time depends on this:
 either path gives the same trajectory."""
 FREE_FLIGHT_PROBE = 16
+FREE_FLIGHT_COUNTS = {"tried": 0, "kept": 0}
+"""This process's physics clips that free flight ran, and those it kept [count] (benchmarks read them)."""
 _FREE_ODDS: dict = register("physics.free_flight_odds", {})  # num_frames -> [moving share kept, clips since a try]
 
 
@@ -142,6 +144,8 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
         if odds[0] >= FREE_FLIGHT_ODDS or odds[1] >= FREE_FLIGHT_PROBE:
             free = _free_flight(cfg, assets, initial, num_frames, n_sub)
             odds[:] = [0.9 * odds[0] + 0.1 * (free is not None), 0]
+            FREE_FLIGHT_COUNTS["tried"] += 1
+            FREE_FLIGHT_COUNTS["kept"] += free is not None
             if free is not None:
                 return free
     for contact_max in (_contact_capacity(N), None):  # None: Newton's estimate, after an overflow
@@ -457,6 +461,7 @@ class NewtonScene:
     def _set_masses(self, assets: Sequence[Asset]) -> None:
         """Write the bodies' masses and inertias as ``finalize`` does, then the inverses and the solver's effective
         inverses by the same kernels."""
+        import newton
         import warp as wp
         from newton._src.sim.builder import compute_body_inverses_kernel, validate_and_correct_inertia_kernel
 
@@ -469,7 +474,7 @@ class NewtonScene:
                   inputs=[m.body_mass, m.body_inertia, *self._inertia_checks, count])
         wp.launch(compute_body_inverses_kernel, dim=m.body_count, device=self.device,
                   inputs=[m.body_mass, m.body_inertia], outputs=[m.body_inv_mass, m.body_inv_inertia])
-        self.solver._refresh_kinematic_state()
+        self.solver.notify_model_changed(newton.ModelFlags.BODY_INERTIAL_PROPERTIES)  # the effective inverses
 
     def advance_frame(self, track: list | None = None) -> None:
         """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
