@@ -12,7 +12,8 @@ over rounds), the ratio fresh / reused, and the share of clips that found a scen
 ``taskset -c 0 python benchmarks/scene_setup.py [--quick]``. Prints a table and writes
 ``benchmarks/results/scene_setup.json``.
 
-``--free-flight`` compares instead the scene stage of the default config (2, 4 and 8 frames) with free flight
+``--free-flight`` compares instead the scene stage of the default config (2, 4 and 8 frames) and of the full
+sample's config (20 objects) with free flight
 (``physics.FREE_FLIGHT``: clips clear of contact on a bodies-only model; docs/decisions/0022-free-flight.md) and
 without, and writes ``benchmarks/results/scene_setup_free_flight.json``.
 """
@@ -28,7 +29,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent)]
-from _common import machine_info, pin_single_core, print_table, write_json
+from _common import full_sample_config, machine_info, pin_single_core, print_table, write_json
 
 PINNING = pin_single_core()
 
@@ -71,14 +72,16 @@ def scene_cpu(cfg: BouncingThingsConfig, indices: range, reuse: bool) -> float:
 
 
 def free_flight(rounds: int, block: int, warm: int) -> None:
-    """``--free-flight``: the scene stage of the default config at 2, 4 and 8 frames with free flight
+    """``--free-flight``: the scene stage of the default config at 2, 4 and 8 frames, and of the full sample's config
+    (``_common.full_sample_config``: 20 objects), with free flight
     (``physics.FREE_FLIGHT``) and without, alternating rounds of ``block`` indices after ``warm`` samples with it
     (its bodies-only scenes kept, as in a long stream); and the share of clips free flight kept."""
     counts = physics.FREE_FLIGHT_COUNTS
     load_before = os.getloadavg()
     rows = []
-    for frames in (2, 4, 8):
-        cfg = BouncingThingsConfig(width=256, height=192, num_frames=frames)
+    configs = {f"default, {f} frames": BouncingThingsConfig(width=256, height=192, num_frames=f) for f in (2, 4, 8)}
+    configs["full sample (20 objects, 2 frames)"] = full_sample_config()
+    for name, cfg in configs.items():
         physics.FREE_FLIGHT = True
         scene_cpu(cfg, range(10_000, 10_000 + warm), True)
         on, off = [], []
@@ -89,16 +92,16 @@ def free_flight(rounds: int, block: int, warm: int) -> None:
                 physics.FREE_FLIGHT = flag
                 (on if flag else off).append(scene_cpu(cfg, indices, True))
         f, n = statistics.median(on), statistics.median(off)
-        rows.append({"frames": frames, "without_ms": 1e3 * n, "free_flight_ms": 1e3 * f, "free/without": f / n,
+        rows.append({"config": name, "without_ms": 1e3 * n, "free_flight_ms": 1e3 * f, "free/without": f / n,
                      "tried": (counts["tried"] - tried0) / (rounds * block),
                      "kept": (counts["kept"] - kept0) / (rounds * block)})
-        print(f"  {frames} frames: without {1e3 * n:.1f} ms, free flight {1e3 * f:.1f} ms", file=sys.stderr, flush=True)
+        print(f"  {name}: without {1e3 * n:.1f} ms, free flight {1e3 * f:.1f} ms", file=sys.stderr, flush=True)
     physics.FREE_FLIGHT = True
     load_after = os.getloadavg()
-    print(f"Scene stage (sample_scene) per sample of the default config at 256x192, process CPU, one thread; "
+    print(f"Scene stage (sample_scene) per sample, process CPU, one thread; "
           f"{rounds} alternating rounds of {block} samples after {warm} with free flight; load average "
           f"{load_before[0]:.2f} -> {load_after[0]:.2f}. tried / kept: shares of the clips free flight ran / kept")
-    print_table(rows, ["frames", "without_ms", "free_flight_ms", "free/without", "tried", "kept"])
+    print_table(rows, ["config", "without_ms", "free_flight_ms", "free/without", "tried", "kept"])
     path = write_json("scene_setup_free_flight", {"machine": machine_info(), "pinning": PINNING, "rounds": rounds,
                                                   "block": block, "warm": warm, "load_before": load_before,
                                                   "load_after": load_after, "rows": rows})

@@ -25,7 +25,7 @@ process first pins itself to one core, so each launch runs one thread; writes th
 pinned, process CPU time also counts the full sample's thread overhead, which flatters the ratio (3.37x unpinned
 at a259332 on 2026-11-25; 2.66-2.71x pinned at 9912c1d on 2026-11-26, a core shared with a nice-19 job). Both
 streams run with free flight (``physics.FREE_FLIGHT``, the default) and without it, alternated in the same run
-(2.81x against 2.46x pinned at e6589fc: docs/decisions/0022-free-flight.md).
+(2.91x against 2.50x pinned at e2bb326: docs/decisions/0022-free-flight.md).
 """
 
 from __future__ import annotations
