@@ -75,13 +75,17 @@ class SceneAccel:
         scale = np.empty((F, N, 1))
         v_lo, v_hi = np.empty((N, 3)), np.empty((N, 3))  # object-frame boxes: those of the hull points
         self._posed = []  # each instance's hull points in the camera frames (F, K, 3): the screen bounds' too
+        boxes = {}  # id(mesh) -> its hull points and their object-frame box, once per distinct mesh
         for n, m in enumerate(meshes):  # tight boxes: the posed hull vertices, not the posed local box
-            hull = hull_points(m)
-            v_lo[n], v_hi[n] = hull.min(0), hull.max(0)
+            if id(m) not in boxes:
+                hull = hull_points(m)
+                boxes[id(m)] = hull, hull.min(0), hull.max(0)
+            hull, v_lo[n], v_hi[n] = boxes[id(m)]
             pts = posed_hull(hull, cam_T_obj[:, n])
             self._posed.append(pts)
             lo[:, n], hi[:, n] = pts.min(1), pts.max(1)
-            scale[:, n, 0] = (hi[:, n] - lo[:, n]).max(-1) + np.abs(pts).max((1, 2))
+            # max |coordinate| of the points: max(max, -min) over the axes, the same value as abs().max()
+            scale[:, n, 0] = (hi[:, n] - lo[:, n]).max(-1) + np.maximum(hi[:, n], -lo[:, n]).max(-1)
         pad = BOX_PAD_REL * scale + 1e-30
         lowers = (lo - pad).reshape(-1, 3).astype(np.float32)
         uppers = (hi + pad).reshape(-1, 3).astype(np.float32)
