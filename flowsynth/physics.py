@@ -91,6 +91,8 @@ CLEARANCE_FACTOR = 1.25
 """Free flight holds only where every gap exceeds this many times the contact range, plus CLEARANCE_SLACK: the sum of
 the two shapes' margins and detection gaps, within which Newton's narrow phase writes a contact (speculative contacts
 are off) [ratio]."""
+CLEARANCE_CHUNK = 256
+"""Near (substep, pair) rows checked at once by :func:`clear_of_contact` [count]: bounds its temporaries."""
 CLEARANCE_SLACK = 1e-3
 """Absolute part of the clearance free flight needs [m] (float32 geometry, Newton's 1e-4 enlargement of shapes
 without margin)."""
@@ -99,15 +101,16 @@ FREE_CACHE_SIZE = 128
 hundred kB each), least recently used dropped first."""
 _FREE: OrderedDict = register("physics.newton_free_scenes", OrderedDict())  # key -> idle bodies-only NewtonScene
 FREE_FLIGHT_ODDS = 0.2
-"""Free flight is tried while the running share of clips it kept (this process's clips of the same frame count, a
-moving average over about ten) is at least this [ratio]; below it, every ``FREE_FLIGHT_PROBE``-th clip still tries,
-so the share follows the stream. Long clips rarely stay clear of contact, and a failed try costs its reset and
-replays; a kept one saves the full model's build (benchmarks/throughput.py --ratio). Only time depends on this:
-either path gives the same trajectory."""
+"""Free flight is tried while the running share of clips it kept (this process's tries with the same frame and
+object counts, a moving average over about ten) is at least this [ratio]; below it, every ``FREE_FLIGHT_PROBE``-th
+clip still tries, so the share follows the stream. Long clips rarely stay clear of contact, and a failed try costs
+its reset and replays; a kept one saves the full model's build (benchmarks/scene_setup.py --free-flight). Only time
+depends on this: either path gives the same trajectory."""
 FREE_FLIGHT_PROBE = 16
 FREE_FLIGHT_COUNTS = {"tried": 0, "kept": 0}
-"""This process's physics clips that free flight ran, and those it kept [count] (benchmarks read them)."""
-_FREE_ODDS: dict = register("physics.free_flight_odds", {})  # num_frames -> [moving share kept, clips since a try]
+"""This process's physics clips that free flight ran (passed the guess and the gate), and those it kept [count]
+(benchmarks read them; ``fs.clear_caches`` leaves them)."""
+_FREE_ODDS: dict = register("physics.free_flight_odds", {})  # (frames, objects) -> [moving share kept, clips since]
 
 
 def choose_substeps(cfg: BouncingThingsConfig, sizes: Sequence[float]) -> int:
@@ -138,8 +141,8 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     sizes = [a.size for a in assets]
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
     n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
-    if FREE_FLIGHT and num_frames > 1:
-        odds = _FREE_ODDS.setdefault(num_frames, [1.0, 0])
+    if FREE_FLIGHT and num_frames > 1 and _likely_clear(cfg, assets, initial, n_sub):
+        odds = _FREE_ODDS.setdefault((num_frames, N), [1.0, 0])
         odds[1] += 1
         if odds[0] >= FREE_FLIGHT_ODDS or odds[1] >= FREE_FLIGHT_PROBE:
             free = _free_flight(cfg, assets, initial, num_frames, n_sub)
@@ -175,24 +178,26 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
     return Trajectory(poses, vel, ang, n_sub)
 
 
-def _free_flight(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState, num_frames: int,
-                 n_sub: int) -> Trajectory | None:
-    """The clip on a bodies-only scene (``FREE_FLIGHT``), or None as soon as some substep's poses come within
-    contact range (checked frame by frame, so a clip that meets a contact early costs little). A clip that a
-    guess from its initial state puts within range is not tried: in 80 default clips the guess passed 55, all of
-    them kept, of the 57 kept when every clip is tried; in 80 of benchmarks/_common.py's full-sample clips (20
-    objects) it passed 34, 33 of them kept, of 35."""
+def _likely_clear(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState, n_sub: int) -> bool:
+    """A guess whether free flight keeps a clip, costing no scene: clear of contact at the start and where straight
+    flight at the initial velocities, unrotated, puts the objects a frame later. Free flight tries only the clips
+    it passes: in 80 default clips it passed 55, all of them kept, of the 57 kept when every clip is tried; in 80 of
+    benchmarks/_common.py's full-sample clips (20 objects) it passed 34, 33 of them kept, of 35."""
     q0 = np.concatenate([initial.position, rotation_to_quat_xyzw(initial.rotation)], 1)
     q1 = q0.copy()
     q1[:, :3] += initial.velocity / cfg.fps
-    if not clear_of_contact(cfg, assets, np.stack([q0, q1]), n_sub):  # a guess, costing no scene: clear at the
-        return None  # start and where straight flight, unrotated, puts the objects a frame later
+    return clear_of_contact(cfg, assets, np.stack([q0, q1]), n_sub)
+
+
+def _free_flight(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState, num_frames: int,
+                 n_sub: int) -> Trajectory | None:
+    """The clip on a bodies-only scene (``FREE_FLIGHT``), or None as soon as some substep's poses come within
+    contact range (checked frame by frame, so a clip that meets a contact early costs little)."""
     key = (len(assets), n_sub, cfg.fps, tuple(cfg.gravity), cfg.restitution, cfg.friction, _FREE_JOINTS)
     sim = _FREE.pop(key, None)  # popped: never two clips on one scene at once
-    if sim is None or not sim.reset(initial, assets):
+    if sim is None or not sim.reset(initial, assets, cfg):
         sim = NewtonScene(cfg, assets, initial, n_sub, colliders=False)
         sim.reusable = True
-    sim.band.numpy()[...] = _speed_band(cfg)
     N = len(assets)
     poses = np.empty((num_frames, N, 4, 4))
     vel = np.empty((num_frames, N, 3))
@@ -296,16 +301,20 @@ def clear_of_contact(cfg: BouncingThingsConfig, assets: Sequence[Asset], body_q:
     near = dist <= bound[i] + bound[j] + need
     if not near.any():
         return True
-    s, p = np.nonzero(near)
-    a, b = i[p], j[p]
-    R_a, R_b = quat_to_rotation(q[s, a, 3:]), quat_to_rotation(q[s, b, 3:])
-    axes = np.concatenate([(d[s, p] / np.maximum(dist[s, p], 1e-12)[:, None])[:, None],
-                           np.broadcast_to(np.eye(3), (len(s), 3, 3)),
-                           np.transpose(R_a, (0, 2, 1)), np.transpose(R_b, (0, 2, 1))], axis=1)  # (M, 10, 3) unit
-    low_a, high_a = extent(s, a, R_a, axes)
-    low_b, high_b = extent(s, b, R_b, axes)
-    sep = np.maximum(low_b - high_a, low_a - high_b)  # b beyond a, or a beyond b, along each axis
-    return bool((sep.max(-1) > need[p]).all())
+    s_all, p_all = np.nonzero(near)
+    for c in range(0, len(s_all), CLEARANCE_CHUNK):  # in chunks: the projections are (M, 10, K) per object
+        s, p = s_all[c:c + CLEARANCE_CHUNK], p_all[c:c + CLEARANCE_CHUNK]
+        a, b = i[p], j[p]
+        R_a, R_b = quat_to_rotation(q[s, a, 3:]), quat_to_rotation(q[s, b, 3:])
+        axes = np.concatenate([(d[s, p] / np.maximum(dist[s, p], 1e-12)[:, None])[:, None],
+                               np.broadcast_to(np.eye(3), (len(s), 3, 3)),
+                               np.transpose(R_a, (0, 2, 1)), np.transpose(R_b, (0, 2, 1))], axis=1)  # (M, 10, 3)
+        low_a, high_a = extent(s, a, R_a, axes)
+        low_b, high_b = extent(s, b, R_b, axes)
+        sep = np.maximum(low_b - high_a, low_a - high_b)  # b beyond a, or a beyond b, along each axis
+        if not (sep.max(-1) > need[p]).all():
+            return False
+    return True
 
 
 def _speed_band(cfg: BouncingThingsConfig) -> np.ndarray:
@@ -438,24 +447,29 @@ class NewtonScene:
         qd[:, :3] = initial.velocity
         qd[:, 3:] = initial.angular_velocity
 
-    def reset(self, initial: InitialState, assets: Sequence[Asset] | None = None) -> bool:
+    def reset(self, initial: InitialState, assets: Sequence[Asset] | None = None,
+              cfg: BouncingThingsConfig | None = None) -> bool:
         """Make this scene what a fresh one of the same key (:func:`_scene_key`) built for ``initial`` would be
         after its capture: every memory region the captured substep reads or writes gets back the content it had
         right after this scene's own capture, then the arrays that depend on the initial state (the model's and both
         states' poses, state0's velocities, the last directions) are written as ``__init__`` writes them, and Newton's
         ray-query shape BVH is refitted to the new poses. Returns False, changing nothing, when there is no capture
         to reuse (``reusable`` was False at the capture). A scene without colliders takes the bodies' masses and
-        inertias of ``assets`` too, through the kernels ``ModelBuilder.finalize`` derives the inverses with."""
+        inertias of ``assets`` too, through the kernels ``ModelBuilder.finalize`` derives the inverses with, and the
+        speed band of ``cfg`` (its key leaves the band out); a scene with colliders keeps its own config (its key
+        holds the whole config)."""
         import warp as wp
 
         if self._snapshot is None or len(initial.position) != self.model.body_count:
             return False
-        if self.pipeline is None and assets is None:
-            raise ValueError("a scene without colliders is reset with the clip's assets (their masses)")
+        if self.pipeline is None and (assets is None or cfg is None):
+            raise ValueError("a scene without colliders is reset with the clip's assets and config (masses, band)")
         for view, saved in self._snapshot:
             np.copyto(view, saved)
         if self.pipeline is None:
             self._set_masses(assets)
+            self.cfg = cfg
+            self.band.numpy()[...] = _speed_band(cfg)
         q = wp.array(_body_xforms(initial), dtype=wp.transform, device=self.device).numpy()
         for arr in (self.model.body_q, self.state0.body_q, self.state1.body_q):
             arr.numpy()[...] = q

@@ -70,3 +70,15 @@ def test_contact_estimate_is_the_pipelines_default():
     assert physics._newton_contact_estimate(scene.model) == default == scene.pipeline.rigid_contact_max, (
         "Newton's private newton._src.sim.collide._estimate_rigid_contact_max moved or no longer gives "
         "CollisionPipeline's default capacity: update flowsynth.physics._newton_contact_estimate")
+
+
+def test_finalize_kernels_free_flight_resets_with_exist():
+    """A bodies-only scene reset for another clip (flowsynth.physics, free flight) writes the new masses and derives
+    their inverses with the two kernels ModelBuilder.finalize uses; when they move, resets cannot match a fresh
+    build (tests/test_free_flight.py would fail on bits, this names the cause)."""
+    from newton._src.sim import builder
+
+    missing = [n for n in ("validate_and_correct_inertia_kernel", "compute_body_inverses_kernel")
+               if getattr(builder, n, None) is None]
+    assert not missing, (f"newton._src.sim.builder no longer has {missing}: update NewtonScene._set_masses in "
+                         "flowsynth/physics.py for this Newton version, or set physics.FREE_FLIGHT = False")
