@@ -43,8 +43,10 @@ class HostGBuffer:
 
     @property
     def instance_index(self) -> np.ndarray:
-        """0-based instance index per pixel, -1 where nothing is hit."""
-        return np.where(self.item >= 0, self.item % max(self.num_instances, 1), -1)
+        """0-based instance index per pixel, -1 where nothing is hit (item f * N + n in frame f: n = item - f * N,
+        a subtraction rather than a remainder)."""
+        offset = (np.arange(self.item.shape[0], dtype=self.item.dtype) * self.num_instances).reshape(-1, 1, 1)
+        return np.where(self.item >= 0, self.item - offset, -1)
 
 
 @dataclass

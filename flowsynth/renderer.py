@@ -118,7 +118,7 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
         out["distance"] = torch.from_numpy(host.dist[:, None].copy())
     if "depth" in want:
         dz = scene.camera.pixel_rays_numpy()[..., 2]
-        out["depth"] = torch.from_numpy((host.dist.astype(np.float64) * dz).astype(np.float32)[:, None])
+        out["depth"] = torch.from_numpy(np.multiply(host.dist, dz, dtype=np.float64).astype(np.float32)[:, None])
     if "normals" in want:
         out["normals"] = torch.from_numpy(np.ascontiguousarray(host.normal.transpose(0, 3, 1, 2)))
     lut = {
@@ -129,5 +129,5 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
     for key, table in lut.items():
         if key in want:
             table0 = np.concatenate([table, np.zeros(1, np.int32)])  # index -1 -> 0
-            out[key] = torch.from_numpy(table0[idx][:, None].copy())
+            out[key] = torch.from_numpy(table0[idx][:, None])  # a fresh array: indexing copies
     return out

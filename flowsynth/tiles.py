@@ -81,6 +81,11 @@ def _screen_bounds(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, K: np.n
         P = posed_hull(hull_points(m), cam_T_obj[:, n]) if posed is None else posed[n]
         z = P[..., 2]
         front = z >= CLIP_Z  # (F, V)
+        if front.all():  # every point in front (the common case): the same values without the masks
+            u = (K[0, 0] * P[..., 0] + K[0, 1] * P[..., 1]) / z + K[0, 2]
+            v = K[1, 1] * P[..., 1] / z + K[1, 2]
+            out[:, n] = np.stack([u.min(1), u.max(1), v.min(1), v.max(1)], -1)
+            continue
         pts, ok = P, front
         if not front.all() and P.shape[1] <= CLIP_MAX_POINTS:
             za, zb = z[:, :, None], z[:, None, :]
