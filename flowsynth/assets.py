@@ -52,8 +52,9 @@ __all__ = [
 PRIMITIVE_ASSETS = ("box", "sphere", "cylinder", "capsule", "cone")
 """Built-in assets whose collider is the analytic primitive."""
 
-BUILTIN_ASSETS = (*PRIMITIVE_ASSETS, "torus", "rock", "crystal", "star", "blob")
-"""Every built-in asset name, in category order (see ``docs/scenes.md``)."""
+BUILTIN_ASSETS = (*PRIMITIVE_ASSETS, "torus", "rock", "crystal", "star", "blob", "chair", "frame")
+"""Every built-in asset name, in category order (see ``docs/scenes.md``). ``chair`` and ``frame`` (thin legs, bars
+and holes: issue 38's "thin structures and chair-like parts") are not in the default config's ``assets``."""
 
 _GLOB_CHARS = "*?["
 HULL_MAX_VERTICES = 192
@@ -307,6 +308,10 @@ def _builtin_unit(name: str) -> trimesh.Trimesh:
         m = _star()
     elif name == "crystal":
         m = _crystal()
+    elif name == "chair":
+        m = _voxel_solid(_CHAIR)
+    elif name == "frame":
+        m = _voxel_solid(_FRAME)
     else:
         raise AssetError(f"unknown built-in asset {name!r}; use one of {list(BUILTIN_ASSETS)}")
     # Cones are centred on their geometric centre (base at -h, apex at +h), like Newton's cone.
@@ -346,6 +351,59 @@ def _star() -> trimesh.Trimesh:
     c = np.clip((n @ spikes.T).max(1), -1.0, 1.0)
     r = 0.55 + 0.45 * np.clip((c - 0.85) / 0.15, 0.0, 1.0) ** 1.5
     return trimesh.Trimesh(vertices=n * r[:, None], faces=sphere.faces, process=False)
+
+
+def _chair_cells() -> np.ndarray:
+    """Occupancy (x, y, z) of a chair on a 9 x 9 x 16 grid: four one-cell legs, a seat, a back of two posts and two
+    rails (holes between them)."""
+    g = np.zeros((9, 9, 16), bool)
+    for x in (0, 8):
+        for y in (0, 8):
+            g[x, y, :7] = True  # legs
+    g[:, :, 7] = True  # seat
+    g[0, 8, 8:] = g[8, 8, 8:] = True  # back posts
+    g[:, 8, 11] = g[:, 8, 15] = True  # back rails
+    return g
+
+
+def _frame_cells() -> np.ndarray:
+    """Occupancy of the twelve one-cell edges of a 10 x 10 x 10 cube (a wire frame: thin bars, open faces)."""
+    g = np.zeros((10, 10, 10), bool)
+    e = (0, 9)
+    for a in e:
+        for b in e:
+            g[:, a, b] = g[a, :, b] = g[a, b, :] = True
+    return g
+
+
+_CHAIR = _chair_cells()
+_FRAME = _frame_cells()
+
+
+def _voxel_solid(cells: np.ndarray) -> trimesh.Trimesh:
+    """The closed surface of a union of unit cubes (``cells``, a boolean grid): one outward quad (two triangles)
+    per face between a filled and an empty cell, corners shared. Watertight and consistently wound wherever no two
+    cells touch along an edge or corner alone."""
+    filled = np.pad(cells, 1)
+    verts: dict = {}
+    faces = []
+    # per axis and side: the face's four corners (offsets from the cell's low corner), counter-clockwise seen from
+    # outside
+    quads = {
+        (0, -1): [(0, 0, 0), (0, 0, 1), (0, 1, 1), (0, 1, 0)], (0, 1): [(1, 0, 0), (1, 1, 0), (1, 1, 1), (1, 0, 1)],
+        (1, -1): [(0, 0, 0), (1, 0, 0), (1, 0, 1), (0, 0, 1)], (1, 1): [(0, 1, 0), (0, 1, 1), (1, 1, 1), (1, 1, 0)],
+        (2, -1): [(0, 0, 0), (0, 1, 0), (1, 1, 0), (1, 0, 0)], (2, 1): [(0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)],
+    }
+    for x, y, z in zip(*np.nonzero(filled)):
+        for (axis, side), corners in quads.items():
+            n = [x, y, z]
+            n[axis] += side
+            if filled[tuple(n)]:
+                continue
+            ids = [verts.setdefault((x + dx, y + dy, z + dz), len(verts)) for dx, dy, dz in corners]
+            faces += [(ids[0], ids[1], ids[2]), (ids[0], ids[2], ids[3])]
+    V = np.array(sorted(verts, key=verts.get), dtype=np.float64)
+    return trimesh.Trimesh(vertices=V, faces=np.array(faces), process=False)
 
 
 def _crystal() -> trimesh.Trimesh:

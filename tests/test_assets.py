@@ -144,3 +144,18 @@ def test_library_meshes_are_cleaned_once_and_shared():
     user = trimesh.Trimesh(np.array(mesh.vertices), np.array(mesh.faces), process=False)
     scenes[0].add_object(user)
     assert scenes[0].objects[2].mesh is not scenes[0].objects[0].mesh
+
+
+def test_voxel_solids_are_their_cells():
+    """chair and frame are the closed surfaces of their unit-cube cells: volume = the cell count, area = the faces
+    between a filled and an empty cell (counted from the grid), watertight, and wholly inside their convex hull
+    collider (test_collider_contains_the_visual_mesh)."""
+    from flowsynth.assets import _CHAIR, _FRAME, _voxel_solid
+
+    for cells in (_CHAIR, _FRAME, np.ones((2, 3, 1), bool)):
+        m = _voxel_solid(cells)
+        padded = np.pad(cells, 1).astype(int)
+        exposed = sum(np.abs(np.diff(padded, axis=a)).sum() for a in range(3))
+        assert m.is_watertight and m.is_winding_consistent
+        assert m.volume == pytest.approx(cells.sum(), rel=1e-12)
+        assert m.area == pytest.approx(exposed, rel=1e-12)
