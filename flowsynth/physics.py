@@ -3,8 +3,9 @@
 Colliders are the assets' primitives or convex hulls; the walls of ``cfg.object_bounds`` are static boxes.
 Substeps per frame follow :func:`choose_substeps`; after every substep each linear speed is clamped into
 [min_speed, max_speed] and each angular speed into ``angular_speed`` (docs/scenes.md). Newton is imported only
-here, on first use. Also here: the reuse of finished Newton scenes (``SCENE_REUSE``) and the memoisation of
-Newton's private kernel factories, scoped to flowsynth's own calls (``memoise_newton_kernel_factories``).
+here, on first use. Also here: the reuse of finished Newton scenes (``SCENE_REUSE``), free flight (``FREE_FLIGHT``:
+clips clear of contact on a bodies-only model, bit for bit) and the memoisation of Newton's private kernel
+factories, scoped to flowsynth's own calls (``memoise_newton_kernel_factories``).
 ``flowsynth.motion.simulate`` dispatches here for ``motion="physics"``.
 """
 
