@@ -159,24 +159,42 @@ def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial
             sim = NewtonScene(cfg, assets, initial, n_sub, contact_max)
             sim.reusable = SCENE_REUSE and key in _SEEN
         if SCENE_REUSE:
-            _SEEN[key] = None
-            _SEEN.move_to_end(key)
-            while len(_SEEN) > SCENE_KEYS_SEEN:
-                _SEEN.popitem(last=False)
-        poses = np.empty((num_frames, N, 4, 4))
-        vel = np.empty((num_frames, N, 3))
-        ang = np.empty((num_frames, N, 3))
-        for k in range(num_frames):
-            if k > 0:
-                sim.advance_frame()
-            poses[k], vel[k], ang[k] = sim.read()
+            _SEEN.pop(key, None)
+            _keep(_SEEN, key, None, SCENE_KEYS_SEEN)
+        frames = _run_frames(sim, num_frames)
         if SCENE_REUSE and sim.can_reset:
-            _SCENES[key] = sim
-            while len(_SCENES) > SCENE_CACHE_SIZE:
-                _SCENES.popitem(last=False)
+            _keep(_SCENES, key, sim, SCENE_CACHE_SIZE)
         if sim.contact_max is None or not sim.overflowed():  # Newton's estimate already, or nothing dropped
             break
-    return Trajectory(poses, vel, ang, n_sub)
+    return Trajectory(*frames, n_sub)
+
+
+def _keep(cache: OrderedDict, key, value, limit: int) -> None:
+    """``cache[key] = value`` as the newest entry, the oldest dropped beyond ``limit``."""
+    cache[key] = value
+    while len(cache) > limit:
+        cache.popitem(last=False)
+
+
+def _run_frames(sim: NewtonScene, num_frames: int, clear=None) -> tuple | None:
+    """(poses, velocities, angular velocities) of ``num_frames`` frames stepped on ``sim``. With ``clear``, each
+    frame's substep start poses (S, N, 7) go to ``clear`` and the clip stops, returning None, when it says False."""
+    N = sim.model.body_count
+    poses = np.empty((num_frames, N, 4, 4))
+    vel = np.empty((num_frames, N, 3))
+    ang = np.empty((num_frames, N, 3))
+    track = [sim.state0.body_q.numpy().copy()] if clear else None
+    for k in range(num_frames):
+        if k > 0:
+            sim.advance_frame(track)
+            if clear:
+                # the poses collided so far: all but the newest, which starts the next frame (or meets no collide())
+                ok = clear(np.stack(track[:-1]))
+                del track[:-1]
+                if not ok:
+                    return None
+        poses[k], vel[k], ang[k] = sim.read()
+    return poses, vel, ang
 
 
 def _likely_clear(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState, n_sub: int) -> bool:
@@ -199,26 +217,10 @@ def _free_flight(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: In
     if sim is None or not sim.reset(initial, assets, cfg):
         sim = NewtonScene(cfg, assets, initial, n_sub, colliders=False)
         sim.reusable = True
-    N = len(assets)
-    poses = np.empty((num_frames, N, 4, 4))
-    vel = np.empty((num_frames, N, 3))
-    ang = np.empty((num_frames, N, 3))
-    track = [sim.state0.body_q.numpy().copy()]  # every substep's start poses, as collide() would see them
-    clear = True
-    for k in range(num_frames):
-        if k > 0:
-            # the poses collided so far: all but the newest, which starts the next frame (or meets no collide())
-            sim.advance_frame(track)
-            clear = clear_of_contact(cfg, assets, np.stack(track[:-1]), n_sub)
-            del track[:-1]
-            if not clear:
-                break
-        poses[k], vel[k], ang[k] = sim.read()
+    frames = _run_frames(sim, num_frames, lambda q: clear_of_contact(cfg, assets, q, n_sub))
     if sim.can_reset:
-        _FREE[key] = sim
-        while len(_FREE) > FREE_CACHE_SIZE:
-            _FREE.popitem(last=False)
-    return Trajectory(poses, vel, ang, n_sub) if clear else None
+        _keep(_FREE, key, sim, FREE_CACHE_SIZE)
+    return None if frames is None else Trajectory(*frames, n_sub)
 
 
 def contact_range(cfg: BouncingThingsConfig, assets: Sequence[Asset], substeps: int) -> tuple[np.ndarray, float]:
