@@ -61,6 +61,7 @@ __all__ = [
     "sample_layout",
     "sample_scene",
     "sample_seed",
+    "simulation_config",
     "size_levels",
     "view_grid",
     "wall_distances",
@@ -120,11 +121,7 @@ def sample_scene(cfg: BouncingThingsConfig, seed: int, index: int) -> Scene:
     """Sample, simulate and assemble scene ``index`` of the dataset ``(cfg, seed)``, bit for bit
     reproducible."""
     layout = sample_layout(cfg, seed, index)
-    sim_cfg = cfg
-    if cfg.flow_px is not None and cfg.motion == "physics" and len(layout.assets):
-        speed = np.linalg.norm(layout.initial.velocity, axis=1)  # physics keeps speeds in the drawn band
-        sim_cfg = replace(cfg, min_speed=float(speed.min()), max_speed=float(speed.max()))
-    trajectory = simulate(sim_cfg, layout.assets, layout.initial)
+    trajectory = simulate(simulation_config(cfg, layout), layout.assets, layout.initial)
     scene = build_scene(cfg, layout, trajectory)
     light_rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index), 2]))
     lights = sample_lights(light_rng, cfg.room_size)
@@ -135,6 +132,15 @@ def sample_scene(cfg: BouncingThingsConfig, seed: int, index: int) -> Scene:
     if layout.motion:
         scene.meta["motion"] = layout.motion
     return scene
+
+
+def simulation_config(cfg: BouncingThingsConfig, layout: SceneLayout) -> BouncingThingsConfig:
+    """The config a layout's motion is simulated with: with ``flow_px`` and physics, the speed band narrowed to the
+    drawn speeds (physics keeps speeds in that band); else ``cfg``."""
+    if cfg.flow_px is not None and cfg.motion == "physics" and len(layout.assets):
+        speed = np.linalg.norm(layout.initial.velocity, axis=1)
+        return replace(cfg, min_speed=float(speed.min()), max_speed=float(speed.max()))
+    return cfg
 
 
 def sample_seed(seed: int, index: int) -> int:

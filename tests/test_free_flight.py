@@ -10,7 +10,6 @@ Oracles:
 
 from __future__ import annotations
 
-from dataclasses import replace
 
 import fcl
 import numpy as np
@@ -21,7 +20,7 @@ import flowsynth as fs
 from flowsynth import physics
 from flowsynth.assets import Asset, Collider, get_asset, unit_hull
 from flowsynth.motion import simulate
-from flowsynth.sampling import sample_layout
+from flowsynth.sampling import sample_layout, simulation_config
 
 FIELDS = ("poses", "velocity", "angular_velocity", "substeps")
 CONFIGS = {
@@ -39,15 +38,8 @@ CONFIGS = {
 
 def _clips(cfg, indices):
     """(simulation config, layout) of each index, as sample_scene simulates it."""
-    out = []
-    for i in indices:
-        layout = sample_layout(cfg, 0, i)
-        sim_cfg = cfg
-        if cfg.flow_px is not None:
-            speed = np.linalg.norm(layout.initial.velocity, axis=1)
-            sim_cfg = replace(cfg, min_speed=float(speed.min()), max_speed=float(speed.max()))
-        out.append((sim_cfg, layout))
-    return out
+    layouts = [sample_layout(cfg, 0, i) for i in indices]
+    return [(simulation_config(cfg, layout), layout) for layout in layouts]
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))
