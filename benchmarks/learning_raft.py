@@ -1,0 +1,377 @@
+"""The learning judge of issue 46: torchvision's RAFT-small, trained from scratch on each arm's pairs, tested on real
+flow. ``benchmarks/learning.py`` runs it (its default ``--net raft``); the protocol and the rules are pre-registered
+in docs/decisions/0023-raft-judge.md.
+
+    python benchmarks/learning.py [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400]
+                                  [--middlebury DIR] [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2]
+    python benchmarks/learning.py --summarize [--files 'learning_raft*.json'] [--arm flowsynth]
+                                  [--against chairs2d_photos]
+    python benchmarks/learning.py --figures NAME [--middlebury DIR]   # predicted flow of the saved nets
+
+Protocol (the numbers are module constants):
+
+- Net: ``torchvision.models.optical_flow.raft_small(weights=None)`` (0.99 M parameters), RAFT's recipe as
+  ``flowsynth.training`` implements it (the same step ``examples/train_raft.py`` runs): sequence loss (gamma 0.8),
+  AdamW at ``LR`` with weight decay 1e-4 and a linear one-cycle schedule, gradient clip 1, ``UPDATES`` flow updates
+  in training and ``TEST_UPDATES`` at test; ``STEPS`` steps of ``BATCH`` random ``CROP`` crops with flips and colour
+  jitter, the same augmentation for every arm.
+- Training pools: ``POOL`` pairs per arm rendered at ``RES`` (256x192), images kept as uint8.
+  - ``flowsynth``: ``BouncingThingsConfig()`` (with ``--set`` changes: a lever) at 256x192, 2 frames, its
+    ``flow_px`` halved so motion keeps the proportions of a 512x384 rendering; procedural textures only.
+  - ``chairs2d_photos``: the FlyingChairs-style 2D baseline (``learning_sets.chairs2d_pairs``) textured with crops of
+    every photograph that ships with scikit-image (``NATURAL_PHOTOS``), as FlyingChairs is textured with photographs.
+  - ``chairs2d``: the same baseline textured with flowsynth frames not trained on: it isolates what the 3D motion
+    teaches. Both baselines' motion is scaled so that their mean |flow| equals the flowsynth pool's.
+  - ``flowsynth_photos``: the flowsynth config with NATURAL_PHOTOS as every texture (``texture_families=("image",)``).
+  - ``control``: the flowsynth pool again, with another net seed (seed + 100): the judge's own noise.
+- Judges: Motorcycle ("stereo": the whole stereo pair at half resolution, plain and mirrored, ``motorcycle_full``)
+  and, with ``--middlebury DIR``, the mean EPE over the Middlebury pairs found there ("middlebury", each pair also
+  "mb_NAME"), at full resolution. Tested at step 0 and every ``EVERY`` steps; a net's score on a judge is the mean of
+  its last ``JUDGED`` checkpoints (steps 2000 and 2400), which halves the checkpoint-to-checkpoint swings one seed
+  shows.
+
+Writes results/learning_raft[_TAG].json after every seed, and each trained net's weights to
+.cache/learning_raft/TAG_ARM_sSEED.pt (for ``--figures``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import RESULTS_DIR, machine_info, print_table, write_json
+from learning_sets import NATURAL_PHOTOS, chairs2d_pairs, middlebury_pairs, motorcycle_full, photo_folder, \
+    photo_sources
+
+NET = "raft_small"
+RES = (256, 192)  # (w, h) the training pairs are rendered at [px]
+CROP = (128, 160)  # (h, w) of the training crops [px]: RAFT's correlation pyramid needs 128 or more a side
+BATCH = 6
+STEPS = 2400
+EVERY = 400  # test every this many steps
+JUDGED = 2  # a net's score: the mean of its last JUDGED checkpoints
+LR = 4e-4  # RAFT's peak learning rate (AdamW, one-cycle)
+UPDATES, TEST_UPDATES = 8, 12
+POOL = 1200  # training pairs per arm
+SCALE = 512 // RES[0]  # flow_px is given at 512x384
+ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "control")
+CONTROL_SEED = 100  # the control's net seed is the run's seed + this
+JUDGES = ("stereo", "middlebury")
+CACHE = Path(__file__).resolve().parent.parent / ".cache" / "learning_raft"
+
+
+def raft_small():
+    """torchvision's RAFT-small with random weights (tests/tvision.py's shim for this CPU torch)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    import tvision
+
+    tvision.datasets()  # registers the shim module before torchvision's models import
+    from torchvision.models.optical_flow import raft_small as build
+
+    return build(weights=None)
+
+
+# -- data -----------------------------------------------------------------------------------------------------
+def _u8(x):
+    import torch
+
+    return (x * 255).round().clamp(0, 255).to(torch.uint8)
+
+
+def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = None):
+    """n flowsynth pairs at RES: (img1, img2 uint8 (n, 3, h, w), flow (n, 2, h, w), valid (n, 1, h, w) bool), and the
+    config. ``overrides``: config fields of a lever (not the size)."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    import flowsynth as fs
+
+    base = fs.BouncingThingsConfig.from_dict(overrides or {})
+    cfg = dataclasses.replace(base, width=RES[0], height=RES[1], num_frames=2,
+                              flow_px=tuple(x / SCALE for x in base.flow_px))
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, length=n)
+    w, h = RES
+    img1, img2 = torch.empty(n, 3, h, w, dtype=torch.uint8), torch.empty(n, 3, h, w, dtype=torch.uint8)
+    flow, valid = torch.empty(n, 2, h, w), torch.empty(n, 1, h, w, dtype=torch.bool)
+    o = 0
+    for b in DataLoader(ds, batch_size=16, num_workers=workers):
+        k = len(b["rgb"])
+        img1[o:o + k], img2[o:o + k] = _u8(b["rgb"][:, 0]), _u8(b["rgb"][:, 1])
+        flow[o:o + k], valid[o:o + k] = b["flow_fw"][:, 0], b["valid_fw"][:, 0]
+        o += k
+    return (img1, img2, flow, valid), cfg
+
+
+def mean_flow(data) -> float:
+    """Mean |flow| [px] over the valid pixels of an (img1, img2, flow, valid) set."""
+    import torch
+
+    return float(torch.linalg.vector_norm(data[2], dim=1)[data[3][:, 0] > 0.5].mean())
+
+
+def baseline_pool(n: int, seed: int, sources, target_flow: float):
+    """n chairs2d pairs from ``sources`` (float (m, 3, h, w)) whose mean |flow| matches ``target_flow`` [px]."""
+    pilot = chairs2d_pairs(64, seed + 1, sources)
+    scale = target_flow / mean_flow(pilot)
+    img1, img2, flow, valid = chairs2d_pairs(n, seed, sources, scale)
+    return (_u8(img1), _u8(img2), flow, valid > 0.5), scale
+
+
+def judge_sets(middlebury_dir: str | None) -> dict:
+    """The real judges: {"stereo": motorcycle_full(2), "mb_NAME": ...} (float32 tensors)."""
+    return {"stereo": motorcycle_full(2), **middlebury_pairs(middlebury_dir)}
+
+
+def with_means(epe: dict) -> dict:
+    """``epe`` plus "middlebury", the mean over its mb_* pairs, when there are any."""
+    mb = [v for k, v in epe.items() if k.startswith("mb_")]
+    return {**epe, "middlebury": sum(mb) / len(mb)} if mb else dict(epe)
+
+
+def zero_flow(tests: dict) -> dict:
+    import torch
+
+    from flowsynth.training import epe
+
+    return with_means({k: epe(torch.zeros_like(v[2]), v[2], v[3]) for k, v in tests.items()})
+
+
+# -- train and test -------------------------------------------------------------------------------------------
+def evaluate(net, tests: dict, device: str) -> dict:
+    """EPE [px] of ``net`` on every judge set (pairs one at a time, at full size), with the Middlebury mean."""
+    import torch
+
+    from flowsynth.training import predict
+
+    out = {}
+    for name, (img1, img2, flow, valid) in tests.items():
+        err = n = 0.0
+        for i in range(len(img1)):
+            pred = predict(net, img1[i:i + 1].to(device), img2[i:i + 1].to(device), TEST_UPDATES).cpu()
+            e = torch.linalg.vector_norm(pred - flow[i:i + 1], dim=1, keepdim=True)
+            v = valid[i:i + 1] > 0.5
+            err, n = err + float(e[v].sum()), n + float(v.sum())
+        out[name] = err / max(n, 1.0)
+    return with_means(out)
+
+
+def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, threads: int = 0,
+          device: str = "cpu", save: str | None = None) -> dict:
+    """Train RAFT-small (initialised from ``net_seed``) on ``data`` (a pool) for ``steps`` steps of RAFT's recipe;
+    batches drawn from ``seed``. Tests at step 0, every ``every`` steps and at the end. ``save``: a path for the final
+    weights."""
+    import torch
+
+    from flowsynth.training import augment, one_cycle, train_step
+
+    if threads:
+        torch.set_num_threads(threads)
+    torch.manual_seed(net_seed)
+    net = raft_small().to(device)
+    opt, sched = one_cycle(net.parameters(), LR, steps)
+    g = torch.Generator().manual_seed(seed)
+    img1, img2, flow, valid = data
+    t = time.perf_counter()
+    curve = [{"step": 0, "train_loss": None, **evaluate(net, tests, device)}]
+    losses = []
+    for step in range(1, steps + 1):
+        idx = torch.randint(len(img1), (BATCH,), generator=g)
+        batch = augment(img1[idx], img2[idx], flow[idx], valid[idx], CROP, g)
+        losses.append(train_step(net, tuple(x.to(device) for x in batch), opt, sched, UPDATES))
+        if step % every == 0 or step == steps:
+            curve.append({"step": step, "train_loss": sum(losses[-every:]) / len(losses[-every:]),
+                          **evaluate(net, tests, device)})
+    if save:
+        Path(save).parent.mkdir(parents=True, exist_ok=True)
+        torch.save(net.state_dict(), save)
+    return {"curve": curve, "train_s": time.perf_counter() - t, "net_seed": net_seed,
+            "parameters": sum(p.numel() for p in net.parameters())}
+
+
+def score(curve: list, judge: str) -> float:
+    """A net's score on ``judge``: the mean EPE of its last JUDGED checkpoints (the pre-registered rule)."""
+    pts = [c[judge] for c in curve[1:] if judge in c][-JUDGED:]
+    return sum(pts) / len(pts)
+
+
+def train_all(arms: dict, tests: dict, steps: int, seed: int, every: int, jobs: int, threads: int, device: str,
+              tag: str) -> dict:
+    """Train every arm's net (name -> pool), ``jobs`` at once in spawned processes (0: here, one after another)."""
+    import torch.multiprocessing as tmp
+    from concurrent.futures import ProcessPoolExecutor
+
+    def args(name):
+        net_seed = seed + CONTROL_SEED if name == "control" else seed
+        return (arms[name], tests, steps, seed, net_seed, every, max(1, threads // max(jobs, 1)), device,
+                str(CACHE / f"{tag or 'default'}_{name}_s{seed}.pt"))
+
+    if jobs == 0:
+        return {name: train(*args(name)) for name in arms}
+    with ProcessPoolExecutor(min(jobs, len(arms)), mp_context=tmp.get_context("spawn")) as ex:
+        futs = {name: ex.submit(train, *args(name)) for name in arms}
+        return {name: f.result() for name, f in futs.items()}
+
+
+def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL) -> tuple[dict, dict, object]:
+    """The pools (``n`` pairs each) of the arms ``names`` for ``seed``, their mean |flow| and the flowsynth
+    config."""
+    import torch
+
+    extra = n // 2 if "chairs2d" in names else 0  # frames for the chairs2d textures, not trained on
+    pool, cfg = flowsynth_pool(n + extra, seed, workers, overrides)
+    fs_pool = tuple(x[:n] for x in pool)
+    target = mean_flow(fs_pool)
+    arms, info = {}, {"flowsynth_mean_flow": target}
+    for name in names:
+        if name in ("flowsynth", "control"):
+            arms[name] = fs_pool
+        elif name == "chairs2d":
+            arms[name], info["chairs2d_motion_scale"] = baseline_pool(n, seed, pool[0][n:].float() / 255, target)
+        elif name == "chairs2d_photos":
+            sources = photo_sources(max(n // 2, 8), seed, RES, NATURAL_PHOTOS)
+            arms[name], info["chairs2d_photos_motion_scale"] = baseline_pool(n, seed, sources, target)
+        elif name == "flowsynth_photos":
+            arms[name], _ = flowsynth_pool(n, seed, workers, {
+                **overrides, "texture_dir": str(photo_folder(NATURAL_PHOTOS)), "texture_families": ["image"]})
+    info["mean_flow"] = {k: mean_flow(v) for k, v in arms.items()}
+    info["still_share"] = {k: float((torch.linalg.vector_norm(v[2], dim=1) < 0.5)[v[3][:, 0]].float().mean())
+                           for k, v in arms.items()}
+    return arms, info, cfg
+
+
+def run(args) -> None:
+    """Train the arms of every seed (the module docstring's protocol) and write the results after each seed."""
+    import torch
+
+    torch.set_num_threads(args.threads)
+    steps = args.steps or STEPS
+    every = min(args.every or EVERY, steps)
+    names = args.arms.split(",")
+    bad = [n for n in names if n not in ARMS]
+    if bad:
+        raise SystemExit(f"--arms: unknown {bad}; known {ARMS}")
+    tests = judge_sets(args.middlebury)
+    zero = zero_flow(tests)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    runs, cfg = [], None
+    name = "learning_raft" + (f"_{args.tag}" if args.tag else "")
+    for seed in seeds:
+        t = time.perf_counter()
+        arms, info, cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL)
+        gen_s = time.perf_counter() - t
+        res = train_all(arms, tests, steps, seed, every, args.jobs, args.threads, args.device, args.tag)
+        runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "data": info, "generation_s": gen_s})
+        write_json(name, {"complete": seed == seeds[-1], "seeds_planned": seeds, "net": NET, "steps": steps,
+                          "every": every, "batch": BATCH, "crop": CROP, "resolution": RES, "pool": args.pool or POOL, "lr": LR,
+                          "updates": [UPDATES, TEST_UPDATES], "judged_checkpoints": JUDGED, "device": args.device,
+                          "overrides": args.overrides, "flowsynth_config": cfg.to_dict(), "machine": machine_info(),
+                          "runs": runs})
+        rows = [{"seed": seed, "arm": arm, "judge": j, "zero flow": zero[j], "untrained": r["curve"][0][j],
+                 **{f"@{c['step']}": c[j] for c in r["curve"][1:]}, "score": score(r["curve"], j)}
+                for arm, r in res.items() for j in JUDGES if j in r["curve"][0]]
+        print_table(rows, list(rows[0]))
+
+
+# -- pooling --------------------------------------------------------------------------------------------------
+def summarize(pattern: str, arm: str, against: str) -> dict:
+    """Pool the seeds of results/ files matching ``pattern`` that hold both arms: per judge, each seed's score ratio
+    ``arm`` / ``against``, their geometric mean with a 95% interval (t on the log ratios), the seeds in favour, and
+    the rule-1 count (``arm``'s net ends below zero flow and below its untrained start)."""
+    import numpy as np
+    from scipy import stats
+
+    runs = {}
+    for f in sorted(RESULTS_DIR.glob(pattern)):
+        d = json.loads(f.read_text())
+        for r in d.get("runs", []):
+            if arm in r["results"] and against in r["results"]:
+                if r["seed"] in runs:
+                    raise SystemExit(f"seed {r['seed']} of {arm}/{against} is in {f.name} and in an earlier file")
+                runs[r["seed"]] = r
+    if not runs:
+        raise SystemExit(f"no results/{pattern} holds both {arm} and {against}")
+    out, rows = {}, []
+    for j in JUDGES:
+        rs = [r for r in runs.values() if j in r["zero_flow_epe"]]
+        if not rs:
+            continue
+        a = np.array([score(r["results"][arm]["curve"], j) for r in rs])
+        b = np.array([score(r["results"][against]["curve"], j) for r in rs])
+        logs = np.log(a / b)
+        n = len(logs)
+        half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n) if n > 1 else float("nan")
+        useful = sum(score(r["results"][arm]["curve"], j) < min(r["zero_flow_epe"][j],
+                                                                 r["results"][arm]["curve"][0][j]) for r in rs)
+        out[j] = {"seeds": [r["seed"] for r in rs], "ratios": (a / b).tolist(),
+                  "geometric_mean": float(np.exp(logs.mean())),
+                  "ci95": [float(np.exp(logs.mean() - half)), float(np.exp(logs.mean() + half))],
+                  "in_favour": int((logs < 0).sum()), "useful": useful, arm: a.tolist(), against: b.tolist(),
+                  "zero_flow": float(np.mean([r["zero_flow_epe"][j] for r in rs])),
+                  "untrained": float(np.mean([r["results"][arm]["curve"][0][j] for r in rs]))}
+        o = out[j]
+        rows.append({"judge": j, "seeds": n, "ratio": o["geometric_mean"],
+                     "95% CI": f"{o['ci95'][0]:.3f}-{o['ci95'][1]:.3f}", "in favour": f"{o['in_favour']} of {n}",
+                     f"{arm} useful": f"{useful} of {n}", arm: float(a.mean()), against: float(b.mean()),
+                     "zero flow": o["zero_flow"], "untrained": o["untrained"]})
+    print(f"{arm} / {against}, scores (mean of the last {JUDGED} checkpoints), seeds {sorted(runs)}")
+    print_table(rows, list(rows[0]))
+    return {"arm": arm, "against": against, "pattern": pattern, "judges": out}
+
+
+# -- figures --------------------------------------------------------------------------------------------------
+def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
+    """One PNG per real pair (results/NAME_PAIR.png): frame 1, the ground truth and, per saved net (``nets``: paths
+    of .pt files from ``train``), its predicted flow and its end-point error, on one colour scale per pair."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    from flowsynth.training import predict
+    from flowsynth.viz import flow_to_color
+
+    tests = judge_sets(middlebury_dir)
+    loaded = {}
+    for p in nets:
+        net = raft_small()
+        net.load_state_dict(torch.load(p, map_location="cpu"))
+        loaded[Path(p).stem] = net
+    paths = []
+    for pair, (img1, img2, flow, valid) in tests.items():
+        gt = flow[:1]
+        scale = float(torch.linalg.vector_norm(gt, dim=1)[valid[:1, 0] > 0.5].max())
+        cols = 2 + len(loaded)
+        fig, ax = plt.subplots(2, cols, figsize=(3.2 * cols, 5.6))
+        ax[0, 0].imshow(img1[0].permute(1, 2, 0).numpy())
+        ax[0, 0].set_title(f"{pair}: frame 1")
+        ax[0, 1].imshow(flow_to_color(gt[0], max_flow=scale))
+        ax[0, 1].set_title(f"ground truth (max {scale:.1f} px)")
+        ax[1, 0].imshow(valid[0, 0].numpy(), cmap="gray")
+        ax[1, 0].set_title("valid")
+        ax[1, 1].axis("off")
+        for k, (label, net) in enumerate(loaded.items(), 2):
+            pred = predict(net, img1[:1], img2[:1], TEST_UPDATES)
+            err = torch.linalg.vector_norm(pred - gt, dim=1)[0] * (valid[0, 0] > 0.5)
+            epe = float(err.sum() / (valid[0, 0] > 0.5).sum())
+            ax[0, k].imshow(flow_to_color(pred[0], max_flow=scale))
+            ax[0, k].set_title(f"{label}")
+            im = ax[1, k].imshow(err.numpy(), cmap="magma", vmin=0, vmax=max(scale, 1.0))
+            ax[1, k].set_title(f"error, EPE {epe:.2f} px")
+        if loaded:
+            fig.colorbar(im, ax=ax[1, -1], fraction=0.046)
+        for a in ax.flat:
+            a.set_xticks([])
+            a.set_yticks([])
+        fig.tight_layout()
+        out = RESULTS_DIR / f"{name}_{pair}.png"
+        RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=80)
+        plt.close(fig)
+        paths.append(out)
+    return paths
