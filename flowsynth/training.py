@@ -154,5 +154,5 @@ def epe(pred: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor) -> float:
     """Mean end-point error [px] of ``pred`` against ``flow`` (B, 2, H, W) over the pixels where ``valid`` (B, 1, H, W)
     holds; 0 where none does."""
     v = valid > 0.5
-    err = torch.linalg.vector_norm(pred - flow, dim=1, keepdim=True)
+    err = torch.linalg.vector_norm(pred.detach() - flow, dim=1, keepdim=True)
     return float(err[v].sum() / v.sum().clamp(min=1))
