@@ -23,6 +23,8 @@ Protocol (the numbers are module constants):
   - ``chairs2d``: the same baseline textured with flowsynth frames not trained on: it isolates what the 3D motion
     teaches. Both baselines' motion is scaled so that their mean |flow| equals the flowsynth pool's.
   - ``flowsynth_photos``: the flowsynth config with NATURAL_PHOTOS as every texture (``texture_families=("image",)``).
+  - ``flowsynth_natural``: the same with 96 textures made without files, with statistics of photographs instead
+    (``learning_sets.natural_folder``: 1/f spectra, dead leaves, sparse edges over smooth regions).
   - ``control``: the flowsynth pool again, with another net seed (seed + 100): the judge's own noise.
 - Judges: Motorcycle ("stereo": the whole stereo pair at half resolution, plain and mirrored, ``motorcycle_full``)
   and, with ``--middlebury DIR``, the mean EPE over the Middlebury pairs found there ("middlebury", each pair also
@@ -45,8 +47,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import RESULTS_DIR, machine_info, print_table, write_json
-from learning_sets import NATURAL_PHOTOS, chairs2d_pairs, middlebury_pairs, motorcycle_full, photo_folder, \
-    photo_sources
+from learning_sets import NATURAL_PHOTOS, chairs2d_pairs, middlebury_pairs, motorcycle_full, natural_folder, \
+    photo_folder, photo_sources
 
 NET = "raft_small"
 RES = (256, 192)  # (w, h) the training pairs are rendered at [px]
@@ -59,7 +61,7 @@ LR = 4e-4  # RAFT's peak learning rate (AdamW, one-cycle)
 UPDATES, TEST_UPDATES = 8, 12
 POOL = 1200  # training pairs per arm
 SCALE = 512 // RES[0]  # flow_px is given at 512x384
-ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "control")
+ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsynth_natural", "control")
 CONTROL_SEED = 100  # the control's net seed is the run's seed + this
 JUDGES = ("stereo", "middlebury")
 CACHE = Path(__file__).resolve().parent.parent / ".cache" / "learning_raft"
@@ -235,9 +237,10 @@ def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = P
         elif name == "chairs2d_photos":
             sources = photo_sources(max(n // 2, 8), seed, RES, NATURAL_PHOTOS)
             arms[name], info["chairs2d_photos_motion_scale"] = baseline_pool(n, seed, sources, target)
-        elif name == "flowsynth_photos":
+        elif name in ("flowsynth_photos", "flowsynth_natural"):
+            folder = photo_folder(NATURAL_PHOTOS) if name == "flowsynth_photos" else natural_folder()
             arms[name], _ = flowsynth_pool(n, seed, workers, {
-                **overrides, "texture_dir": str(photo_folder(NATURAL_PHOTOS)), "texture_families": ["image"]})
+                **overrides, "texture_dir": str(folder), "texture_families": ["image"]})
     info["mean_flow"] = {k: mean_flow(v) for k, v in arms.items()}
     info["still_share"] = {k: float((torch.linalg.vector_norm(v[2], dim=1) < 0.5)[v[3][:, 0]].float().mean())
                            for k, v in arms.items()}
@@ -267,7 +270,8 @@ def run(args) -> None:
         res = train_all(arms, tests, steps, seed, every, args.jobs, args.threads, args.device, args.tag)
         runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "data": info, "generation_s": gen_s})
         write_json(name, {"complete": seed == seeds[-1], "seeds_planned": seeds, "net": NET, "steps": steps,
-                          "every": every, "batch": BATCH, "crop": CROP, "resolution": RES, "pool": args.pool or POOL, "lr": LR,
+                          "every": every, "batch": BATCH, "crop": CROP, "resolution": RES, "pool": args.pool or POOL,
+                          "lr": LR,
                           "updates": [UPDATES, TEST_UPDATES], "judged_checkpoints": JUDGED, "device": args.device,
                           "overrides": args.overrides, "flowsynth_config": cfg.to_dict(), "machine": machine_info(),
                           "runs": runs})

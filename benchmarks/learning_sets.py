@@ -127,6 +127,27 @@ def photo_folder(names: tuple = TRAIN_PHOTOS) -> Path:
     return root
 
 
+def natural_folder(kinds: tuple = ("pink", "leaves", "edges"), per_kind: int = 32) -> Path:
+    """A folder (.cache/learning_natural_KINDS under the repository) of ``per_kind`` PNG textures of each of
+    ``kinds`` (``flowsynth.textures.natural_image``, 512x512, seeds 0..per_kind-1): made without any file, with the
+    statistics of photographs; the texture_dir of the flowsynth_natural arm."""
+    import cv2
+    import numpy as np
+
+    from flowsynth.textures import natural_image
+
+    root = Path(__file__).resolve().parent.parent / ".cache" / f"learning_natural_{'_'.join(kinds)}_{per_kind}"
+    root.mkdir(parents=True, exist_ok=True)
+    for kind in kinds:
+        for seed in range(per_kind):
+            f = root / f"{kind}_{seed:03d}.png"
+            if not f.exists():
+                im = (natural_image(kind, seed) * 255).round().astype(np.uint8)
+                cv2.imwrite(str(f.with_suffix(".tmp.png")), cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
+                f.with_suffix(".tmp.png").replace(f)
+    return root
+
+
 def photo_sources(n: int, seed: int, size: tuple[int, int] = (W, H), names: tuple = TRAIN_PHOTOS):
     """n (3, h, w) crops (``size`` = (w, h)) of the scikit-image images ``names`` at random scales (0.25-1 of the
     largest crop that fits): the backgrounds and shape textures of the chairs2d_photos arm."""

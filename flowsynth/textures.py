@@ -14,7 +14,8 @@ import numpy as np
 from flowsynth.caches import register
 from flowsynth.errors import AssetError, ConfigError
 
-__all__ = ["IMAGE_EXTENSIONS", "MAX_TEXTURE_SIZE", "list_textures", "load_texture", "mip_pyramid", "srgb_to_linear"]
+__all__ = ["IMAGE_EXTENSIONS", "MAX_TEXTURE_SIZE", "NATURAL_KINDS", "list_textures", "load_texture", "mip_pyramid",
+           "natural_image", "srgb_to_linear"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 # Image textures larger than this [px] along their longer side are downscaled on load (Lanczos).
@@ -97,3 +98,105 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """sRGB-encoded values in [0, 1] to linear (IEC 61966-2-1)."""
     c = np.asarray(c, np.float32)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+# --- textures with the statistics of natural images, made without files (issue 46's levers) --------------------
+NATURAL_KINDS = ("pink", "leaves", "edges")
+
+
+def natural_image(kind: str, seed: int, size: int = 512) -> np.ndarray:
+    """A (size, size, 3) float32 sRGB image in [0, 1] with a statistic of photographs, drawn from ``seed``:
+
+    - "pink": a random-phase field whose amplitude spectrum falls as 1/f^a, a in [0.8, 1.6] (photographs: about 1),
+      in a luminance and two weaker, smoother opponent-colour channels;
+    - "leaves": dead leaves (Matheron; Lee, Mumford and Huang 2001): discs whose radii follow p(r) ~ r^-3 from 3 px
+      to size / 4, painted front to back until the plane is covered, each a colour drawn from natural colour
+      statistics with a faint 1/f shading: occlusion edges at every scale;
+    - "edges": sparse sharp edges over smooth regions: 6-30 polygons of sizes spread over two octaves and more,
+      each a flat colour with a gentle linear gradient, on a smooth background.
+    """
+    if kind not in NATURAL_KINDS:
+        raise ConfigError(f"natural texture kind {kind!r} is none of {NATURAL_KINDS}")
+    rng = np.random.default_rng([46, seed])
+    if kind == "pink":
+        lum = _pink(rng, size, rng.uniform(0.8, 1.6))
+        chroma = [_pink(rng, size, rng.uniform(1.4, 2.0)) for _ in range(2)]
+        y = 0.45 + rng.uniform(0.12, 0.25) * lum
+        img = _opponent_to_rgb(y, rng.uniform(0.02, 0.08) * chroma[0], rng.uniform(0.02, 0.08) * chroma[1], rng)
+    elif kind == "leaves":
+        img = _dead_leaves(rng, size)
+    else:
+        img = _edges(rng, size)
+    return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+
+def _pink(rng: np.random.Generator, size: int, a: float) -> np.ndarray:
+    """A zero-mean, unit-variance field of amplitude spectrum 1/f^a (periodic: it tiles)."""
+    fy, fx = np.fft.fftfreq(size)[:, None], np.fft.fftfreq(size)[None, :]
+    f = np.hypot(fx, fy)
+    f[0, 0] = 1.0
+    spec = f ** (-a) * np.exp(2j * np.pi * rng.random((size, size)))
+    spec[0, 0] = 0.0
+    field = np.fft.ifft2(spec).real
+    return (field - field.mean()) / max(field.std(), 1e-12)
+
+
+def _natural_colour(rng: np.random.Generator, n: int) -> np.ndarray:
+    """n sRGB colours: luminance log-normal about 0.35, mostly low saturation, hues anywhere."""
+    y = np.clip(np.exp(rng.normal(np.log(0.35), 0.6, n)), 0.02, 0.98)
+    sat = rng.beta(1.2, 3.0, n)
+    hue = rng.random(n) * 2 * np.pi
+    return np.clip(y[:, None] * (1 + sat[:, None] * np.stack([np.cos(hue), np.cos(hue - 2.09), np.cos(hue + 2.09)],
+                                                             1)), 0, 1)
+
+
+def _opponent_to_rgb(y, rg, by, rng) -> np.ndarray:
+    tint = _natural_colour(rng, 1)[0] - _natural_colour(rng, 1)[0].mean()
+    return np.stack([y + rg + 0.5 * by, y - rg + 0.5 * by, y - by], -1) + 0.3 * tint
+
+
+def _dead_leaves(rng: np.random.Generator, size: int) -> np.ndarray:
+    img = np.zeros((size, size, 3))
+    covered = np.zeros((size, size), bool)
+    rmin, rmax = 3.0, size / 4
+    shade = 0.06 * _pink(rng, size, 1.0)[..., None]
+    ys, xs = np.mgrid[0:size, 0:size]
+    for _ in range(20000):  # front to back: a disc shows only where nothing nearer covers it
+        u = rng.random()
+        r = 1.0 / np.sqrt(1 / rmin ** 2 - u * (1 / rmin ** 2 - 1 / rmax ** 2))  # inverse CDF of p(r) ~ r^-3
+        cx, cy = rng.random(2) * size
+        y0, y1 = int(max(cy - r, 0)), int(min(cy + r + 1, size))
+        x0, x1 = int(max(cx - r, 0)), int(min(cx + r + 1, size))
+        if y1 <= y0 or x1 <= x0:
+            continue
+        disc = (xs[y0:y1, x0:x1] - cx) ** 2 + (ys[y0:y1, x0:x1] - cy) ** 2 <= r * r
+        new = disc & ~covered[y0:y1, x0:x1]
+        if new.any():
+            img[y0:y1, x0:x1][new] = _natural_colour(rng, 1)[0]
+            covered[y0:y1, x0:x1] |= new
+        if covered.all():
+            break
+    img[~covered] = _natural_colour(rng, 1)[0]
+    return img * (1 + shade)
+
+
+def _edges(rng: np.random.Generator, size: int) -> np.ndarray:
+    from PIL import Image, ImageDraw
+
+    ys, xs = np.mgrid[0:size, 0:size] / size
+    base = _natural_colour(rng, 1)[0]
+    img = base * (1 + 0.15 * _pink(rng, size, 2.0)[..., None] * rng.uniform(0.3, 1.0))
+    for _ in range(int(rng.integers(6, 31))):
+        r = size * np.exp(rng.uniform(np.log(0.02), np.log(0.35)))
+        cx, cy = rng.random(2) * size
+        k = int(rng.integers(3, 9))
+        ang = np.sort(rng.uniform(0, 2 * np.pi, k))
+        rad = r * rng.uniform(0.5, 1.0, k)
+        mask = Image.new("L", (size, size), 0)
+        ImageDraw.Draw(mask).polygon([(float(cx + q * np.cos(t)), float(cy + q * np.sin(t)))
+                                      for q, t in zip(rad, ang)], fill=1)
+        m = np.asarray(mask, bool)
+        g = rng.normal(0, 0.15, 2)
+        colour = _natural_colour(rng, 1)[0]
+        img[m] = (colour * (1 + g[0] * (xs[m, None] - cx / size) + g[1] * (ys[m, None] - cy / size)))
+    return img

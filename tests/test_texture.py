@@ -349,3 +349,49 @@ def test_blend_is_its_layers_mixed_by_the_mask():
     assert np.all(got[:, w == 0] == ra[:, w == 0]) and np.all(got[:, w == 1] == rb[:, w == 1])
     assert np.abs(la + mix[None] * span - lg).max() < 1e-5  # one w for all three channels
     assert np.abs(mix - w).max() < 0.02  # and it is the mask (float32 hit points against float64 centres)
+
+
+# --- natural_image: textures with statistics of photographs, made without files (issue 46) -----------------------
+
+def _amplitude_slope(grey):
+    """Least-squares slope of log radial mean amplitude against log frequency, over 4-64 cycles per image."""
+    n = grey.shape[0]
+    amp = np.abs(np.fft.fft2(grey - grey.mean()))
+    fy, fx = np.meshgrid(np.fft.fftfreq(n) * n, np.fft.fftfreq(n) * n, indexing="ij")
+    r = np.hypot(fx, fy).round().astype(int)
+    ks = np.arange(4, 65)
+    mean = np.array([amp[r == k].mean() for k in ks])
+    return np.polyfit(np.log(ks), np.log(mean), 1)[0]
+
+
+def test_natural_pink_has_a_power_law_spectrum_and_is_seeded():
+    from flowsynth.textures import natural_image
+
+    slopes = []
+    for seed in range(4):
+        im = natural_image("pink", seed, 256)
+        assert im.shape == (256, 256, 3) and im.dtype == np.float32 and np.isfinite(im).all()
+        assert im.min() >= 0 and im.max() <= 1
+        slopes.append(_amplitude_slope(im.mean(-1)))
+    assert all(-1.8 < s < -0.6 for s in slopes), slopes  # 1/f^a, a drawn in [0.8, 1.6] (clipping bends it a little)
+    assert np.array_equal(natural_image("pink", 1, 64), natural_image("pink", 1, 64))
+    assert not np.array_equal(natural_image("pink", 1, 64), natural_image("pink", 2, 64))
+
+
+def test_natural_leaves_cover_the_plane_with_discs_and_edges_leave_smooth_regions():
+    from flowsynth.textures import natural_image
+
+    leaves = natural_image("leaves", 0, 128)
+    colours = np.unique((leaves * 255).astype(np.uint8).reshape(-1, 3), axis=0)
+    assert len(colours) > 100  # many discs, each its own colour (with a faint shading)
+    edges = natural_image("edges", 0, 128)
+    grad = np.abs(np.diff(edges.mean(-1), axis=1))
+    assert (grad < 0.01).mean() > 0.8 and grad.max() > 0.05  # mostly smooth, with sharp edges
+
+
+def test_natural_image_rejects_an_unknown_kind():
+    from flowsynth.errors import ConfigError
+    from flowsynth.textures import natural_image
+
+    with pytest.raises(ConfigError, match="kind"):
+        natural_image("marble", 0)
