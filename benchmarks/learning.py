@@ -565,6 +565,8 @@ def main_raft(argv: list[str]) -> None:
     p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of its own; 0: one "
                                                        "after another in this process")
     p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda)")
+    p.add_argument("--at-once", action="store_true", help="render every seed's pools, then train every net of every "
+                   "seed at once, each in a process of its own (a lent GPU)")
     p.add_argument("--middlebury", default=None, metavar="DIR",
                    help="a folder of Middlebury flow pairs (NAME/frame10.png, frame11.png, flow10.flo)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",

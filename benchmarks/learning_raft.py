@@ -163,10 +163,10 @@ def evaluate(net, tests: dict, device: str) -> dict:
 
 
 def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, threads: int = 0,
-          device: str = "cpu", save: str | None = None) -> dict:
+          device: str = "cpu", save: str | None = None, progress: str | None = None) -> dict:
     """Train RAFT-small (initialised from ``net_seed``) on ``data`` (a pool) for ``steps`` steps of RAFT's recipe;
     batches drawn from ``seed``. Tests at step 0, every ``every`` steps and at the end. ``save``: a path for the final
-    weights."""
+    weights; ``progress``: a JSON path rewritten with the curve after every test (a run cut short keeps its curve)."""
     import torch
 
     from flowsynth.training import augment, one_cycle, train_step
@@ -188,6 +188,10 @@ def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, t
         if step % every == 0 or step == steps:
             curve.append({"step": step, "train_loss": sum(losses[-every:]) / len(losses[-every:]),
                           **evaluate(net, tests, device)})
+            if progress:
+                Path(progress).parent.mkdir(parents=True, exist_ok=True)
+                Path(progress + ".tmp").write_text(json.dumps({"curve": curve, "s": time.perf_counter() - t}))
+                Path(progress + ".tmp").replace(progress)
     if save:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
         torch.save(net.state_dict(), save)
@@ -201,22 +205,55 @@ def score(curve: list, judge: str) -> float:
     return sum(pts) / len(pts)
 
 
+def _train_args(arms: dict, name: str, tests: dict, steps: int, seed: int, every: int, threads: int, device: str,
+                tag: str) -> tuple:
+    """``train``'s arguments for arm ``name`` of ``seed`` (the control's net seed is seed + CONTROL_SEED)."""
+    net_seed = seed + CONTROL_SEED if name == "control" else seed
+    stem = f"{tag or 'default'}_{name}_s{seed}"
+    return (arms[name], tests, steps, seed, net_seed, every, threads, device, str(CACHE / f"{stem}.pt"),
+            str(RESULTS_DIR / "learning_raft_progress" / f"{stem}.json"))
+
+
 def train_all(arms: dict, tests: dict, steps: int, seed: int, every: int, jobs: int, threads: int, device: str,
               tag: str) -> dict:
     """Train every arm's net (name -> pool), ``jobs`` at once in spawned processes (0: here, one after another)."""
     import torch.multiprocessing as tmp
     from concurrent.futures import ProcessPoolExecutor
 
-    def args(name):
-        net_seed = seed + CONTROL_SEED if name == "control" else seed
-        return (arms[name], tests, steps, seed, net_seed, every, max(1, threads // max(jobs, 1)), device,
-                str(CACHE / f"{tag or 'default'}_{name}_s{seed}.pt"))
-
+    per = max(1, threads // max(jobs, 1))
     if jobs == 0:
-        return {name: train(*args(name)) for name in arms}
+        return {name: train(*_train_args(arms, name, tests, steps, seed, every, per, device, tag)) for name in arms}
     with ProcessPoolExecutor(min(jobs, len(arms)), mp_context=tmp.get_context("spawn")) as ex:
-        futs = {name: ex.submit(train, *args(name)) for name in arms}
+        futs = {name: ex.submit(train, *_train_args(arms, name, tests, steps, seed, every, per, device, tag))
+                for name in arms}
         return {name: f.result() for name, f in futs.items()}
+
+
+def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: dict, zero: dict, header) -> None:
+    """``--at-once`` (a lent GPU): the pools of every seed first, then every net of every seed at once, each in a
+    process of its own; a seed's results are written when all its nets are done."""
+    import torch.multiprocessing as tmp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    pools, infos, cfg = {}, {}, None
+    t = time.perf_counter()
+    for seed in seeds:
+        pools[seed], infos[seed], cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL)
+        print(f"pools of seed {seed} ready after {time.perf_counter() - t:.0f} s", flush=True)
+    gen_s = time.perf_counter() - t
+    done: dict = {seed: {} for seed in seeds}
+    runs = []
+    with ProcessPoolExecutor(len(seeds) * len(names), mp_context=tmp.get_context("spawn")) as ex:
+        futs = {ex.submit(train, *_train_args(pools[seed], name, tests, steps, seed, every, 1, args.device,
+                                              args.tag)): (seed, name) for seed in seeds for name in names}
+        for f in as_completed(futs):
+            seed, name = futs[f]
+            done[seed][name] = f.result()
+            print(f"seed {seed} {name} done after {time.perf_counter() - t:.0f} s", flush=True)
+            if len(done[seed]) == len(names):
+                runs.append({"seed": seed, "zero_flow_epe": zero, "results": done[seed], "data": infos[seed],
+                             "generation_s": gen_s})
+                header(runs, cfg, len(runs) == len(seeds))
 
 
 def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL) -> tuple[dict, dict, object]:
@@ -261,24 +298,31 @@ def run(args) -> None:
     tests = judge_sets(args.middlebury)
     zero = zero_flow(tests)
     seeds = [int(s) for s in args.seeds.split(",")]
-    runs, cfg = [], None
     name = "learning_raft" + (f"_{args.tag}" if args.tag else "")
+
+    def save(runs: list, cfg, complete: bool) -> None:
+        write_json(name, {"complete": complete, "seeds_planned": seeds, "net": NET, "steps": steps,
+                          "every": every, "batch": BATCH, "crop": CROP, "resolution": RES, "pool": args.pool or POOL,
+                          "lr": LR,
+                          "updates": [UPDATES, TEST_UPDATES], "judged_checkpoints": JUDGED, "device": args.device,
+                          "overrides": args.overrides, "flowsynth_config": cfg.to_dict(), "machine": machine_info(),
+                          "runs": sorted(runs, key=lambda r: r["seed"])})
+        seed, res = runs[-1]["seed"], runs[-1]["results"]
+        rows = [{"seed": seed, "arm": arm, "judge": j, "zero flow": zero[j], "untrained": r["curve"][0][j],
+                 **{f"@{c['step']}": c[j] for c in r["curve"][1:]}, "score": score(r["curve"], j)}
+                for arm, r in res.items() for j in JUDGES if j in r["curve"][0]]
+        print_table(rows, list(rows[0]))
+
+    if args.at_once:
+        return run_at_once(args, names, seeds, steps, every, tests, zero, save)
+    runs = []
     for seed in seeds:
         t = time.perf_counter()
         arms, info, cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL)
         gen_s = time.perf_counter() - t
         res = train_all(arms, tests, steps, seed, every, args.jobs, args.threads, args.device, args.tag)
         runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "data": info, "generation_s": gen_s})
-        write_json(name, {"complete": seed == seeds[-1], "seeds_planned": seeds, "net": NET, "steps": steps,
-                          "every": every, "batch": BATCH, "crop": CROP, "resolution": RES, "pool": args.pool or POOL,
-                          "lr": LR,
-                          "updates": [UPDATES, TEST_UPDATES], "judged_checkpoints": JUDGED, "device": args.device,
-                          "overrides": args.overrides, "flowsynth_config": cfg.to_dict(), "machine": machine_info(),
-                          "runs": runs})
-        rows = [{"seed": seed, "arm": arm, "judge": j, "zero flow": zero[j], "untrained": r["curve"][0][j],
-                 **{f"@{c['step']}": c[j] for c in r["curve"][1:]}, "score": score(r["curve"], j)}
-                for arm, r in res.items() for j in JUDGES if j in r["curve"][0]]
-        print_table(rows, list(rows[0]))
+        save(runs, cfg, seed == seeds[-1])
 
 
 # -- pooling --------------------------------------------------------------------------------------------------
