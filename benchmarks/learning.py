@@ -567,6 +567,8 @@ def main_raft(argv: list[str]) -> None:
     p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda)")
     p.add_argument("--at-once", action="store_true", help="render every seed's pools, then train every net of every "
                    "seed at once, each in a process of its own (a lent GPU)")
+    p.add_argument("--train-after", default=None, metavar="FILE", help="--at-once: render the pools, then wait until "
+                   "FILE exists before training (so that other benchmarks have the GPU to themselves)")
     p.add_argument("--middlebury", default=None, metavar="DIR",
                    help="a folder of Middlebury flow pairs (NAME/frame10.png, frame11.png, flow10.flo)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",

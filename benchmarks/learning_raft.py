@@ -241,6 +241,9 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
         pools[seed], infos[seed], cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL)
         print(f"pools of seed {seed} ready after {time.perf_counter() - t:.0f} s", flush=True)
     gen_s = time.perf_counter() - t
+    while args.train_after and not Path(args.train_after).exists():  # the device's other benchmarks come first
+        time.sleep(1)
+    print(f"training starts after {time.perf_counter() - t:.0f} s", flush=True)
     done: dict = {seed: {} for seed in seeds}
     runs = []
     with ProcessPoolExecutor(len(seeds) * len(names), mp_context=tmp.get_context("spawn")) as ex:
