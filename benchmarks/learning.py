@@ -580,11 +580,19 @@ def main_raft(argv: list[str]) -> None:
     p.add_argument("--against", default="chairs2d_photos", help="--summarize: the denominator arm")
     p.add_argument("--figures", default=None, metavar="NAME",
                    help="train nothing: results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
-    p.add_argument("--nets", default="", help="--figures: comma-separated .pt files written by training runs")
+    p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
+    p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
+                   "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
+                   "[_TAG].json)")
     args = p.parse_args(argv)
     if args.summarize:
         out = lr.summarize(args.files, args.arm, args.against)
         write_json(f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else ""), out)
+        return
+    if args.diagnose:
+        rows = lr.diagnose([n for n in args.nets.split(",") if n], args.middlebury)
+        print_table(rows, list(rows[0]))
+        write_json("learning_raft_diagnose" + (f"_{args.tag}" if args.tag else ""), {"rows": rows})
         return
     if args.figures:
         for path in lr.figures(args.figures, args.middlebury, [n for n in args.nets.split(",") if n]):

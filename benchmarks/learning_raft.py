@@ -374,6 +374,44 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
     return {"arm": arm, "against": against, "pattern": pattern, "judges": out}
 
 
+# -- where a net fails ----------------------------------------------------------------------------------------
+SMOOTH = 0.02  # a pixel is "smooth" when the mean |grey-level gradient| over its 9x9 window is below this (of 1)
+SMALL = 4.0  # [px] "small" true motion
+
+
+def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
+    """Per saved net and real pair, the EPE over four kinds of valid pixel: smooth (low texture, ``SMOOTH``) or
+    textured, crossed with small (|flow| < ``SMALL``) or large true motion; the share of each kind. Where a net
+    "sees motion everywhere", its error on smooth pixels with small motion stands out."""
+    import torch
+    from torch.nn import functional as F
+
+    from flowsynth.training import predict
+
+    tests = judge_sets(middlebury_dir)
+    rows = []
+    for path in nets:
+        net = raft_small()
+        net.load_state_dict(torch.load(path, map_location="cpu"))
+        for pair, (img1, img2, flow, valid) in tests.items():
+            grey = img1[:1].mean(1, keepdim=True)
+            grad = (grey[..., :, 1:] - grey[..., :, :-1]).abs()[..., :-1, :] + \
+                (grey[..., 1:, :] - grey[..., :-1, :]).abs()[..., :, :-1]
+            texture = F.avg_pool2d(F.pad(grad, (4, 5, 4, 5), mode="replicate"), 9, 1)
+            err = torch.linalg.vector_norm(predict(net, img1[:1], img2[:1], TEST_UPDATES) - flow[:1], dim=1,
+                                           keepdim=True)
+            small = torch.linalg.vector_norm(flow[:1], dim=1, keepdim=True) < SMALL
+            v = valid[:1] > 0.5
+            row = {"net": Path(path).stem, "pair": pair, "all": float(err[v].mean())}
+            for tname, tmask in (("smooth", texture < SMOOTH), ("textured", texture >= SMOOTH)):
+                for mname, mmask in (("small", small), ("large", ~small)):
+                    m = v & tmask & mmask
+                    row[f"{tname}/{mname}"] = float(err[m].mean()) if m.any() else None
+                    row[f"share {tname}/{mname}"] = float(m.sum() / v.sum())
+            rows.append(row)
+    return rows
+
+
 # -- figures --------------------------------------------------------------------------------------------------
 def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
     """One PNG per real pair (results/NAME_PAIR.png): frame 1, the ground truth and, per saved net (``nets``: paths
