@@ -24,8 +24,10 @@
 #
 # Environment: PYTHONPATH=/tmp/site:<repo root> (the carried wheels, then this checkout); WARP_CACHE_PATH (default
 # /tmp/warp-cache, shared by every step and the hook); FLOWSYNTH_BENCH_RESULTS=$OUT (the benchmarks' JSON); PYTHON
-# (default python3). Where /tmp/site exists, a .pth file in the interpreter's site-packages also names it, for the
-# test that starts a fresh interpreter with its own PYTHONPATH. Exit status: 0 when every step passed, else 1.
+# (default python3); AGREEMENT_ARGS and GPU_ARGS, extra arguments of the two benchmarks (GPU_ARGS="--workers 0"
+# drops the DataLoader rows, the slowest part of gpu.py). Where /tmp/site exists, a .pth file in the interpreter's
+# site-packages also names it, for the test that starts a fresh interpreter with its own PYTHONPATH. Exit status: 0
+# when every step passed, else 1.
 set -u -o pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -75,7 +77,10 @@ log "device_run.sh: budget $BUDGET s (deadline at +$((DEADLINE - START)) s), OUT
 
 if [ -d /tmp/site ]; then  # a fresh interpreter started with PYTHONPATH=<repo> still finds the carried wheels
     SP=$("$PY" -c 'import os, site; print(next((p for p in site.getsitepackages() if os.access(p, os.W_OK)), ""))')
-    if [ -n "$SP" ]; then echo /tmp/site > "$SP/flowsynth-device-site.pth"; log "wrote $SP/flowsynth-device-site.pth"; fi
+    if [ -n "$SP" ]; then
+        echo /tmp/site > "$SP/flowsynth-device-site.pth"
+        log "wrote $SP/flowsynth-device-site.pth"
+    fi
 fi
 
 EXTRA=$ROOT/scripts/device_extra.sh
@@ -88,7 +93,8 @@ start_extra() {  # the hook, in the background until it ends or the deadline; it
         FAILED=1
         return 0
     fi
-    log "== extra: starting $EXTRA in the background (at +$(($(date +%s) - START)) s, output in $OUT/extra.log, timeout $(left) s)"
+    log "== extra: starting $EXTRA in the background (at +$(($(date +%s) - START)) s, output in $OUT/extra.log," \
+        "timeout $(left) s)"
     (
         timeout -k 5 "$(left)" "$EXTRA" < /dev/null >> "$OUT/extra.log" 2>&1
         rc=$?
@@ -113,8 +119,10 @@ print(\"warp\", wp.__version__, \"cuda devices\", wp.get_cuda_device_count(), [s
 step tests 240 "$PY" -m pytest -q -x -rfEs --durations=8 -p no:cacheprovider tests/test_device.py
 step tests_more 150 "$PY" -m pytest -q -rfEs --durations=5 -p no:cacheprovider tests/test_device_agreement.py \
     "tests/test_datasets.py::test_cpu_run_never_initialises_cuda"
-step agreement 180 "$PY" benchmarks/device_agreement.py
-step gpu 300 "$PY" benchmarks/gpu.py
+# shellcheck disable=SC2086  # the extra arguments split on spaces on purpose
+step agreement 180 "$PY" benchmarks/device_agreement.py ${AGREEMENT_ARGS:-}
+# shellcheck disable=SC2086
+step gpu 300 "$PY" benchmarks/gpu.py ${GPU_ARGS:-}
 [ "${EXTRA_AT:-start}" = start ] || start_extra
 
 if [ -n "$EXTRA_PID" ]; then
@@ -127,7 +135,8 @@ if [ -n "$EXTRA_PID" ]; then
     ((rc == 0)) || FAILED=1
 fi
 
-log "== summary (step, exit status, seconds; extra: seconds since the start; 124/137 = timed out), $(($(date +%s) - START)) s in all:"
+log "== summary (step, exit status, seconds; extra: seconds since the start; 124/137 = timed out)," \
+    "$(($(date +%s) - START)) s in all:"
 for line in "${SUMMARY[@]}"; do log "   $line"; done
 log "== files in $OUT: $(find "$OUT" -type f | wc -l) (a device call returns at most 8)"
 find "$OUT" -type f -printf '   %P %s\n' | tee -a "$LOG"
