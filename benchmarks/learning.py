@@ -581,6 +581,8 @@ def main_raft(argv: list[str]) -> None:
     p.add_argument("--figures", default=None, metavar="NAME",
                    help="train nothing: results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
     p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
+    p.add_argument("--stats", action="store_true", help="train nothing: flow-magnitude and texture statistics of "
+                   "--arms' pools (--pool pairs, default 64) beside the real judges")
     p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
                    "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
                    "[_TAG].json)")
@@ -588,6 +590,12 @@ def main_raft(argv: list[str]) -> None:
     if args.summarize:
         out = lr.summarize(args.files, args.arm, args.against)
         write_json(f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else ""), out)
+        return
+    if args.stats:
+        rows = lr.pool_stats(args.arms.split(","), args.pool or 64, args.workers, {}, args.middlebury)
+        print_table(rows, list(rows[0]))
+        write_json("learning_raft_stats" + (f"_{args.tag}" if args.tag else ""), {"pairs": args.pool or 64,
+                                                                                   "rows": rows})
         return
     if args.diagnose:
         rows = lr.diagnose([n for n in args.nets.split(",") if n], args.middlebury)

@@ -374,6 +374,34 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
     return {"arm": arm, "against": against, "pattern": pattern, "judges": out}
 
 
+def texture_map(img):
+    """(B, 1, H, W) mean |grey-level gradient| over each pixel's 9x9 window (images (B, 3, H, W) in [0, 1])."""
+    from torch.nn import functional as F
+
+    grey = img.float().mean(1, keepdim=True)
+    grad = (grey[..., :, 1:] - grey[..., :, :-1]).abs()[..., :-1, :] + \
+        (grey[..., 1:, :] - grey[..., :-1, :]).abs()[..., :, :-1]
+    return F.avg_pool2d(F.pad(grad, (4, 5, 4, 5), mode="replicate"), 9, 1)
+
+
+def pool_stats(names: list, n: int, workers: int, overrides: dict, middlebury_dir: str | None = None) -> list[dict]:
+    """Per arm, over ``n`` training pairs of seed 0 at RES: |flow| percentiles and the share of valid pixels moving
+    less than 0.5, 1 and 2 px, and the textureless share (``SMOOTH``); the real judges beside them."""
+    import torch
+
+    arms, _, _ = build_arms(names, 0, workers, overrides, n)
+    sets = {**{k: (v[0].float() / 255, v[1], v[2], v[3]) for k, v in arms.items()}, **judge_sets(middlebury_dir)}
+    rows = []
+    for name, (img1, _, flow, valid) in sets.items():
+        mag = torch.linalg.vector_norm(flow, dim=1)[valid[:, 0] > 0.5]
+        q = torch.quantile(mag[torch.randperm(len(mag))[:1_000_000]], torch.tensor([0.1, 0.5, 0.9]))
+        rows.append({"set": name, "mean |flow|": float(mag.mean()), "p10": float(q[0]), "p50": float(q[1]),
+                     "p90": float(q[2]), "< 0.5 px": float((mag < 0.5).float().mean()),
+                     "< 1 px": float((mag < 1).float().mean()), "< 2 px": float((mag < 2).float().mean()),
+                     "textureless": float((texture_map(img1) < SMOOTH).float().mean())})
+    return rows
+
+
 # -- where a net fails ----------------------------------------------------------------------------------------
 SMOOTH = 0.02  # a pixel is "smooth" when the mean |grey-level gradient| over its 9x9 window is below this (of 1)
 SMALL = 4.0  # [px] "small" true motion
@@ -384,7 +412,6 @@ def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
     textured, crossed with small (|flow| < ``SMALL``) or large true motion; the share of each kind. Where a net
     "sees motion everywhere", its error on smooth pixels with small motion stands out."""
     import torch
-    from torch.nn import functional as F
 
     from flowsynth.training import predict
 
@@ -394,10 +421,7 @@ def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
         net = raft_small()
         net.load_state_dict(torch.load(path, map_location="cpu"))
         for pair, (img1, img2, flow, valid) in tests.items():
-            grey = img1[:1].mean(1, keepdim=True)
-            grad = (grey[..., :, 1:] - grey[..., :, :-1]).abs()[..., :-1, :] + \
-                (grey[..., 1:, :] - grey[..., :-1, :]).abs()[..., :, :-1]
-            texture = F.avg_pool2d(F.pad(grad, (4, 5, 4, 5), mode="replicate"), 9, 1)
+            texture = texture_map(img1[:1])
             err = torch.linalg.vector_norm(predict(net, img1[:1], img2[:1], TEST_UPDATES) - flow[:1], dim=1,
                                            keepdim=True)
             small = torch.linalg.vector_norm(flow[:1], dim=1, keepdim=True) < SMALL
