@@ -581,6 +581,8 @@ def main_raft(argv: list[str]) -> None:
     p.add_argument("--figures", default=None, metavar="NAME",
                    help="train nothing: results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
     p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
+    p.add_argument("--plot", default=None, metavar="NAME", help="train nothing: results/NAME_JUDGE.png, the learning "
+                   "curves of every arm and seed in the --files results")
     p.add_argument("--stats", action="store_true", help="train nothing: flow-magnitude and texture statistics of "
                    "--arms' pools (--pool pairs, default 64) beside the real judges")
     p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
@@ -590,6 +592,10 @@ def main_raft(argv: list[str]) -> None:
     if args.summarize:
         out = lr.summarize(args.files, args.arm, args.against)
         write_json(f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else ""), out)
+        return
+    if args.plot:
+        for path in plot_judge_curves(args.plot, args.files):
+            print(f"wrote {path}")
         return
     if args.stats:
         rows = lr.pool_stats(args.arms.split(","), args.pool or 64, args.workers, {}, args.middlebury)
