@@ -554,6 +554,7 @@ def main_raft(argv: list[str]) -> None:
 
     p = argparse.ArgumentParser(description=lr.__doc__.split("\n")[0])
     p.add_argument("--net", choices=("raft", NET), default="raft")
+    p.add_argument("--quick", action="store_true", help="a smoke run: 12 pairs an arm, 20 steps, tests every 10")
     p.add_argument("--seeds", default="0")
     p.add_argument("--arms", default="flowsynth,chairs2d_photos",
                    help=f"comma-separated, of {', '.join(lr.ARMS)}")
@@ -614,6 +615,8 @@ def main_raft(argv: list[str]) -> None:
         return
     if args.steps is not None and args.steps < 20:
         p.error(f"--steps {args.steps}: give at least 20 steps")
+    if args.quick:
+        args.pool, args.steps, args.every = args.pool or 12, args.steps or 20, args.every or 10
     args.overrides = {}
     for item in args.set:
         key, _, value = item.partition("=")
