@@ -52,7 +52,7 @@ import warp as wp
 from scipy.spatial.transform import Rotation
 
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import DENSITY, NewtonScene, choose_substeps, wall_boxes
+from flowsynth.physics import DENSITY, NewtonScene, choose_substeps, wall_boxes
 from flowsynth.sampling import sample_layout
 from oracle import max_penetration
 

@@ -38,7 +38,8 @@ import warp as wp
 from trimesh.collision import CollisionManager
 
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import SUBSTEP_FRACTION, NewtonScene, choose_substeps, simulate
+from flowsynth.motion import simulate
+from flowsynth.physics import SUBSTEP_FRACTION, NewtonScene, choose_substeps
 from flowsynth.sampling import sample_layout
 
 SETS = {"primitives": ("box", "sphere", "cylinder", "capsule", "cone"),
