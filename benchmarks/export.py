@@ -73,8 +73,7 @@ def exr_compressions(num_frames: int, repeat: int) -> dict:
     import flowsynth as fs
     from flowsynth.datasets import BouncingThings
     from flowsynth.io import CHANNEL_NAMES, read_tensor_exr, write_tensor_exr
-    from flowsynth.io.exr import COMPRESSIONS
-    from flowsynth.io.layouts import get
+    from flowsynth.io.layouts import EXR_COMPRESSIONS, get
 
     cfg = fs.BouncingThingsConfig(num_frames=num_frames)
     keys = ("depth", "flow_fw", "flow_bw")
@@ -91,13 +90,13 @@ def exr_compressions(num_frames: int, repeat: int) -> dict:
         def reader(c):
             return lambda: [read_tensor_exr(tmp / c / f"{k}_{t}.exr", names[k]) for k, t, _ in planes]
 
-        for c in COMPRESSIONS:
+        for c in EXR_COMPRESSIONS:
             (tmp / c).mkdir()
-        writes = time_round_robin({c: writer(c) for c in COMPRESSIONS}, repeat=repeat)
-        reads = time_round_robin({c: reader(c) for c in COMPRESSIONS}, repeat=repeat)
+        writes = time_round_robin({c: writer(c) for c in EXR_COMPRESSIONS}, repeat=repeat)
+        reads = time_round_robin({c: reader(c) for c in EXR_COMPRESSIONS}, repeat=repeat)
         raw = sum(a.nbytes for _, _, a in planes)
         rows = []
-        for c in COMPRESSIONS:
+        for c in EXR_COMPRESSIONS:
             exact = all(np.array_equal(read_tensor_exr(tmp / c / f"{k}_{t}.exr", names[k]), a) for k, t, a in planes)
             size = {k: sum((tmp / c / f"{k}_{t}.exr").stat().st_size for kk, t, _ in planes if kk == k) for k in keys}
             rows.append({"compression": c, "depth MB": size["depth"] / 1e6, "flow_fw MB": size["flow_fw"] / 1e6,

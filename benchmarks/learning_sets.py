@@ -293,7 +293,7 @@ def middlebury_pairs(root: str | None) -> dict:
     import numpy as np
     import torch
 
-    from flowsynth.io.flo import read_flo
+    from flowsynth.io import read_flo
 
     if root is None:
         print("middlebury: no --middlebury DIR given; the Middlebury judge is skipped")

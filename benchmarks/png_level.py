@@ -22,8 +22,7 @@ PINNING = pin_single_core()
 import numpy as np
 
 import flowsynth as fs
-from flowsynth.io.kitti import KITTI_FLOW_SCALE
-from flowsynth.io.png import ZLIB_LEVEL, encode_png16
+from flowsynth.io import KITTI_FLOW_SCALE, ZLIB_LEVEL, encode_png16
 
 
 def kitti_image(seed: int) -> np.ndarray:

@@ -64,7 +64,7 @@ def _rgb(path: Path) -> torch.Tensor:
 def middlebury_pairs(root: str) -> list[tuple]:
     """The pairs under ``root``: every NAME/ holding frame10.png, frame11.png and flow10.flo; flow of magnitude above
     1e9 (the format's "unknown") is invalid."""
-    from flowsynth.io.flo import read_flo
+    from flowsynth.io import read_flo
 
     out = []
     for d in sorted(p for p in Path(root).iterdir() if p.is_dir()):

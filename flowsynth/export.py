@@ -34,7 +34,7 @@ the memory a sample needs, :mod:`flowsynth.memory`), and ``manifest.json`` appea
 sample is about to be moved into place: a run that fails before that leaves nothing in the way of the
 corrected command.
 
-Resume (:mod:`flowsynth.integrity`): a unit counts as done when each of its samples has a record (files and camera),
+Resume (:mod:`flowsynth.io.integrity`): a unit counts as done when each of its samples has a record (files and camera),
 every recorded file passes the check, quick (present, recorded size) or with ``verify=True`` full
 (sha256), and the samples recorded with each file are exactly the unit's; every other unit is written
 again whole. Files that no record names are reported as foreign and left untouched.
@@ -58,7 +58,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from flowsynth.errors import ConfigError, ExportError, StorageError
-from flowsynth.integrity import file_records
+from flowsynth.io import file_records
 from flowsynth.io import layouts
 from flowsynth.writer import ExportWriter, run_job
 
@@ -273,7 +273,7 @@ def _verified(root: Path, records: dict, units: list[range], mode: str) -> dict[
     check, and the samples recorded with each of those files are exactly the unit's (a shard written for
     another ``num`` holds other samples).
     """
-    from flowsynth.integrity import sample_problem
+    from flowsynth.io import sample_problem
 
     owners: dict[str, set[int]] = {}
     for i, rec in records.items():
@@ -306,7 +306,7 @@ def _unit_name(unit: range) -> str:
 
 def _report_foreign(root: Path, records: dict, old: dict | None) -> None:
     """Name the files under root that no record of this export names; they are left as they are."""
-    from flowsynth.integrity import foreign_files
+    from flowsynth.io import foreign_files
 
     known = {MANIFEST, JOURNAL, *(old or {}).get("index", {})}
     for rec in records.values():

@@ -22,7 +22,7 @@ sees instance n at object-frame point p; in every frame f the track is
 where pi is the camera's projection, through its lens model if it has one (flowsynth/camera.py; "X_f.z <= 0"
 then reads "X_f outside the model's domain"),
 so target_points[q, t_q] = (j, i) and occluded[q, t_q] is False. Pixel coordinates follow flowsynth's
-convention (pixel centres at integers); TAP-Vid's Kubric data puts them at +0.5 (``flowsynth.sampleio``
+convention (pixel centres at integers); TAP-Vid's Kubric data puts them at +0.5 (``flowsynth.io.sampleio``
 converts when it writes ``tapvid.pkl``). If no pixel of the clip sees anything, every track is occluded
 in every frame and all coordinates are 0.
 """

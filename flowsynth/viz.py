@@ -16,7 +16,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from flowsynth.errors import ConfigError, ShapeError
-from flowsynth.io.atomic import atomic_write_bytes
+from flowsynth.io import atomic_write_bytes
 from flowsynth.plan import split_gap_key
 
 __all__ = [

@@ -103,7 +103,7 @@ class ExportWriter:
 
     def __call__(self, job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict], list[dict]]:
         """Write the unit ``job = (indices, root)`` into a staging folder under root (module docstring)."""
-        from flowsynth.integrity import file_records
+        from flowsynth.io import file_records
 
         indices, root = tuple(int(i) for i in job[0]), job[1]
         if self._ds is None:

@@ -15,7 +15,7 @@ import flowsynth as fs
 from flowsynth.cli import main
 from flowsynth.datasets import BouncingThings, Exported
 from flowsynth.io import layouts
-from flowsynth.sampleio import file_digest
+from flowsynth.io.sampleio import file_digest
 
 SMALL = ["--width", "32", "--height", "24", "--num-frames", "2", "--motion", "kinematic",
          "--num-objects", "2,3", "--max-objects", "4"]

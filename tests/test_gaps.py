@@ -24,7 +24,7 @@ from torch.utils.data import default_collate
 
 import flowsynth as fs
 from flowsynth.cli import main
-from flowsynth.sampleio import read_sample, write_sample
+from flowsynth.io.sampleio import read_sample, write_sample
 
 W, H = 64, 48
 

@@ -213,7 +213,7 @@ def test_tracks_and_boxes_through_the_model(lens):
 def test_meta_round_trip_and_native_files(tmp_path):
     """Provenance records the lens; Scene.from_meta re-renders bit for bit; the native layout writes model and
     coefficients beside K."""
-    from flowsynth.sampleio import write_sample
+    from flowsynth.io.sampleio import write_sample
     from flowsynth.scene import provenance_json
 
     scene = make_scene(*KB, T=2)

@@ -15,7 +15,7 @@ import flowsynth as fs
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
 from flowsynth.lights import Light
-from flowsynth.sampleio import read_sample, write_sample
+from flowsynth.io.sampleio import read_sample, write_sample
 
 KEYS = ["rgb", "depth", "flow_fw", "occ_fw", "instance"]
 

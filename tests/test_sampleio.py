@@ -9,7 +9,7 @@ import trimesh
 
 import flowsynth as fs
 from flowsynth.plan import OUTPUTS
-from flowsynth.sampleio import read_sample, write_sample
+from flowsynth.io.sampleio import read_sample, write_sample
 
 
 def test_unknown_key_is_an_error_and_writes_nothing(tmp_path):

@@ -14,7 +14,7 @@ from oracle import bilinear, boundary, cast_frame, pair_truth, pose, project, ri
 from torch.utils.data import default_collate
 
 import flowsynth as fs
-from flowsynth.sampleio import read_sample, write_sample
+from flowsynth.io.sampleio import read_sample, write_sample
 
 W, H = 64, 48
 B = 0.3

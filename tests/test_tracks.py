@@ -17,7 +17,7 @@ from oracle import boundary, cast_frame, pose, project, rigid_inverse, visible
 from torch.utils.data import default_collate
 
 import flowsynth as fs
-from flowsynth.sampleio import read_sample, write_sample
+from flowsynth.io.sampleio import read_sample, write_sample
 
 W, H = 64, 48
 

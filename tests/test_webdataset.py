@@ -317,7 +317,7 @@ def test_shards_refuses_other_layouts(tmp_path):
 
 
 def test_readers_name_a_missing_or_broken_manifest(tmp_path):
-    """Exported and Shards read an export's manifest alike (flowsynth.integrity.read_manifest): a folder without
+    """Exported and Shards read an export's manifest alike (flowsynth.io.integrity.read_manifest): a folder without
     one, or with one that is not JSON, is an ExportError that says what the folder should be."""
     (tmp_path / "empty").mkdir()
     (tmp_path / "torn").mkdir()

@@ -38,7 +38,7 @@ class Exported(Dataset):
 
     Args:
         root: export folder (the one holding ``manifest.json``).
-        verify: how the files are checked against the manifest (:mod:`flowsynth.integrity`):
+        verify: how the files are checked against the manifest (:mod:`flowsynth.io.integrity`):
             ``"quick"`` (default) when the folder is opened: every file of every recorded sample
             exists with its recorded size; ``"full"``: that, and the sha256 of each file whenever a
             sample is read; ``"none"``: no check. ``True`` / ``False`` mean ``"full"`` / ``"none"``.
@@ -50,7 +50,7 @@ class Exported(Dataset):
     """
 
     def __init__(self, root: str | Path, verify: str | bool = "quick") -> None:
-        from flowsynth.integrity import VERIFY_MODES, read_manifest, sample_problem
+        from flowsynth.io import VERIFY_MODES, read_manifest, sample_problem
         from flowsynth.io import layouts
 
         self.root = Path(root)
@@ -92,7 +92,7 @@ class Exported(Dataset):
         return cameras[self.names[i]]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        from flowsynth.integrity import sample_problem
+        from flowsynth.io import sample_problem
 
         files = self.manifest["samples"][self.names[i]]
         if self.verify == "full" and (problem := sample_problem(self.root, files, "full")):

@@ -30,7 +30,7 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError, ExportError
-from flowsynth.integrity import read_manifest
+from flowsynth.io import read_manifest
 
 __all__ = ["Shards"]
 

@@ -3,7 +3,7 @@
 Every module here is imported on the first :func:`get` / :func:`names` call, and each registers its
 layout with :func:`register`; adding a layout is adding one module (and its test). Built-in layouts:
 
-- ``native``: one folder per sample, every output lossless (:mod:`flowsynth.sampleio`);
+- ``native``: one folder per sample, every output lossless (:mod:`flowsynth.io.sampleio`);
 - ``flyingchairs``: ``FlyingChairs/data/NNNNN_img1.ppm`` ... for ``torchvision.datasets.FlyingChairs``;
 - ``kitti``: ``KittiFlow/training/image_2`` + ``flow_occ`` for ``torchvision.datasets.KittiFlow``;
 - ``sintel``: ``Sintel/training/clean`` + ``flow`` + ``occlusions`` for ``torchvision.datasets.Sintel``;

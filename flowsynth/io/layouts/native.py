@@ -1,4 +1,4 @@
-"""``native`` layout: one folder per sample, every output lossless (file formats in flowsynth/sampleio.py).
+"""``native`` layout: one folder per sample, every output lossless (file formats in flowsynth/io/sampleio.py).
 
 ::
 
@@ -28,8 +28,9 @@ _PER_FRAME = re.compile(r"(.+)_\d{4}\.\w+$")
 
 
 def frame_key(name: str) -> str | None:
-    """The output key of a per-frame or per-pair file ``KEY_TTTT.ext`` (flowsynth/sampleio.py's names: ``rgb_0000.png``
-    -> ``rgb``, ``flow_fw_k2_0001.exr`` -> ``flow_fw_k2``); None for any other file (``meta.json``, ``tracks.npz``)."""
+    """The output key of a per-frame or per-pair file ``KEY_TTTT.ext`` (flowsynth/io/sampleio.py's names:
+    ``rgb_0000.png`` -> ``rgb``, ``flow_fw_k2_0001.exr`` -> ``flow_fw_k2``); None for any other file (``meta.json``,
+    ``tracks.npz``)."""
     m = _PER_FRAME.match(name)
     return m.group(1) if m else None
 
@@ -45,7 +46,7 @@ class Native(Layout):
                        "visible_pixels", "object_valid", "object_category")
 
     def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
-        from flowsynth.sampleio import write_sample
+        from flowsynth.io.sampleio import write_sample
 
         sub = Path(folder) / f"{index:05d}"
         sub.mkdir()
@@ -55,7 +56,7 @@ class Native(Layout):
         return out
 
     def read(self, root: Path, files: Sequence[str]) -> dict[str, torch.Tensor]:
-        from flowsynth.sampleio import read_sample
+        from flowsynth.io.sampleio import read_sample
 
         return read_sample(Path(root) / Path(files[0]).parent)
 

@@ -16,7 +16,7 @@ the member name up to its first dot), members sorted by name::
     00000007.index.npy  00000007.seed.npy  00000007.provenance.json                 (a scene record, JSON)
     00000007.camera.json                                                           a lens camera only
 
-Images are the ``native`` layout's files byte for byte (flowsynth/sampleio.py: 8-bit sRGB PNG, float32
+Images are the ``native`` layout's files byte for byte (flowsynth/io/sampleio.py: 8-bit sRGB PNG, float32
 EXR, 16-bit PNG ids and masks); cameras, object tables, point tracks, index and seed are ``.npy`` arrays
 with the stream's dtype and shape; ``provenance.json`` is the stream's provenance string. A lens camera's
 model and coefficients sit beside ``K.npy`` in ``camera.json``, ``{"model": ..., "dist": [...]}`` (OpenCV's
@@ -28,7 +28,7 @@ files ``boxes_coco.json`` and ``tapvid.pkl`` of ``native`` are not written (thei
 The tar is deterministic: USTAR headers with mtime 0, uid/gid 0, empty user/group names, mode 0644, and
 members in name order; so a shard's bytes depend only on its samples, whatever the engine or workers.
 
-Crash safety and resume (flowsynth/export.py, flowsynth/integrity.py): shard j holds samples
+Crash safety and resume (flowsynth/export.py, flowsynth/io/integrity.py): shard j holds samples
 [j N, min((j+1) N, num)) and is one unit of work (``Layout.units``). A worker writes the whole shard under
 a staging folder ``DIR/.tmp-*``; the exporter journals the record of each of its samples (all naming the
 shard, with its size and sha256) in one write, then renames the shard into place. A shard is complete
@@ -80,7 +80,7 @@ def shard_name(j: int) -> str:
 
 def _tensor_keys() -> tuple[str, ...]:
     from flowsynth.plan import TRACK_KEYS
-    from flowsynth.sampleio import META_KEYS
+    from flowsynth.io.sampleio import META_KEYS
 
     return META_KEYS + TRACK_KEYS
 
@@ -129,7 +129,7 @@ class WebDataset(Layout):
     def write(self, sample: dict[str, torch.Tensor], index: int, folder: Path) -> dict[str, str]:
         """Sample ``index``'s shard members as loose files ``%08d.NAME`` in ``folder`` (what ``tar -x`` of its
         shard gives for it); :meth:`write_unit` packs them."""
-        from flowsynth.sampleio import PROVENANCE_KEY, write_sample
+        from flowsynth.io.sampleio import PROVENANCE_KEY, write_sample
 
         folder, key = Path(folder), f"{index:0{_KEY_DIGITS}d}"
         tensors = _tensor_keys()
@@ -243,7 +243,7 @@ def iter_shard(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
 
 def decode(members: dict[str, bytes]) -> dict[str, torch.Tensor]:
     """A sample dict (the stream's keys, dtypes, shapes) from one key's members ``{suffix: bytes}``."""
-    from flowsynth.sampleio import PROVENANCE_KEY, read_sample
+    from flowsynth.io.sampleio import PROVENANCE_KEY, read_sample
 
     out: dict[str, torch.Tensor] = {}
     images = {}

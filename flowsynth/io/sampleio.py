@@ -47,20 +47,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from flowsynth.io import (
-    CHANNEL_NAMES,
-    coco_boxes,
-    read_json,
-    read_rgb_png,
-    read_tensor_exr,
-    read_u16_png,
-    write_json,
-    write_rgb_png,
-    write_tensor_exr,
-    write_u16_png,
-)
 from flowsynth.errors import ExportError
 from flowsynth.io.atomic import atomic_write_bytes
+from flowsynth.io.exr import CHANNEL_NAMES, read_tensor_exr, write_tensor_exr
+from flowsynth.io.jsonio import coco_boxes, read_json, write_json
+from flowsynth.io.png import read_rgb_png, read_u16_png, write_rgb_png, write_u16_png
 from flowsynth.plan import CAMERA_KEYS, FLOW_KEYS, GBUFFER_KEYS, TABLE_KEYS, TRACK_KEYS, split_gap_key
 
 __all__ = ["META_KEYS", "PROVENANCE_KEY", "file_digest", "read_sample", "tapvid_dict", "write_sample"]
@@ -101,7 +92,7 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
                and k not in META_KEYS and k not in TRACK_KEYS and k != PROVENANCE_KEY]
     if unknown:
         raise ExportError(f"no export format for key(s) {unknown}; known keys are rgb, {', '.join(_EXR)}, "
-                          f"{', '.join(_U16)}, {', '.join(META_KEYS)} (add a format in flowsynth/sampleio.py)")
+                          f"{', '.join(_U16)}, {', '.join(META_KEYS)} (add a format in flowsynth/io/sampleio.py)")
     names: list[str] = []
     meta: dict = {"keys": list(sample)}
     for key, value in sample.items():
