@@ -57,7 +57,7 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     args = p.parse_args()
     import flowsynth as fs
-    from flowsynth.datasets.bouncing import sample_seed
+    from flowsynth.datasets import sample_seed
     from flowsynth.plan import make_plan
     from flowsynth.renderer import render_plan
     from flowsynth.sampling import sample_scene

@@ -1,10 +1,12 @@
-"""The layer contract of docs/architecture.md, checked on the source: imports point one way, no cycles, no private
-names across modules.
+"""The layer contract of docs/architecture.md, checked on the source: imports point one way, at the level of folders
+and of modules; no cycles, no private names across modules.
 
 Every module of flowsynth/ is parsed with ``ast``; every import counts, top-level or inside a function (lazy), and
 ``importlib.import_module("flowsynth.<module>")`` with a literal name too. The contract is the ```layers block of
-docs/architecture.md, top to bottom: a module may import modules of its own entry (a package such as ``io`` or
-``kernels`` with its submodules) or of lower lines, never of a higher line, nor a sibling (``a | b`` on one line).
+docs/architecture.md, top to bottom. Its unindented lines are the folder level: a folder (``scene/``) or a module of
+the package's root (``cli``); a folder's indented lines below it order its own modules. A folder or root module
+imports only lower lines of the folder level, and a module only its own entry (a package such as ``io.layouts`` with
+its submodules) or lower lines of the module level; never a higher line, nor a sibling (``a | b`` on one line).
 No private name (one leading underscore) is imported or read across modules, in flowsynth/ and in benchmarks/.
 
 The checker's functions are tested on made-up graphs first, so each rule is shown to fail when it should.
@@ -81,17 +83,91 @@ def import_graph(root: Path = REPO, package: str = PACKAGE) -> dict[str, set[str
     return {m: imports_of(p.read_text(), m, files, p.name == "__init__.py") for m, p in files.items()}
 
 
-def parse_layers(text: str) -> list[list[str]]:
-    """The ```layers block of a markdown text: one list of entries per line, top to bottom (``#`` comments)."""
+def _contract_lines(text: str) -> list[tuple[bool, list[str]]]:
+    """(indented, entries) of each line of the ```layers block of a markdown text, top to bottom (``#`` comments)."""
     m = re.search(r"^```layers\n(.*?)^```", text, re.M | re.S)
     if m is None:
         raise AssertionError("no ```layers block in docs/architecture.md")
-    layers = []
+    lines = []
     for line in m.group(1).splitlines():
-        line = line.split("#")[0].strip()
-        if line:
-            layers.append([e.strip() for e in line.split("|")])
+        body = line.split("#")[0]
+        if body.strip():
+            lines.append((body[0].isspace(), [e.strip() for e in body.split("|")]))
+    return lines
+
+
+def parse_folders(text: str) -> list[list[str]]:
+    """The folder level of the contract: its unindented lines, each a list of folders (``name/``) and root modules.
+    Raises AssertionError on an indented line that does not follow a folder alone on its line, or that names a module
+    outside that folder."""
+    lines: list[list[str]] = []
+    for indented, entries in _contract_lines(text):
+        if not indented:
+            lines.append(entries)
+            continue
+        head = lines[-1] if lines else []
+        if len(head) != 1 or not head[0].endswith("/"):
+            raise AssertionError(f"indented line {' | '.join(entries)!r} follows no folder alone on its line")
+        folder = head[0][:-1]
+        stray = [e for e in entries if e != folder and not e.startswith(folder + ".")]
+        if stray:
+            raise AssertionError(f"{stray} listed under {folder}/ are not in that folder")
+    return lines
+
+
+def parse_layers(text: str) -> list[list[str]]:
+    """The module level of the contract: every line with its entries, top to bottom; a folder's indented lines in its
+    place, or the folder as one entry (``name``, all its modules) where it has none."""
+    parse_folders(text)  # the shape of the block
+    items = _contract_lines(text)
+    layers = []
+    for k, (indented, entries) in enumerate(items):
+        if not indented and k + 1 < len(items) and items[k + 1][0]:
+            continue  # a folder whose modules follow, indented
+        layers.append([e.removesuffix("/") for e in entries])
     return layers
+
+
+def folders_of(modules, package: str = PACKAGE) -> set[str]:
+    """The folders of the package: its subpackages (``io``, ``kernels``...)."""
+    return {m.split(".")[1] for m in modules if m.count(".") == 1 and any(n.startswith(m + ".") for n in modules)}
+
+
+def unit_of(module: str, folders: set[str], package: str = PACKAGE) -> str:
+    """The unit of the folder level a module belongs to: its folder (``io/``), a root module (``cli``) or the
+    package."""
+    parts = module.split(".")
+    if len(parts) == 1:
+        return package
+    return parts[1] + "/" if parts[1] in folders else parts[1]
+
+
+def folder_graph(graph: dict[str, set[str]], package: str = PACKAGE) -> dict[str, set[str]]:
+    """The import graph between units of the folder level (folders, root modules, the package)."""
+    folders = folders_of(graph, package)
+    out: dict[str, set[str]] = {}
+    for a, targets in graph.items():
+        ua = unit_of(a, folders, package)
+        out.setdefault(ua, set()).update(unit_of(b, folders, package) for b in targets)
+        out[ua].discard(ua)
+    return out
+
+
+def folder_violations(units: dict[str, set[str]], lines: list[list[str]]) -> list[str]:
+    """Every import between folders or root modules that climbs the folder level or joins two siblings, every unit
+    outside it and every entry that names nothing."""
+    where = {u: i for i, line in enumerate(lines) for u in line}
+    problems = [f"{u} is in no line of the contract" for u in sorted(units) if u not in where]
+    problems += [f"line entry {u!r} names no folder or module" for u in where if u not in units]
+    for a, targets in sorted(units.items()):
+        for b in sorted(targets):
+            if a not in where or b not in where:
+                continue
+            if where[b] < where[a]:
+                problems.append(f"{a} imports {b}: upward ({a!r} is below {b!r})")
+            elif where[b] == where[a]:
+                problems.append(f"{a} imports {b}: siblings {a!r} | {b!r} must not import each other")
+    return problems
 
 
 def entry_of(module: str, layers: list[list[str]], package: str = PACKAGE) -> tuple[int, str] | None:
@@ -233,6 +309,41 @@ def _src(code: str) -> str:
     return code.replace("PKG", PACKAGE)
 
 
+FAKE_CONTRACT = """```layers
+app                     # a root module
+low/                    # a folder
+    low                 # its exports
+    low.b | low.c
+    low.a
+base
+```
+"""
+
+
+def test_checker_reads_folders_and_their_modules():
+    assert parse_folders(FAKE_CONTRACT) == [["app"], ["low/"], ["base"]]
+    assert parse_layers(FAKE_CONTRACT) == [["app"], ["low"], ["low.b", "low.c"], ["low.a"], ["base"]]
+    with pytest.raises(AssertionError, match="follows no folder alone"):
+        parse_folders(FAKE_CONTRACT.replace("low/ ", "low/ | base "))
+    with pytest.raises(AssertionError, match=r"\['app.x'\] listed under low/"):
+        parse_folders(FAKE_CONTRACT.replace("low.a", "app.x"))
+    # a folder without indented lines is one entry of the module level
+    assert parse_layers("```layers\napp\nerrors | kernels/\n```\n") == [["app"], ["errors", "kernels"]]
+
+
+def test_checker_reports_imports_that_climb_folders():
+    graph = _fake({"app": {"low.b"}, "low": {"low.b", "low.a"}, "low.b": {"low.a"}, "low.c": set(),
+                   "low.a": {"base"}, "base": set()})
+    assert folder_graph(graph) == {"app": {"low/"}, "low/": {"base"}, "base": set()}
+    lines = parse_folders(FAKE_CONTRACT)
+    assert folder_violations(folder_graph(graph), lines) == []
+    assert layer_violations(graph, parse_layers(FAKE_CONTRACT)) == []
+    graph[f"{PACKAGE}.base"] = {f"{PACKAGE}.low.c"}
+    assert folder_violations(folder_graph(graph), lines) == ["base imports low/: upward ('base' is below 'low/')"]
+    assert find_cycles(folder_graph(graph)) == [["base", "low/"]]
+    assert "stray is in no line of the contract" in folder_violations({"stray": set(), **folder_graph(graph)}, lines)
+
+
 def test_checker_finds_cycles_through_lazy_and_string_imports():
     modules = {f"{PACKAGE}.{m}": None for m in ("a", "b", "c", "pkg", "pkg.sub")}
     a = _src("import os\n\ndef f():\n    from PKG.b import thing\n")  # lazy
@@ -279,6 +390,17 @@ def test_layer_contract_of_architecture_md_holds():
     assert layers and layers[0] == [PACKAGE], "the contract's first line is the package itself (its re-exports)"
     problems = layer_violations(_graph_without_exceptions(), layers)
     assert not problems, "imports against docs/architecture.md's layers:\n" + "\n".join(problems)
+
+
+def test_folders_are_layers():
+    text = ARCHITECTURE.read_text()
+    graph = _graph_without_exceptions()
+    units = folder_graph(graph)
+    assert [u for u in units if u.endswith("/")], "the package has folders"
+    problems = folder_violations(units, parse_folders(text))
+    assert not problems, "imports against the folder level of docs/architecture.md's layers:\n" + "\n".join(problems)
+    cycles = find_cycles(units)
+    assert not cycles, "import cycles between folders:\n" + "\n".join(" <-> ".join(c) for c in cycles)
 
 
 def test_no_import_cycles():

@@ -1,7 +1,6 @@
-"""Datasets: ``BouncingThings`` streams generated samples; ``FlowPairs`` adapts them to torchvision's
-optical-flow tuples; ``Exported`` reads a folder written by ``flowsynth export``; ``Shards`` streams the
-shards of a ``webdataset`` export (shuffled, split by worker and rank); ``Mixture`` streams samples of several
-configs (presets) by reproducible weights or a curriculum."""
+"""Datasets: ``BouncingThings`` streams generated samples, ``FlowPairs`` as torchvision's optical-flow tuples and
+``Mixture`` from several configs by weights or a curriculum; ``Exported`` reads a folder ``flowsynth export`` wrote,
+``Shards`` streams the shards of a ``webdataset`` export (shuffled, split by worker and rank)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.flowpairs import FlowPairs

@@ -1,7 +1,6 @@
-"""Warp kernels. Only Warp and numpy here: nothing in this package imports the torch-facing pipeline.
-
-Modules are imported on first use, so ``import flowsynth`` compiles nothing.
-"""
+"""Warp kernels, one family per module (``raycast``, ``blas``, ``reproject``, ``shade``, ``texture``, ``tonemap``,
+``dof``; ``specialise`` builds their variants), each imported on first use, so ``import flowsynth`` compiles nothing.
+Only Warp and numpy here: nothing in this folder imports flowsynth's torch-facing pipeline."""
 from __future__ import annotations
 
 import functools
@@ -9,7 +8,10 @@ import os
 import sys
 import tempfile
 
-__all__ = ["RENDER_MODES", "wp_runtime"]
+# The kernel families are exported by name and imported where they are used (``from flowsynth.kernels.raycast import
+# primary_kernel``, inside the launcher): importing one imports Warp.
+__all__ = ["RENDER_MODES", "blas", "dof", "raycast", "reproject", "shade", "specialise", "texture", "tonemap",
+           "wp_runtime"]
 
 # The shading models that kernels/shade.py implements (docs/rendering.md); flowsynth.plan re-exports them.
 RENDER_MODES = ("flat", "direct", "path")
