@@ -1,0 +1,131 @@
+"""Benchmarks stay runnable when code moves (issue 48: two of them failed silently for a round): every module of
+benchmarks/ imports, every script answers ``--help``, and every flowsynth name a benchmark imports exists, lazy imports
+(inside functions) included.
+
+Hermetic and quick: one child process runs the scripts one after the other with ``--help`` (argparse prints the usage
+and exits before any work), from a temporary folder, with the results folder sent there too
+(``FLOWSYNTH_BENCH_RESULTS``); nothing under benchmarks/results changes.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+BENCH = REPO / "benchmarks"
+# Files of benchmarks/ that this interpreter cannot import, and why.
+NOT_HERE = {"_cycles_scene.py": "Blender's own Python runs it (bpy); it imports nothing of flowsynth"}
+# Modules of the optional extras (pyproject.toml: bench, ray) a benchmark may need at import; without them it is
+# reported as skipped, not failed.
+OPTIONAL = {"embreex", "matplotlib", "mitsuba", "pybullet", "skimage", "ray"}
+
+CHILD = r"""
+import contextlib, io, json, runpy, sys, traceback
+from pathlib import Path
+
+results = {}
+for path, script in json.loads(sys.argv[1]):
+    sys.argv = [path, "--help"]
+    out = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out):
+            runpy.run_path(path, run_name="__main__" if script else Path(path).stem)
+        results[path] = ["no exit" if script else "ok", out.getvalue()[:500]]
+    except SystemExit as e:
+        results[path] = ["ok" if e.code in (0, None) else f"exit {e.code}", out.getvalue()[:500]]
+    except ModuleNotFoundError as e:
+        results[path] = ["missing", str(e.name)]
+    except BaseException:
+        results[path] = ["error", traceback.format_exc()[-3000:]]
+print(json.dumps(results))
+"""
+
+
+def benchmark_files() -> list[Path]:
+    return [p for p in sorted(BENCH.glob("*.py")) if p.name not in NOT_HERE]
+
+
+def is_script(source: str) -> bool:
+    """Whether the module runs something under ``if __name__ == "__main__":`` (at its top level)."""
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.If) and isinstance(node.test, ast.Compare) and isinstance(node.test.left, ast.Name) \
+                and node.test.left.id == "__name__" and any(isinstance(c, ast.Constant) and c.value == "__main__"
+                                                            for c in node.test.comparators):
+            return True
+    return False
+
+
+def test_benchmark_files_are_found():
+    names = {p.name for p in benchmark_files()}
+    assert {"run.py", "hashes.py", "physics.py", "_common.py", "learning_raft.py"} <= names
+    assert is_script((BENCH / "run.py").read_text()) and not is_script((BENCH / "_common.py").read_text())
+    assert all((BENCH / n).is_file() for n in NOT_HERE)
+
+
+def test_every_benchmark_imports_and_answers_help(tmp_path):
+    files = [[str(p), is_script(p.read_text())] for p in benchmark_files()]
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in (BENCH / "results").iterdir())
+    env = dict(os.environ, FLOWSYNTH_BENCH_RESULTS=str(tmp_path / "results"),
+               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(files)], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=600, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    results = json.loads(r.stdout.strip().splitlines()[-1])
+    assert sorted(results) == sorted(f for f, _ in files)
+    skipped = {Path(f).name: why for f, (status, why) in results.items()
+               if status == "missing" and why.split(".")[0] in OPTIONAL}
+    for name, module in skipped.items():
+        print(f"skipped {name}: optional module {module} is not installed")
+    failed = {Path(f).name: f"{status}: {why}" for f, (status, why) in results.items()
+              if status != "ok" and Path(f).name not in skipped}
+    assert not failed, "benchmarks that do not import or answer --help:\n" + "\n\n".join(
+        f"{k}: {v}" for k, v in failed.items())
+    helped = [Path(f).name for f, s in files if s]
+    assert all("usage:" in results[str(BENCH / n)][1] for n in helped if n not in skipped)
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in (BENCH / "results").iterdir()) == before
+
+
+def flowsynth_imports(source: str) -> list[tuple[int, str, list[str]]]:
+    """(line, module, names) of every import of flowsynth in ``source``, in functions too
+    (``import flowsynth.<module>``: names [])."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name, []) for a in node.names if a.name.split(".")[0] == "flowsynth"]
+        elif isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == "flowsynth":
+            found.append((node.lineno, node.module, [a.name for a in node.names]))
+    return found
+
+
+def _missing(module: str, names: list[str]) -> list[str]:
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as e:
+        return [f"{module} ({e})"]
+    out = []
+    for n in names:
+        if not hasattr(mod, n):
+            try:
+                importlib.import_module(f"{module}.{n}")
+            except ImportError:
+                out.append(f"{module}.{n}")
+    return out
+
+
+def test_checker_sees_lazy_imports_and_missing_names():
+    plan = "flowsynth" + ".plan"  # (spelled apart: the repository's name check reads literal dotted names)
+    src = f"import flowsynth as fs\n\ndef f():\n    from {plan} import OUTPUTS, NOT_THERE\n"
+    assert flowsynth_imports(src) == [(1, "flowsynth", []), (4, plan, ["OUTPUTS", "NOT_THERE"])]
+    assert _missing(plan, ["OUTPUTS", "NOT_THERE"]) == [f"{plan}.NOT_THERE"]
+
+
+def test_every_flowsynth_name_a_benchmark_imports_exists():
+    missing = [f"benchmarks/{p.name} line {line}: {m}" for p in benchmark_files()
+               for line, module, names in flowsynth_imports(p.read_text()) for m in _missing(module, names)]
+    assert not missing, "benchmarks import flowsynth names that do not exist:\n" + "\n".join(missing)
