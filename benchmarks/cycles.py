@@ -87,8 +87,7 @@ def export_scene(scene, path: Path, depth_median: float) -> None:
     JSON: a distribution's Blender may run on a system Python without numpy."""
     import numpy as np
 
-    from flowsynth.lights import resolve_lights
-    from flowsynth.textures import srgb_to_linear
+    from flowsynth.appearance import resolve_lights, srgb_to_linear
 
     d = {"num_frames": scene.num_frames, "width": scene.camera.width, "height": scene.camera.height,
          "K": scene.camera.K.tolist(), "world_T_cam": scene.world_T_cam.tolist(), "fps": scene.fps, "meshes": {},

@@ -129,12 +129,12 @@ def photo_folder(names: tuple = TRAIN_PHOTOS) -> Path:
 
 def natural_folder(kinds: tuple = ("pink", "leaves", "edges"), per_kind: int = 32) -> Path:
     """A folder (.cache/learning_natural_KINDS under the repository) of ``per_kind`` PNG textures of each of
-    ``kinds`` (``flowsynth.textures.natural_image``, 512x512, seeds 0..per_kind-1): made without any file, with the
+    ``kinds`` (``flowsynth.appearance.natural_image``, 512x512, seeds 0..per_kind-1): made without any file, with the
     statistics of photographs; the texture_dir of the flowsynth_natural arm."""
     import cv2
     import numpy as np
 
-    from flowsynth.textures import natural_image
+    from flowsynth.appearance import natural_image
 
     root = Path(__file__).resolve().parent.parent / ".cache" / f"learning_natural_{'_'.join(kinds)}_{per_kind}"
     root.mkdir(parents=True, exist_ok=True)

@@ -36,8 +36,7 @@ def room_scene(width: int, height: int, num_objects: int = 16, seed: int = 0, nu
     import trimesh
 
     import flowsynth as fs
-    from flowsynth.lights import sample_lights
-    from flowsynth.materials import sample_material
+    from flowsynth.appearance import sample_lights, sample_material
 
     rng = np.random.default_rng(seed)
     scene = fs.Scene(fs.Camera.from_fov(width, height, 60.0), num_frames)

@@ -167,8 +167,9 @@ class BouncingThingsConfig:
     uses procedural textures only. Images are tiled at ``texture_px`` scale, not stretched (docs/rendering.md).
     Read when a scene is sampled, not when the config is made."""
     texture_families: tuple[str, ...] = ("noise", "value", "cells", "stripes", "checks", "blend")
-    """Texture families to draw each surface's material from (non-empty; flowsynth.materials.TEXTURE_FAMILIES).
-    "solid" (one flat colour) and "leaves" (dead-leaves discs) are drawn only when listed."""
+    """Texture families to draw each surface's material from (non-empty;
+    flowsynth.appearance.materials.TEXTURE_FAMILIES). "solid" (one flat colour) and "leaves" (dead-leaves discs) are
+    drawn only when listed."""
     # The final pass, output ``rgb_final`` (flowsynth/finalpass.py; models and defaults: docs/rendering.md, Final
     # pass). Only read when rgb_final is requested; the ground truth never depends on them.
     final_shutter: float = _OPT.final_shutter
@@ -241,7 +242,7 @@ class BouncingThingsConfig:
         loaded (returns the asset keys, globs expanded) and ``texture_dir`` listed. Raises AssetError / ConfigError
         naming the path that is missing or unreadable. Constructing a config never reads files; this does."""
         from flowsynth.assets import resolve_assets
-        from flowsynth.textures import list_textures
+        from flowsynth.appearance import list_textures
 
         keys = resolve_assets(self.assets, field="assets")
         if self.texture_dir is not None:
@@ -453,7 +454,7 @@ def _validate(cfg: BouncingThingsConfig) -> None:
     if isinstance(fams, str) or not fams or not all(isinstance(f, str) and f for f in fams):
         raise ConfigError(f"texture_families must be a non-empty sequence of names, got {fams!r}")
     _set(cfg, "texture_families", tuple(fams))
-    from flowsynth.materials import check_texture_families
+    from flowsynth.appearance import check_texture_families
 
     try:  # names only: texture_dir is read when a scene is sampled
         check_texture_families(cfg.texture_families, cfg.texture_dir)

@@ -11,7 +11,7 @@ index]))`` in a fixed order (below), runs the motion and returns a :class:`flows
 
 Materials, lights and the render seed are resolved here, so the scene is the whole description of what is
 rendered (``Scene.to_meta``). Texture detail is set in screen terms: each surface's material is drawn with
-``pixel_size`` = expected viewing distance / focal length (``flowsynth.materials.sample_material``), the
+``pixel_size`` = expected viewing distance / focal length (``flowsynth.appearance.materials.sample_material``), the
 distance being the object's centre from the first camera, or for a wall the median length of a 16 x 12
 grid of first-frame camera rays that end on it (the wall centre's distance when none does).
 
@@ -43,8 +43,7 @@ from flowsynth.camera import Camera
 from flowsynth.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
-from flowsynth.lights import Light, sample_lights
-from flowsynth.materials import sample_material
+from flowsynth.appearance import Light, sample_lights, sample_material
 from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, simulate
 from flowsynth.scene import Scene
 

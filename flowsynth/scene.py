@@ -37,7 +37,7 @@ class SceneObject:
         poses: (T, 4, 4) float64 world_T_obj per frame.
         category: category id >= 0 written to the ``category`` channel.
         asset: id of the mesh asset, >= 1; objects added with the same mesh object share it.
-        material: resolved material dict (``flowsynth.materials.resolve_material``: every key explicit).
+        material: resolved material dict (``flowsynth.appearance.materials.resolve_material``: every key explicit).
         background: part of the set (e.g. the room): rendered, but left out of the object tables.
         source: where the mesh comes from, for provenance: ``{"asset": name, "size": metres}`` for a
             library asset (``flowsynth.assets.get_asset``); None stores the vertices and faces themselves.
@@ -74,7 +74,7 @@ class Scene:
         self.fps = float(fps)
         self.world_T_cam = np.tile(np.eye(4), (self.num_frames, 1, 1))
         self.objects: list[SceneObject] = []
-        self.lights: list = []  # flowsynth.lights.Light sources for RGB shading; empty = default_lights
+        self.lights: list = []  # flowsynth.appearance.lights.Light sources for RGB shading; empty = default_lights
         self.render_seed: int = 0  # seed of the renderer's noise (anti-aliasing, path tracing, motion blur)
         self.meta: dict = {}  # how the scene was made: config, seed, index when it was sampled
         self._assets: dict[int, tuple[int, trimesh.Trimesh]] = {}  # id(mesh) -> (asset id, cleaned mesh)
@@ -98,12 +98,12 @@ class Scene:
             poses: (T, 4, 4) world_T_obj, or (4, 4) for a static object; identity when None.
             category: category id >= 0.
             material: shading parameters for RGB rendering (schema: docs/rendering.md); resolved here
-                (``flowsynth.materials.resolve_material``), so an empty one becomes the instance's default.
+                (``flowsynth.appearance.materials.resolve_material``), so an empty one becomes the instance's default.
             background: scenery such as the room: rendered, not listed in the object tables.
             source: ``{"asset": name, "size": metres}`` when ``mesh`` is ``flowsynth.assets.get_asset(name,
                 size).mesh``: provenance then names the asset instead of storing the mesh.
         """
-        from flowsynth.materials import resolve_material
+        from flowsynth.appearance import resolve_material
 
         if not isinstance(category, (int, np.integer)) or category < 0:
             raise ConfigError(f"category must be a non-negative integer, got {category!r}")
@@ -126,7 +126,7 @@ class Scene:
     def to_meta(self) -> dict:
         """Everything rendered, as a JSON-compatible dict (floats exact): camera, poses, objects (asset or mesh,
         poses, resolved material), lights, render seed and ``meta``. ``Scene.from_meta`` rebuilds it."""
-        from flowsynth.lights import Light
+        from flowsynth.appearance import Light
 
         objects = []
         for o in self.objects:
@@ -151,7 +151,7 @@ class Scene:
         or a sample folder's meta.json dict (which holds it under ``provenance``). Rendering the result gives
         the sample bit for bit. Raises ConfigError when the description is not one."""
         from flowsynth.assets import get_asset
-        from flowsynth.lights import Light
+        from flowsynth.appearance import Light
 
         if isinstance(meta, str):
             meta = json.loads(meta)

@@ -27,9 +27,7 @@ from flowsynth.errors import ConfigError
 from flowsynth.gbuffer import to_torch
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
-from flowsynth.lights import resolve_lights
-from flowsynth.materials import resolve_material
-from flowsynth.textures import mip_pyramid, srgb_to_linear
+from flowsynth.appearance import mip_pyramid, resolve_lights, resolve_material, srgb_to_linear
 from flowsynth.plan import TONEMAPS
 
 __all__ = ["MAX_TIME_SLICES", "median_hit_distance", "pack_materials", "poses_at", "render_radiance", "render_rgb",
@@ -110,7 +108,7 @@ def srgb_tables(device: str = "cpu"):
 
 def median_hit_distance(gb) -> float:
     """Median ray length [m] of the hit pixels of frame 0 (1 when none): the default lights' scale
-    (``flowsynth.lights.resolve_lights``), computed on the host (``GBuffer.host()``)."""
+    (``flowsynth.appearance.lights.resolve_lights``), computed on the host (``GBuffer.host()``)."""
     host = gb.host()
     hits = host.dist[0][host.item[0] >= 0]
     return float(np.median(hits)) if hits.size else 1.0

@@ -100,7 +100,7 @@ def _disparity(gb, dz: np.ndarray, fB: float) -> np.ndarray:
 
 def _rgb_right(scene, accel_r, gb, gb_r, plan, world_T_cam_r: np.ndarray, device: str) -> torch.Tensor:
     """The right view shaded with exactly the left view's lights (defaults are placed from the left view)."""
-    from flowsynth.lights import resolve_lights
+    from flowsynth.appearance import resolve_lights
     from flowsynth.shading import median_hit_distance, render_rgb
 
     right = copy.copy(scene)

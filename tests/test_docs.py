@@ -11,7 +11,8 @@ import re
 from pathlib import Path
 
 import flowsynth as fs
-from flowsynth import materials, plan
+from flowsynth import plan
+from flowsynth.appearance import materials
 from flowsynth.io import layouts
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,7 +81,7 @@ def test_rendering_doc_octave_count_matches_the_sampler():
     counts = {min(math.floor(math.log2(hi * f / lo)) + 1, materials.MAX_OCTAVES) for f in (0.6, 0.8, 0.999)}
     text = _read("docs/rendering.md")
     assert f"{counts.pop()} at the default ({lo:g}, {hi:g}) px" in text and not counts
-    assert f"`flowsynth.materials.MAX_OCTAVES` = {materials.MAX_OCTAVES}" in text
+    assert f"`flowsynth.appearance.materials.MAX_OCTAVES` = {materials.MAX_OCTAVES}" in text
 
 
 def test_rendering_doc_names_where_render_modes_are_defined():

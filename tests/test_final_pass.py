@@ -15,7 +15,7 @@ import trimesh
 import flowsynth as fs
 from flowsynth.errors import ConfigError
 from flowsynth.finalpass import apply_dof, draw_final
-from flowsynth.lights import Light
+from flowsynth.appearance.lights import Light
 from flowsynth.plan import FinalPass
 from flowsynth.shading import poses_at
 

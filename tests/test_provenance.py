@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader, default_collate
 import flowsynth as fs
 from flowsynth.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
-from flowsynth.lights import Light
+from flowsynth.appearance.lights import Light
 from flowsynth.io.sampleio import read_sample, write_sample
 
 KEYS = ["rgb", "depth", "flow_fw", "occ_fw", "instance"]

@@ -13,9 +13,9 @@ import trimesh
 from PIL import Image
 
 import flowsynth as fs
-from flowsynth.lights import Light, sample_lights
-from flowsynth.materials import resolve_material, sample_material
-from flowsynth.textures import list_textures, srgb_to_linear
+from flowsynth.appearance.lights import Light, sample_lights
+from flowsynth.appearance.materials import resolve_material, sample_material
+from flowsynth.appearance.textures import list_textures, srgb_to_linear
 from flowsynth.kernels.tonemap import SrgbPow, srgb_pow, srgb_pow_tables
 from flowsynth.shading import poses_at, tonemap_frames, tonemap_srgb
 
@@ -506,19 +506,6 @@ def test_radiance_clamp_in_kernel_equals_numpy_clamp():
     assert want.dtype == np.float32
     np.testing.assert_array_equal(got.numpy().view(np.uint32), want.view(np.uint32))
     assert (want > 0).sum() > 100  # the finite positives pass through, not everything is zeroed
-
-
-def test_names_moved_out_of_materials_still_resolve_with_a_warning():
-    """Lights and image textures left flowsynth.materials (issue 41): the old names are the same objects, with a
-    DeprecationWarning naming the new module; a name that never existed there is still an AttributeError."""
-    from flowsynth import lights, materials, textures
-
-    for name, module in (("Light", lights), ("resolve_lights", lights), ("mip_pyramid", textures),
-                         ("srgb_to_linear", textures)):
-        with pytest.warns(DeprecationWarning, match=f"use {module.__name__}.{name}"):
-            assert getattr(materials, name) is getattr(module, name)
-    with pytest.raises(AttributeError):
-        materials.no_such_name  # noqa: B018
 
 
 def _lambert_sphere(smooth: bool, subdivisions: int = 2):

@@ -14,9 +14,9 @@ from PIL import Image
 import flowsynth as fs
 from flowsynth.assets import ROOM_WALLS, room_walls
 from flowsynth.config import BouncingThingsConfig
-from flowsynth.lights import Light
-from flowsynth.materials import sample_material
-from flowsynth.textures import mip_pyramid
+from flowsynth.appearance.lights import Light
+from flowsynth.appearance.materials import sample_material
+from flowsynth.appearance.textures import mip_pyramid
 from flowsynth.sampling import ROOM_CATEGORY, expose_lights, sample_scene, wall_distances
 from flowsynth.stats import textureless_fraction
 
@@ -291,7 +291,7 @@ def test_dead_leaves_match_a_brute_force_reference():
 def test_leaves_is_drawn_only_when_named():
     """"leaves" is a texture family a config may name; the families drawn by default are unchanged (so every
     default sample keeps its bits: benchmarks/hashes.py)."""
-    from flowsynth.materials import PROCEDURAL_FAMILIES, TEXTURE_FAMILIES, sample_material
+    from flowsynth.appearance.materials import PROCEDURAL_FAMILIES, TEXTURE_FAMILIES, sample_material
 
     assert "leaves" in TEXTURE_FAMILIES and "leaves" not in PROCEDURAL_FAMILIES
     assert PROCEDURAL_FAMILIES == ("solid", "noise", "value", "cells", "stripes", "checks", "blend")
@@ -365,7 +365,7 @@ def _amplitude_slope(grey):
 
 
 def test_natural_pink_has_a_power_law_spectrum_and_is_seeded():
-    from flowsynth.textures import natural_image
+    from flowsynth.appearance.textures import natural_image
 
     slopes = []
     for seed in range(4):
@@ -379,7 +379,7 @@ def test_natural_pink_has_a_power_law_spectrum_and_is_seeded():
 
 
 def test_natural_leaves_cover_the_plane_with_discs_and_edges_leave_smooth_regions():
-    from flowsynth.textures import natural_image
+    from flowsynth.appearance.textures import natural_image
 
     leaves = natural_image("leaves", 0, 128)
     colours = np.unique((leaves * 255).astype(np.uint8).reshape(-1, 3), axis=0)
@@ -391,7 +391,7 @@ def test_natural_leaves_cover_the_plane_with_discs_and_edges_leave_smooth_region
 
 def test_natural_image_rejects_an_unknown_kind():
     from flowsynth.errors import ConfigError
-    from flowsynth.textures import natural_image
+    from flowsynth.appearance.textures import natural_image
 
     with pytest.raises(ConfigError, match="kind"):
         natural_image("marble", 0)

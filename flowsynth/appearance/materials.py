@@ -2,7 +2,7 @@
 
 Plain numpy: importing this module loads no Warp kernel. The material dict schema is documented in
 docs/rendering.md; ``resolve_material`` is the one place that checks a material and fills in defaults. Lights
-are in ``flowsynth.lights``, image files and their mip pyramids in ``flowsynth.textures``.
+are in ``flowsynth.appearance.lights``, image files and their mip pyramids in ``flowsynth.appearance.textures``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from flowsynth.errors import ConfigError
-from flowsynth.textures import list_textures, load_texture
+from flowsynth.appearance.textures import list_textures, load_texture
 
 __all__ = [
     "PROCEDURAL_FAMILIES",
@@ -236,22 +236,3 @@ def check_texture_families(families, texture_dir) -> list[str]:
     if "image" in families and texture_dir is None:
         raise ConfigError("texture family 'image' needs texture_dir: a folder of pictures (png, jpg, ...)")
     return families
-
-
-# Names that lived here until issue 41 split lights and image textures off: they still resolve, with a
-# DeprecationWarning naming their module now.
-_MOVED = {"Light": "lights", "LIGHT_KINDS": "lights", "default_lights": "lights", "resolve_lights": "lights",
-          "sample_lights": "lights", "IMAGE_EXTENSIONS": "textures", "MAX_TEXTURE_SIZE": "textures",
-          "mip_pyramid": "textures", "srgb_to_linear": "textures"}
-
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        import importlib
-        import warnings
-
-        where = f"flowsynth.{_MOVED[name]}"
-        warnings.warn(f"flowsynth.materials.{name} is deprecated; use {where}.{name} (the same object)",
-                      DeprecationWarning, stacklevel=2)
-        return getattr(importlib.import_module(where), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -93,7 +93,7 @@ def resolve_lights(lights, world_T_cam0: np.ndarray, distance: float = 1.0) -> l
                 raise ConfigError(f"scene.lights[{i}]: {e}; fields are kind, color, intensity, direction, "
                                   "position") from e
         if not isinstance(light, Light):
-            raise ConfigError(f"scene.lights[{i}] must be a flowsynth.lights.Light or a dict, "
+            raise ConfigError(f"scene.lights[{i}] must be a flowsynth.appearance.lights.Light or a dict, "
                               f"got {type(light).__name__}")
         out.append(light)
     return out
