@@ -62,7 +62,7 @@ from scipy.spatial.transform import Rotation
 from flowsynth import blas
 from flowsynth.accel import SceneAccel, pinhole
 from flowsynth.caches import clear_caches
-from flowsynth.camera import Camera
+from flowsynth.scene import Camera
 from flowsynth.kernels import wp_runtime
 
 wp = wp_runtime()

@@ -204,7 +204,7 @@ def main() -> int:
     torch.set_num_threads(1)
     from flowsynth.plan import make_plan
     from flowsynth.renderer import render_plan
-    from flowsynth.sampling import sample_scene
+    from flowsynth.scene import sample_scene
 
     cfg = full_sample_config()
     with Timer() as cold:

@@ -537,7 +537,7 @@ def plot_judge_curves(name: str, pattern: str) -> list:
 
 def _mixture(text: str) -> dict:
     """``--mixture``'s PRESET=WEIGHT,... as a dict (argparse type: a bad one is a usage error)."""
-    from flowsynth.config import PRESETS
+    from flowsynth.scene import PRESETS
 
     out = {}
     for item in text.split(","):

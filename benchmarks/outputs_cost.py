@@ -46,7 +46,7 @@ VARIANTS = {
 
 def cold_caches() -> None:
     """Empty the per-process caches keyed by a mesh: scaled assets, asset BVH trees, hulls, culling planes."""
-    from flowsynth import accel, assets  # noqa: F401  (their caches, named below, are registered on import)
+    from flowsynth import accel, scene  # noqa: F401  (their caches, named below, are registered on import)
     from flowsynth.caches import clear_caches
 
     clear_caches("assets.get_asset", "culling.hulls", "culling.face_planes", "blas.topology")
@@ -60,7 +60,7 @@ def main() -> None:
     from flowsynth.datasets import sample_seed
     from flowsynth.plan import make_plan
     from flowsynth.renderer import render_plan
-    from flowsynth.sampling import sample_scene
+    from flowsynth.scene import sample_scene
 
     W, H = (256, 192) if args.quick else (512, 384)
     rows = []

@@ -1,12 +1,12 @@
 """Rigid-body stepping on one CPU core: flowsynth's Newton XPBD against PyBullet (Kubric's engine).
 
-Scenes: sampled BouncingThings layouts (``flowsynth.sampling.sample_layout``) of n = 5, 20, 80 objects in a
+Scenes: sampled BouncingThings layouts (``flowsynth.scene.sampling.sample_layout``) of n = 5, 20, 80 objects in a
 6 x 5 x 4 m room (camera zone 1 m), sizes 0.3-0.6 m, speeds 1-4 m/s, angular speeds 0-3 rad/s, 24 fps, zero
 gravity, restitution 1, friction 0 (flowsynth's defaults), from two asset sets: analytic primitives (box,
 sphere, cylinder, capsule, cone) and convex hulls (torus, rock, crystal, star, blob). Both engines start
 from the same poses and velocities and simulate the same number of frames:
 
-- flowsynth: ``flowsynth.motion.NewtonScene`` (what ``simulate_physics`` runs: Newton XPBD, 4 iterations,
+- flowsynth: ``flowsynth.scene.motion.NewtonScene`` (what ``simulate_physics`` runs: Newton XPBD, 4 iterations,
   captured substeps) at the automatic substep count (``choose_substeps``); after every substep speeds
   are clamped into [min_speed, max_speed] and angular speeds into ``angular_speed``.
 - PyBullet (DIRECT mode, default solver settings: 50 iterations, no CCD) with the same colliders:
@@ -51,9 +51,7 @@ import numpy as np
 import warp as wp
 from scipy.spatial.transform import Rotation
 
-from flowsynth.config import BouncingThingsConfig
-from flowsynth.physics import DENSITY, NewtonScene, choose_substeps, wall_boxes
-from flowsynth.sampling import sample_layout
+from flowsynth.scene import DENSITY, BouncingThingsConfig, NewtonScene, choose_substeps, sample_layout, wall_boxes
 from oracle import max_penetration
 
 SETS = {"primitives": ("box", "sphere", "cylinder", "capsule", "cone"),

@@ -11,7 +11,7 @@ reports
   trimesh's CollisionManager (independent of Newton), as a fraction of the smaller object's size;
 - wall: the farthest any vertex gets outside the room, as a fraction of that object's size (0 = inside);
 - d/s: the substep displacement fraction, (2 max_speed + max_angular_speed * max_size) / (fps * substeps
-  * min_size), the quantity the automatic rule (flowsynth.physics.choose_substeps) bounds by
+  * min_size), the quantity the automatic rule (flowsynth.scene.physics.choose_substeps) bounds by
   SUBSTEP_FRACTION. Rows marked "auto" use that rule.
 
 It also times scene sampling (``sample_layout``) and kinematic against physics motion per frame, and
@@ -37,10 +37,8 @@ import numpy as np
 import warp as wp
 from trimesh.collision import CollisionManager
 
-from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import simulate
-from flowsynth.physics import SUBSTEP_FRACTION, NewtonScene, choose_substeps
-from flowsynth.sampling import sample_layout
+from flowsynth.scene import (SUBSTEP_FRACTION, BouncingThingsConfig, NewtonScene, choose_substeps, sample_layout,
+                             simulate)
 
 SETS = {"primitives": ("box", "sphere", "cylinder", "capsule", "cone"),
         "hulls": ("torus", "rock", "crystal", "star", "blob")}
@@ -95,9 +93,7 @@ def run_physics(cfg: BouncingThingsConfig, seed: int, substeps: int) -> dict:
 
 _MEMO_PROBE = """
 import json, sys, time
-import flowsynth.motion as motion
-import flowsynth.physics as fs_physics
-from flowsynth.sampling import sample_layout
+from flowsynth.scene import physics as fs_physics, sample_layout, simulate
 sys.path.insert(0, {here!r})
 from physics import SETS, make_cfg
 if {off}:
@@ -108,7 +104,7 @@ times = []
 for seed in range(5):
     layout = sample_layout(cfg, seed, 0)
     t = time.perf_counter()
-    motion.simulate(cfg, layout.assets, layout.initial)
+    simulate(cfg, layout.assets, layout.initial)
     times.append(time.perf_counter() - t)
 print(json.dumps(times))
 """
@@ -116,7 +112,7 @@ print(json.dumps(times))
 
 def memo_saving() -> list[dict]:
     """Seconds per 2-frame physics clip (20 objects, five scenes in a fresh process) with and without
-    flowsynth.motion's memoisation of Newton's narrow-phase kernel factories."""
+    flowsynth.scene.motion's memoisation of Newton's narrow-phase kernel factories."""
     import json
     import subprocess
 
@@ -192,7 +188,7 @@ def main() -> None:
     print_table(motion_rows, ["n", "kinematic_ms_per_frame", "physics_ms_per_frame", "physics_substeps"])
 
     memo = memo_saving()
-    print("\nNewton narrow-phase kernel factories memoised per process (flowsynth.motion) or not: seconds per "
+    print("\nNewton narrow-phase kernel factories memoised per process (flowsynth.scene.motion) or not: seconds per "
           "2-frame clip of 20 objects, fresh process, first scene and median of the next four")
     print_table(memo, ["newton kernels", "first_scene_s", "next_scenes_s"])
 

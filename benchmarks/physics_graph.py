@@ -1,6 +1,6 @@
 """Newton stepping on one CPU core: plain Python launches against the replayed Warp CPU graph.
 
-``flowsynth.motion.NewtonScene.advance_frame`` captures one substep once per scene into a Warp CPU
+``flowsynth.scene.motion.NewtonScene.advance_frame`` captures one substep once per scene into a Warp CPU
 graph and replays it; this script steps the same scene both ways (``substep`` called ``substeps`` times
 per frame against ``advance_frame``), from the same initial state, and reports per frame and per substep
 [ms] (medians over frames, the first frame excluded: it compiles or captures) and the largest difference
@@ -26,9 +26,7 @@ PINNING = pin_single_core()
 
 import numpy as np
 
-from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import NewtonScene
-from flowsynth.sampling import sample_layout
+from flowsynth.scene import BouncingThingsConfig, NewtonScene, sample_layout
 
 SUBSTEPS = 10
 

@@ -1,6 +1,6 @@
 """The scene stage (``sample_scene``: draws, Newton physics, materials, lights) with and without Newton scene reuse.
 
-``flowsynth.physics.SCENE_REUSE`` keeps each finished Newton scene (model, collision pipeline, solver, captured
+``flowsynth.scene.physics.SCENE_REUSE`` keeps each finished Newton scene (model, collision pipeline, solver, captured
 substep) and runs a later clip with the same key on it, reset (docs/decisions/0020-newton-scene-reuse.md). The key is
 everything but the initial state (config, substeps, contact capacity, the assets in order), so how much reuse saves
 depends on how often a dataset repeats a key: never in the default config (its assets, sizes and drawn speed band
@@ -33,9 +33,7 @@ from _common import full_sample_config, machine_info, pin_single_core, print_tab
 
 PINNING = pin_single_core()
 
-from flowsynth import physics
-from flowsynth.config import BouncingThingsConfig
-from flowsynth.sampling import sample_scene
+from flowsynth.scene import BouncingThingsConfig, physics, sample_scene
 
 CONFIGS = {
     "default 256x192, 2 frames": BouncingThingsConfig(width=256, height=192, num_frames=2),

@@ -139,7 +139,7 @@ class _FreeFlight:
         self.ds, self.on, self.clips, self.free = ds, on, 0, 0
 
     def sample(self, i: int):
-        from flowsynth import physics
+        from flowsynth.scene import physics
 
         old, kept = physics.FREE_FLIGHT, physics.FREE_FLIGHT_COUNTS["kept"]
         physics.FREE_FLIGHT = self.on

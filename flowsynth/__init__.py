@@ -7,12 +7,11 @@ no function shares its name with a module: the renderer's module is ``flowsynth.
 """
 
 from flowsynth.caches import clear_caches
-from flowsynth.camera import Camera
 from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ShapeError, StorageError
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
 from flowsynth.renderer import render, render_plan
-from flowsynth.scene import Scene, SceneObject
+from flowsynth.scene import Camera, Scene, SceneObject
 
 __version__ = "0.1.0"
 
@@ -40,7 +39,7 @@ __all__ = [
 def __getattr__(name: str):
     # Lazy imports keep `import flowsynth` cheap (no Warp initialisation, no kernel compilation).
     if name == "BouncingThingsConfig":
-        from flowsynth.config import BouncingThingsConfig
+        from flowsynth.scene import BouncingThingsConfig
         return BouncingThingsConfig
     if name == "datasets":
         import importlib

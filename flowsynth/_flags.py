@@ -1,7 +1,7 @@
 """Command-line flags for the BouncingThingsConfig fields: help from the field docstrings, strict parsing.
 
 Every field ``name`` becomes ``--name-with-dashes VALUE``. The help line of a flag is the field's
-docstring (the string literal under the field in flowsynth/config.py), its type and
+docstring (the string literal under the field in flowsynth/scene/config.py), its type and
 its default in command-line form. A value that does not parse is refused by argparse with a message
 that names the flag and the expected form (``argument --fov-deg: expected a number such as 60.0,
 got 'abc'``), exit status 2.
@@ -21,10 +21,10 @@ __all__ = ["add_config_flags", "cli_form", "field_docs", "flag_type", "integer"]
 
 @functools.cache
 def field_docs() -> dict[str, str]:
-    """{field name: its docstring} of BouncingThingsConfig, read from the source of flowsynth.config."""
-    from flowsynth import config
+    """{field name: its docstring} of BouncingThingsConfig, read from the source of flowsynth.scene.config."""
+    from flowsynth.scene import BouncingThingsConfig
 
-    tree = ast.parse(inspect.getsource(config))
+    tree = ast.parse(inspect.getsource(inspect.getmodule(BouncingThingsConfig)))
     cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "BouncingThingsConfig")
     docs = {}
     for field, after in zip(cls.body, cls.body[1:]):
@@ -114,7 +114,7 @@ def flag_type(field: dataclasses.Field):
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """Add one flag per BouncingThingsConfig field (dest ``cfg_<name>``, default None = not given)."""
-    from flowsynth.config import BouncingThingsConfig
+    from flowsynth.scene import BouncingThingsConfig
 
     docs = field_docs()
     grp = parser.add_argument_group("scene configuration (BouncingThingsConfig fields; override --config)")

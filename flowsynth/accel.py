@@ -226,7 +226,7 @@ def pinhole(camera, device: str = "cpu", pad: int = 0):
 
 
 # Lens cameras' ray arrays kept per process (per camera, pad and device; least recently used dropped), as
-# flowsynth.camera keeps their numpy rays.
+# flowsynth.scene.camera keeps their numpy rays.
 RAY_CACHE_SIZE = 16
 _RAYS: OrderedDict = register("accel.lens_ray_arrays", OrderedDict())
 

@@ -8,7 +8,7 @@ Box conventions (image coordinates, pixel (row i, col j) centred at (u, v) = (j,
 - ``box2d_amodal`` (T, N, 4) xyxy [px]: extent of the whole projected mesh (occluded parts included),
   edges crossing the near plane z = NEAR are cut there, then clipped to the image rectangle
   [-0.5, W - 0.5] x [-0.5, H - 0.5]. Objects entirely behind the camera or outside the image: all 0.
-  With a lens model (flowsynth/camera.py) the edges are curves in the image: the box bounds the projections
+  With a lens model (flowsynth/scene/camera.py) the edges are curves in the image: the box bounds the projections
   of the vertices and of ``LENS_EDGE_SAMPLES`` - 1 evenly spaced points inside each edge that lie in the
   model's domain (the outline of a projected mesh is made of projected edges), so it can fall short of the
   true extent by the edge's bulge between two samples.

@@ -10,7 +10,7 @@ Build: binned SAH (``BINS`` bins, leaves of at most ``LEAF`` triangles) one tree
 call per level, not per node), then the binary tree is collapsed to 4 wide by opening the child of largest
 surface area. The build is the expensive part (tens of ms for 5k faces), so only the tree's *topology* (node
 children, leaf triangle order) is cached, keyed by the faces and the vertices up to scale: the scaled copies
-``flowsynth.assets.get_asset`` makes of one shape share one build. Every mesh then gets its own boxes by a
+``flowsynth.scene.assets.get_asset`` makes of one shape share one build. Every mesh then gets its own boxes by a
 refit from its float32 vertices (exact float32 min/max, so boxes hold their triangles exactly).
 
 Layout (one scene: the assets' trees concatenated by ``atlas``):
@@ -36,7 +36,7 @@ import numpy as np
 
 from flowsynth.caches import register
 from flowsynth.errors import AssetError
-from flowsynth.meshes import freeze
+from flowsynth.scene import freeze
 
 __all__ = ["BINS", "LEAF", "atlas", "build_topology", "topology"]
 
@@ -193,7 +193,7 @@ def build_topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
 def topology(vertices: np.ndarray, faces: np.ndarray) -> Topology:
     """The cached tree of a mesh's shape (built on a miss): a mesh whose faces equal a cached one's and whose
     vertices, over their largest |coordinate|, agree with its within 1e-5 shares its tree (the scaled copies
-    ``flowsynth.assets.get_asset`` makes of one shape). Refitting (``atlas``) makes any shared tree exact."""
+    ``flowsynth.scene.assets.get_asset`` makes of one shape). Refitting (``atlas``) makes any shared tree exact."""
     v = np.asarray(vertices, np.float64)
     f = np.ascontiguousarray(faces, np.int64).reshape(-1, 3)
     if not len(f):
@@ -224,14 +224,14 @@ _OF_MESH: weakref.WeakKeyDictionary = register("blas.topology_of_mesh", weakref.
 def _topology_of(mesh, v: np.ndarray, f: np.ndarray) -> Topology:
     """``topology(v, f)`` of ``mesh`` (its float32 vertices and faces), remembered per mesh object: a mesh object
     seen in an earlier scene skips the face hash and vertex comparison. The mesh is frozen when it is remembered
-    (``flowsynth.meshes.freeze``: changing it afterwards raises instead of reusing a stale tree); objects that take
-    no weak reference are not remembered."""
+    (``flowsynth.scene.meshes.freeze``: changing it afterwards raises instead of reusing a stale tree); objects that
+    take no weak reference are not remembered."""
     return _per_mesh(_OF_MESH, mesh, lambda: topology(v, f))
 
 
 def _per_mesh(cache: weakref.WeakKeyDictionary, mesh, make):
     """``make()`` remembered in ``cache`` per mesh object, the mesh frozen when remembered
-    (``flowsynth.meshes.freeze``); an object that takes no weak reference is not remembered."""
+    (``flowsynth.scene.meshes.freeze``); an object that takes no weak reference is not remembered."""
     try:
         got = cache.get(mesh)
     except TypeError:

@@ -14,8 +14,8 @@ A cache is anything with ``clear()`` (a dict, ``OrderedDict``, ``weakref.WeakKey
 (``functools.cache`` / ``lru_cache``). tests/test_caches.py finds every module-level cache of the package and fails
 on one that is not registered here (or named there as no cache: compiled kernels, constants computed once).
 
-Caches keyed by a mesh object trust that the mesh does not change: ``flowsynth.meshes.freeze`` makes its vertex and
-face arrays read-only before it enters one, so an in-place edit raises instead of reusing a stale tree.
+Caches keyed by a mesh object trust that the mesh does not change: ``flowsynth.scene.meshes.freeze`` makes its vertex
+and face arrays read-only before it enters one, so an in-place edit raises instead of reusing a stale tree.
 
 This module imports only ``flowsynth.errors`` and ``flowsynth.kernels.specialise`` (Warp-free: the kernels package
 imports nothing of flowsynth, so its one cache, the specialised kernels, is registered here): every layer may register

@@ -2,9 +2,9 @@
 
 Every BouncingThingsConfig field is also a flag (``--num-frames 8``, ``--object-size 0.3,1.0``,
 ``--texture-dir none``); flags override values from ``--config FILE`` (JSON, TOML or YAML), which override
-``--preset NAME`` (default, chairs, things; flowsynth.config.PRESETS).
+``--preset NAME`` (default, chairs, things; flowsynth.scene.config.PRESETS).
 ``flowsynth export --help`` lists every flag with its type, default and meaning (from the field
-docstrings in flowsynth/config.py).
+docstrings in flowsynth/scene/config.py).
 
 Exit status:
   0    success.
@@ -36,7 +36,7 @@ __all__ = ["build_config", "main"]
 
 
 def _config_fields():
-    from flowsynth.config import BouncingThingsConfig
+    from flowsynth.scene import BouncingThingsConfig
 
     return dataclasses.fields(BouncingThingsConfig)
 
@@ -74,9 +74,9 @@ def _read_config_file(path: str) -> dict:
 
 def build_config(args: argparse.Namespace):
     """BouncingThingsConfig from ``--preset NAME``, overridden by ``--config FILE``, then by field flags."""
-    from flowsynth.config import BouncingThingsConfig
+    from flowsynth.scene import BouncingThingsConfig
 
-    from flowsynth.config import PRESETS
+    from flowsynth.scene import PRESETS
 
     if args.preset not in PRESETS:
         raise ConfigError(f"--preset: unknown preset {args.preset!r}; presets: {sorted(PRESETS)}")

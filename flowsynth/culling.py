@@ -1,7 +1,7 @@
 """Exact bounds of the instances of a clip, for culling rays: convex hulls, face planes, flat slabs, silhouettes.
 
-Per mesh (cached per process, keyed by the mesh's content: ``flowsynth.meshes.freeze`` makes it read-only first) its
-convex hull's points (``hull_points``: the tight boxes of ``flowsynth.accel`` and the screen bounds of
+Per mesh (cached per process, keyed by the mesh's content: ``flowsynth.scene.meshes.freeze`` makes it read-only first)
+its convex hull's points (``hull_points``: the tight boxes of ``flowsynth.accel`` and the screen bounds of
 ``flowsynth.tiles``) and its face planes (``_face_planes``); per clip the ``Culling`` struct of the visibility rays
 (``build_culling``: flowsynth/kernels/reproject.py tests it before a mesh query).
 """
@@ -19,7 +19,7 @@ from trimesh.convex import QHULL_DEFAULT
 
 from flowsynth.caches import register
 from flowsynth.kernels import wp_runtime
-from flowsynth.meshes import freeze
+from flowsynth.scene import freeze
 
 __all__ = ["FLAT_REL", "MESH_CACHE_SIZE", "build_culling", "hull_points"]
 
@@ -37,7 +37,7 @@ _KEYS: weakref.WeakKeyDictionary = register("culling.mesh_keys", weakref.WeakKey
 
 
 def _mesh_key(mesh: trimesh.Trimesh) -> bytes:
-    """Content hash of a mesh, computed once per mesh object, which is frozen first (``flowsynth.meshes.freeze``:
+    """Content hash of a mesh, computed once per mesh object, which is frozen first (``flowsynth.scene.meshes.freeze``:
     changing it afterwards raises instead of reusing the hash)."""
     key = _KEYS.get(mesh)
     if key is None:

@@ -112,7 +112,7 @@ def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] 
         equal to ``ds.sample(i)`` whatever the cluster size. Row order is not guaranteed; read
         ``index``. ``iter_torch_batches`` gives the tensors the DataLoader would.
     """
-    from flowsynth.config import BouncingThingsConfig
+    from flowsynth.scene import BouncingThingsConfig
     from flowsynth.datasets import BouncingThings
 
     config = BouncingThingsConfig() if config is None else config

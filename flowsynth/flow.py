@@ -81,7 +81,7 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         flow: also return ``flow``; occlusion: None, "exact" or "depth" (``occ``); fB: also return the
             disparity change ``dc`` = fB / z_target - fB / z_source; scene_flow_T: (P, N, 4, 4) float64, also
             return ``scene_flow`` = scene_flow_T[t, n] @ p (where hit, valid or not).
-        lens: the target view's ``fs.Camera`` when it has a lens model (flowsynth/camera.py): projection through
+        lens: the target view's ``fs.Camera`` when it has a lens model (flowsynth/scene/camera.py): projection through
             the model, valid only in its domain; None or a pinhole camera: K alone.
     Returns:
         ``valid``, ``oof`` (P, 1, H, W) bool; ``flow`` (P, 2, H, W) float32, ``occ`` (P, 1, H, W) bool,

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from flowsynth.accel import SceneAccel, resolve_device
-from flowsynth.camera import check_lens_outputs
+from flowsynth.scene import check_lens_outputs
 from flowsynth.gbuffer import GBuffer, cast_gbuffer, scene_arrays
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan

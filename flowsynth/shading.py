@@ -10,7 +10,7 @@ is a second ``SceneAccel`` over T * S pose sets. Poses between frames k and k+1 
 linear, rotation R(a) = exp(a log(R_{k+1} R_k^T)) R_k (slerp); after the last frame the last interval's
 motion continues (a > 1); a one-frame clip does not move.
 
-A lens camera (flowsynth/camera.py) shades through its model: the pixel-centre sample on the G-buffer's ray,
+A lens camera (flowsynth/scene/camera.py) shades through its model: the pixel-centre sample on the G-buffer's ray,
 sub-pixel samples (anti-aliasing, spp > 1, motion blur) on blended rays of the surrounding centres, uncovered
 pixels black (``flowsynth.kernels.shade.shade_kernel``).
 """

@@ -116,8 +116,7 @@ def _percentile(hist: np.ndarray, q: float) -> float:
 def summarize(records: list[dict], cfg) -> dict:
     """Pool :func:`sample_record` results into the statistics dict (module docstring); a statistic whose
     inputs no record has is None."""
-    from flowsynth.assets import resolve_assets
-    from flowsynth.sampling import OBJECT_CATEGORY_OFFSET, ROOM_CATEGORY
+    from flowsynth.scene import OBJECT_CATEGORY_OFFSET, ROOM_CATEGORY, resolve_assets
 
     def total(key: str) -> int | None:
         have = [r[key] for r in records if key in r]
@@ -171,7 +170,7 @@ def dataset_stats(cfg=None, num: int = 16, *, seed: int = 0, start: int = 0, occ
     Returns:
         JSON-compatible dict; see the module docstring for the keys. Fractions are in [0, 1].
     """
-    from flowsynth.config import BouncingThingsConfig
+    from flowsynth.scene import BouncingThingsConfig
     from flowsynth.datasets import BouncingThings
 
     cfg = BouncingThingsConfig() if cfg is None else cfg
@@ -204,7 +203,7 @@ def dis_check(sample: dict) -> dict:
     """
     import cv2
 
-    from flowsynth.sampling import OBJECT_CATEGORY_OFFSET, ROOM_CATEGORY
+    from flowsynth.scene import OBJECT_CATEGORY_OFFSET, ROOM_CATEGORY
 
     w = np.asarray(GREY_WEIGHTS, dtype=np.float64)[:, None, None]
     grey = [np.clip((f.numpy() * w).sum(0) * 255.0 + 0.5, 0, 255).astype(np.uint8) for f in sample["rgb"]]

@@ -19,7 +19,7 @@ sees instance n at object-frame point p; in every frame f the track is
                      (1 - VISIBILITY_REL_TOL) |X_f|                  (the visibility rays of occlusion)
     query_points[q] = (t_q, i, j)   (TAP-Vid order (t, y, x))
 
-where pi is the camera's projection, through its lens model if it has one (flowsynth/camera.py; "X_f.z <= 0"
+where pi is the camera's projection, through its lens model if it has one (flowsynth/scene/camera.py; "X_f.z <= 0"
 then reads "X_f outside the model's domain"),
 so target_points[q, t_q] = (j, i) and occluded[q, t_q] is False. Pixel coordinates follow flowsynth's
 convention (pixel centres at integers); TAP-Vid's Kubric data puts them at +0.5 (``flowsynth.io.sampleio``
@@ -91,7 +91,7 @@ def track_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: 
         M = np.matmul(cam_T_world[f], world_T_obj[f, np.repeat(n, T)])
         X, uv = reproject(p, M, scene.camera.K)
         front = X[:, 2] > 0
-        if not scene.camera.is_pinhole:  # through the lens model: in its domain only (flowsynth/camera.py)
+        if not scene.camera.is_pinhole:  # through the lens model: in its domain only (flowsynth/scene/camera.py)
             uv, front = scene.camera.project(X)
         inside = front & (uv[:, 0] >= -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < H - 0.5)
         occ = ~inside

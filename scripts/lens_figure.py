@@ -1,4 +1,4 @@
-"""Draw docs/lens_distortion.png: where each lens model (flowsynth/camera.py) takes a grid of pixel centres.
+"""Draw docs/lens_distortion.png: where each lens model (flowsynth/scene/camera.py) takes a grid of pixel centres.
 
     python scripts/lens_figure.py
 

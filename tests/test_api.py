@@ -103,17 +103,6 @@ def test_one_class_per_name():
     assert classes["Layout"] == ["flowsynth.io.layouts.base"]
 
 
-def test_scene_layout_old_name_is_a_deprecated_alias():
-    from flowsynth import sampling
-
-    with pytest.warns(DeprecationWarning, match="SceneLayout"):
-        old = sampling.Layout
-    assert old is sampling.SceneLayout and "Layout" not in sampling.__all__
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        from flowsynth.sampling import SceneLayout  # noqa: F401  (the new name: no warning)
-
-
 def test_every_error_is_exported_and_export_errors_are_not_os_errors():
     for name in errors.__all__:
         assert getattr(fs, name) is getattr(errors, name) and name in fs.__all__

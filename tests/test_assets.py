@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from flowsynth.assets import (
+from flowsynth.scene.assets import (
     BUILTIN_ASSETS,
     PRIMITIVE_ASSETS,
     get_asset,
@@ -127,8 +127,8 @@ def test_room_walls_tile_the_box_and_face_inward():
 def test_library_meshes_are_cleaned_once_and_shared():
     """Scenes share one cleaned copy of a library mesh (equal to cleaning it afresh); a user's mesh with the
     same content is cleaned on its own, so editing it never touches the library's copy."""
-    from flowsynth.camera import Camera
-    from flowsynth.scene import Scene, clean_mesh
+    from flowsynth.scene.camera import Camera
+    from flowsynth.scene.scene import Scene, clean_mesh
 
     mesh = get_asset("rock", 0.5).mesh
     wall = room_walls((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0))[0]
@@ -150,7 +150,7 @@ def test_voxel_solids_are_their_cells():
     """chair and frame are the closed surfaces of their unit-cube cells: volume = the cell count, area = the faces
     between a filled and an empty cell (counted from the grid), watertight, and wholly inside their convex hull
     collider (test_collider_contains_the_visual_mesh)."""
-    from flowsynth.assets import _CHAIR, _FRAME, _voxel_solid
+    from flowsynth.scene.assets import _CHAIR, _FRAME, _voxel_solid
 
     for cells in (_CHAIR, _FRAME, np.ones((2, 3, 1), bool)):
         m = _voxel_solid(cells)

@@ -26,7 +26,7 @@ NOT_CACHES = {
     "flowsynth.caches._REGISTRY": "the registry itself",
     "flowsynth.io.layouts._REGISTRY": "the export layout plug-ins by name",
     "flowsynth.kernels.wp_runtime": "Warp's initialisation, once per process",
-    "flowsynth.physics._clamp_kernel": "a compiled Warp kernel (no argument)",
+    "flowsynth.scene.physics._clamp_kernel": "a compiled Warp kernel (no argument)",
     "flowsynth._flags.field_docs": "the config's field docstrings, read once from the source (no argument)",
     "flowsynth.parallel._pools": "thread pools by size (a resource, not data)",
     "flowsynth.parallel._loaded": "which Warp kernels were loaded before a threaded launch (not data)",
@@ -105,7 +105,7 @@ def _scene(tmp_path: Path) -> fs.Scene:
     """Two frames: a library asset, a user mesh from a file, the room's floor, a textured material."""
     from PIL import Image
 
-    from flowsynth.assets import get_asset, load_user_mesh, room_walls
+    from flowsynth.scene.assets import get_asset, load_user_mesh, room_walls
 
     Image.fromarray((np.arange(48).reshape(4, 4, 3) * 5).astype(np.uint8)).save(tmp_path / "tex.png")
     trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ball.obj")
@@ -120,7 +120,7 @@ def _scene(tmp_path: Path) -> fs.Scene:
 
 
 def test_clear_caches_empties_every_registered_cache_and_changes_no_result(tmp_path):
-    from flowsynth import camerapath
+    from flowsynth.scene import camerapath
 
     for name in _all_modules():  # every cache registered
         importlib.import_module(name)
@@ -142,7 +142,7 @@ def test_clear_caches_empties_every_registered_cache_and_changes_no_result(tmp_p
 
 
 def test_clear_caches_by_name_and_bad_names():
-    from flowsynth.assets import get_asset, unit_hull
+    from flowsynth.scene.assets import get_asset, unit_hull
 
     get_asset("box", 0.5)
     unit_hull("box")
@@ -157,7 +157,7 @@ def test_clear_caches_by_name_and_bad_names():
 
 def test_cached_meshes_are_frozen(tmp_path):
     from flowsynth.accel import SceneAccel
-    from flowsynth.assets import get_asset, unit_hull
+    from flowsynth.scene.assets import get_asset, unit_hull
 
     lib = get_asset("cone", 0.6)
     for mesh in (lib.mesh, lib.collider.hull, unit_hull("rock")):

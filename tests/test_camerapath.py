@@ -14,9 +14,9 @@ from scipy.spatial.transform import Rotation
 
 import flowsynth as fs
 from flowsynth.cli import main
-from flowsynth.config import PRESETS, BouncingThingsConfig
+from flowsynth.scene.config import PRESETS, BouncingThingsConfig
 from flowsynth.errors import ConfigError
-from flowsynth.sampling import ROOM_CATEGORY, sample_layout
+from flowsynth.scene.sampling import ROOM_CATEGORY, sample_layout
 
 # Physical units (flow_px=None), one mechanism at a time, nothing else moving.
 STILL = dict(motion="static", num_frames=12, flow_px=None, camera_motion="moving", camera_speed=(0.0, 0.0),

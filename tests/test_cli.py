@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _source_docstrings() -> dict[str, str]:
     """Field docstrings read with a regex over config.py (independent of flowsynth._flags' ast reader)."""
-    src = (REPO / "flowsynth" / "config.py").read_text()
+    src = (REPO / "flowsynth" / "scene" / "config.py").read_text()
     body = src[src.index("class BouncingThingsConfig"):src.index("def __post_init__")]
     pat = re.compile(r'^    (\w+): [^\n=]+= .*?\n    """(.*?)"""', re.S | re.M)
     return {m.group(1): " ".join(m.group(2).split()) for m in pat.finditer(body)}

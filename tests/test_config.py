@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from flowsynth.config import BouncingThingsConfig
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.errors import AssetError, ConfigError
 
 

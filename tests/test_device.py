@@ -245,8 +245,8 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
 
 
 STAGES = ["gbuffer", "renderer", "flow", "shading", "finalpass", "accel", "tiles", "culling", "blas", "stereo",
-          "tracks", "annotations", "camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
-          "motion", "physics"]
+          "tracks", "annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
+          "scene/motion", "scene/physics"]
 
 
 @pytest.mark.parametrize("module", STAGES)
@@ -283,7 +283,7 @@ def test_resolved_devices_are_warps_aliases(twin):
 @pytest.mark.parametrize("device", ["cuda", "cuda:9"])
 def test_physics_takes_a_cpu_device_only(device):
     """NewtonScene reads and resets its state through numpy views: another device is refused, not half run."""
-    from flowsynth.motion import NewtonScene
+    from flowsynth.scene.motion import NewtonScene
 
     with pytest.raises(ConfigError, match=f"physics runs on a CPU device only.*'{device}'"):
         NewtonScene(fs.BouncingThingsConfig(), [], None, 2, device=device)

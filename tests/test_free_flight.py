@@ -17,10 +17,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import flowsynth as fs
-from flowsynth import physics
-from flowsynth.assets import Asset, Collider, get_asset, unit_hull
-from flowsynth.motion import simulate
-from flowsynth.sampling import sample_layout, simulation_config
+from flowsynth.scene import physics
+from flowsynth.scene.assets import Asset, Collider, get_asset, unit_hull
+from flowsynth.scene.motion import simulate
+from flowsynth.scene.sampling import sample_layout, simulation_config
 
 FIELDS = ("poses", "velocity", "angular_velocity", "substeps")
 CONFIGS = {

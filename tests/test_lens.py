@@ -1,5 +1,5 @@
-"""Lens models (flowsynth/camera.py): rays, flow, tracks and boxes through Brown-Conrady and Kannala-Brandt, against
-OpenCV's cv2.projectPoints / cv2.fisheye.projectPoints (an implementation nobody here wrote) and kornia."""
+"""Lens models (flowsynth/scene/camera.py): rays, flow, tracks and boxes through Brown-Conrady and Kannala-Brandt,
+against OpenCV's cv2.projectPoints / cv2.fisheye.projectPoints (an implementation nobody here wrote) and kornia."""
 
 from __future__ import annotations
 
@@ -214,7 +214,7 @@ def test_meta_round_trip_and_native_files(tmp_path):
     """Provenance records the lens; Scene.from_meta re-renders bit for bit; the native layout writes model and
     coefficients beside K."""
     from flowsynth.io.sampleio import write_sample
-    from flowsynth.scene import provenance_json
+    from flowsynth.scene.scene import provenance_json
 
     scene = make_scene(*KB, T=2)
     meta = scene.to_meta()
@@ -238,7 +238,7 @@ def test_meta_round_trip_and_native_files(tmp_path):
 def test_config_draws_and_validation():
     cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, camera_model="brown_conrady",
                                   camera_dist=(-0.2, 0.0, 0.0, 0.0), camera_dist_max=(-0.1, 0.05, 0.001, 0.001))
-    from flowsynth.sampling import sample_layout, sample_scene
+    from flowsynth.scene.sampling import sample_layout, sample_scene
 
     s1, s2 = sample_scene(cfg, 0, 0), sample_scene(cfg, 0, 1)
     for s in (s1, s2):

@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import (
+from flowsynth.scene.config import BouncingThingsConfig
+from flowsynth.scene.motion import (
     InitialState,
     choose_substeps,
     reflect_in_box,
     simulate,
 )
-from flowsynth.sampling import sample_layout
+from flowsynth.scene.sampling import sample_layout
 from oracle import max_penetration
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -129,7 +129,7 @@ def test_first_frame_is_the_initial_state(runs):
 def test_bodies_without_joints_move_as_with_free_joints(monkeypatch, name, cfg, index):
     """The bodies have no joint (faster); Newton's free joint constrains nothing, so four colliding frames
     with one per body (``add_body``, the reference) agree to float32 round-off (measured <= 6e-6)."""
-    from flowsynth import physics
+    from flowsynth.scene import physics
 
     cfg = replace(cfg, num_frames=4)
     layout = sample_layout(cfg, 0, index)
@@ -148,7 +148,7 @@ def test_contact_capacity_never_changes_a_trajectory(monkeypatch, name, cfg, ind
     ``physics._contact_capacity``) instead of Newton's estimate (its own default, the reference here): colliding
     clips come out bit for bit the same. With room for one contact
     only, the full buffer is noticed and the clip simulated again with Newton's estimate: the same again."""
-    from flowsynth import physics
+    from flowsynth.scene import physics
 
     cfg = replace(cfg, num_frames=6)
     layout = sample_layout(cfg, 0, index)
@@ -195,7 +195,7 @@ def test_kinematic_is_closed_form_and_reflects_off_walls():
     speed0 = np.linalg.norm(layout.initial.velocity, axis=-1)
     np.testing.assert_allclose(np.linalg.norm(traj.velocity, axis=-1),
                                np.broadcast_to(speed0, t.shape + sizes.shape))
-    # Reference exponential map: scipy's rotation-vector conversion, not flowsynth.motion.rotation_exp.
+    # Reference exponential map: scipy's rotation-vector conversion, not flowsynth.scene.motion.rotation_exp.
     w = t[:, None, None] * layout.initial.angular_velocity  # (T, n, 3) rotation vectors [rad]
     R = Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(w.shape + (3,)) @ layout.initial.rotation
     assert np.abs(layout.initial.angular_velocity).max() > 0.1, "no object spins: the test scene is too still"
@@ -244,7 +244,7 @@ def test_kinematic_and_static_never_import_newton(motion):
         import sys
         sys.path.insert(0, {str(ROOT)!r})
         import flowsynth as fs
-        from flowsynth.sampling import sample_scene
+        from flowsynth.scene.sampling import sample_scene
         cfg = fs.BouncingThingsConfig(motion={motion!r}, num_frames=4, camera_motion="moving")
         scene = sample_scene(cfg, 0, 0)
         assert len(scene.objects) >= 2

@@ -1,4 +1,4 @@
-"""flowsynth.physics uses private corners of Newton; these tests fail loudly, naming the cause, when they move.
+"""flowsynth.scene.physics uses private corners of Newton; these tests fail loudly, naming the cause, when they move.
 
 ``physics.memoise_newton_kernel_factories`` (a context manager, open while flowsynth builds a Newton scene) wraps
 Newton's narrow-phase kernel factories (``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every
@@ -10,10 +10,10 @@ Either can change in any Newton release (pinned < 1.9).
 """
 
 import flowsynth as fs
-from flowsynth import physics
-from flowsynth.sampling import sample_layout
+from flowsynth.scene import physics
+from flowsynth.scene.sampling import sample_layout
 
-CAUSE = ("Newton's private narrow-phase module changed: flowsynth.physics.memoise_newton_kernel_factories "
+CAUSE = ("Newton's private narrow-phase module changed: flowsynth.scene.physics.memoise_newton_kernel_factories "
          "(which memoises {names} in newton._src.geometry.narrow_phase) no longer applies, so every scene "
          "would recompile Newton's collision kernels. Update the patch for this Newton version, or drop it "
          "and re-measure benchmarks/physics.py.")
@@ -69,16 +69,16 @@ def test_contact_estimate_is_the_pipelines_default():
     default = newton.CollisionPipeline(scene.model, broad_phase="sap").rigid_contact_max
     assert physics._newton_contact_estimate(scene.model) == default == scene.pipeline.rigid_contact_max, (
         "Newton's private newton._src.sim.collide._estimate_rigid_contact_max moved or no longer gives "
-        "CollisionPipeline's default capacity: update flowsynth.physics._newton_contact_estimate")
+        "CollisionPipeline's default capacity: update flowsynth.scene.physics._newton_contact_estimate")
 
 
 def test_finalize_kernels_free_flight_resets_with_exist():
-    """A bodies-only scene reset for another clip (flowsynth.physics, free flight) writes the new masses and derives
-    their inverses with the two kernels ModelBuilder.finalize uses; when they move, resets cannot match a fresh
+    """A bodies-only scene reset for another clip (flowsynth.scene.physics, free flight) writes the new masses and
+    derives their inverses with the two kernels ModelBuilder.finalize uses; when they move, resets cannot match a fresh
     build (tests/test_free_flight.py would fail on bits, this names the cause)."""
     from newton._src.sim import builder
 
     missing = [n for n in ("validate_and_correct_inertia_kernel", "compute_body_inverses_kernel")
                if getattr(builder, n, None) is None]
     assert not missing, (f"newton._src.sim.builder no longer has {missing}: update NewtonScene._set_masses in "
-                         "flowsynth/physics.py for this Newton version, or set physics.FREE_FLIGHT = False")
+                         "flowsynth/scene/physics.py for this Newton version, or set physics.FREE_FLIGHT = False")

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import flowsynth as fs
-from flowsynth import motion, physics
-from flowsynth.sampling import sample_layout
+from flowsynth.scene import motion, physics
+from flowsynth.scene.sampling import sample_layout
 
 
 def _newton_attributes() -> dict[str, object]:

@@ -19,11 +19,11 @@ import trimesh
 
 import flowsynth as fs
 from flowsynth.cli import main as cli_main
-from flowsynth.config import DATASET_MAX_OBJECTS, BouncingThingsConfig
+from flowsynth.scene.config import DATASET_MAX_OBJECTS, BouncingThingsConfig
 from flowsynth.errors import AssetError, ConfigError
 from flowsynth.options import FINAL_OPTIONS, OPTION_NAMES, FinalPass, RenderOptions
 from flowsynth.plan import Plan, make_plan
-from flowsynth.sampling import sample_layout
+from flowsynth.scene.sampling import sample_layout
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "rendering.md"
 

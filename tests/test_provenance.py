@@ -12,7 +12,7 @@ from PIL import Image
 from torch.utils.data import DataLoader, default_collate
 
 import flowsynth as fs
-from flowsynth.config import BouncingThingsConfig
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
 from flowsynth.appearance.lights import Light
 from flowsynth.io.sampleio import read_sample, write_sample

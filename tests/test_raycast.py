@@ -296,7 +296,7 @@ def test_camera_inside_room_and_mesh_across_camera_plane_match_brute_force():
     wherever the float64 brute-force oracle hits them; the bounds hold every hit pixel and every sampled
     point of the clipped hull, and are tight enough to matter (a wall behind the camera is in no tile)."""
     from flowsynth.tiles import CLIP_Z, _screen_bounds
-    from flowsynth.assets import room_walls
+    from flowsynth.scene.assets import room_walls
 
     cam = fs.Camera.from_fov(64, 48, 70)
     scene = fs.Scene(cam, 2)
@@ -388,7 +388,7 @@ def test_hull_points_are_the_convex_hull_vertices():
     ``mesh.convex_hull.vertices`` on every built-in asset at two sizes, and every mesh vertex lies within them
     along random directions (the support over the hull points equals that over all vertices)."""
     from flowsynth.culling import hull_points
-    from flowsynth.assets import BUILTIN_ASSETS, get_asset
+    from flowsynth.scene.assets import BUILTIN_ASSETS, get_asset
 
     dirs = np.random.default_rng(1).normal(size=(64, 3))
     big = fewer = 0

@@ -208,7 +208,7 @@ def test_culling_bounds_hold_against_brute_force():
     from oracle import ray_cast
 
     from flowsynth.culling import _face_planes
-    from flowsynth.assets import get_asset, room_walls
+    from flowsynth.scene.assets import get_asset, room_walls
 
     rng = np.random.default_rng(0)
     dirs = rng.normal(size=(400, 3))
@@ -238,7 +238,7 @@ def test_culling_bounds_hold_against_brute_force():
 
 def _room(num_frames: int):
     """BouncingThings room scene 3 at 80x60 (flat): scene, its SceneAccel, G-buffer with points, cam_T_obj."""
-    from flowsynth.sampling import sample_scene
+    from flowsynth.scene.sampling import sample_scene
 
     cfg = fs.BouncingThingsConfig(width=80, height=60, num_frames=num_frames, render_mode="flat")
     scene = sample_scene(cfg, 0, 3)
@@ -306,7 +306,7 @@ def test_silhouette_planes_hold_every_vertex_and_clear_only_missing_segments():
     from oracle import ray_cast
 
     from flowsynth.culling import _silhouette_planes
-    from flowsynth.assets import get_asset
+    from flowsynth.scene.assets import get_asset
     from flowsynth.kernels.raycast import SIL_K, beyond_silhouette
 
     @wp.kernel(enable_backward=False)

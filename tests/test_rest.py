@@ -10,7 +10,7 @@ import torch
 
 import flowsynth as fs
 from flowsynth.errors import ConfigError
-from flowsynth.sampling import sample_layout
+from flowsynth.scene.sampling import sample_layout
 
 SMALL = dict(width=64, height=48, num_frames=3)
 

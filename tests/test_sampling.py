@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flowsynth.assets import ROOM_WALLS, resolve_assets
-from flowsynth.config import BouncingThingsConfig
+from flowsynth.scene.assets import ROOM_WALLS, resolve_assets
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
-from flowsynth.sampling import (
+from flowsynth.scene.sampling import (
     OBJECT_CATEGORY_OFFSET,
     ROOM_CATEGORY,
     look_at,
@@ -58,7 +58,7 @@ def test_same_scene_in_another_process():
         import sys
         sys.path.insert(0, {str(ROOT)!r}); sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_sampling import KIN, PHYS, scene_digest
-        from flowsynth.sampling import sample_scene
+        from flowsynth.scene.sampling import sample_scene
         print(scene_digest(sample_scene(KIN, 7, 2)), scene_digest(sample_scene(PHYS, 7, 2)))
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, cwd=ROOT,
@@ -132,7 +132,7 @@ def test_objects_start_in_view_and_camera_in_its_zone():
 
 
 def _K(cfg):
-    from flowsynth.camera import Camera
+    from flowsynth.scene.camera import Camera
 
     return Camera.from_fov(cfg.width, cfg.height, cfg.fov_deg).K
 

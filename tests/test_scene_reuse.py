@@ -16,8 +16,8 @@ import pytest
 import torch
 
 import flowsynth as fs
-from flowsynth import motion, physics
-from flowsynth.sampling import sample_layout, sample_scene
+from flowsynth.scene import motion, physics
+from flowsynth.scene.sampling import sample_layout, sample_scene
 
 INDICES = list(range(12))
 BASE = fs.BouncingThingsConfig(width=32, height=24, num_frames=3, flow_px=None, size_levels=1,
@@ -192,7 +192,7 @@ def test_reuse_needs_warps_capture_regions():
     scene.advance_frame()
     regions = getattr(getattr(scene.graph, "_apic_capture", None), "_regions", None)
     assert isinstance(regions, dict) and regions, (
-        "Warp's CPU graph no longer keeps _apic_capture._regions: update flowsynth.physics._graph_memory_snapshot "
-        f"for Warp {wp.__version__}, or Newton scenes are never reused")
+        "Warp's CPU graph no longer keeps _apic_capture._regions: update "
+        f"flowsynth.scene.physics._graph_memory_snapshot for Warp {wp.__version__}, or Newton scenes are never reused")
     assert all(isinstance(r, tuple) and len(r) == 4 for r in regions.values())
     assert physics._graph_memory_snapshot(scene.graph) is not None

@@ -12,12 +12,12 @@ import trimesh
 from PIL import Image
 
 import flowsynth as fs
-from flowsynth.assets import ROOM_WALLS, room_walls
-from flowsynth.config import BouncingThingsConfig
+from flowsynth.scene.assets import ROOM_WALLS, room_walls
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.appearance.lights import Light
 from flowsynth.appearance.materials import sample_material
 from flowsynth.appearance.textures import mip_pyramid
-from flowsynth.sampling import ROOM_CATEGORY, expose_lights, sample_scene, wall_distances
+from flowsynth.scene.sampling import ROOM_CATEGORY, expose_lights, sample_scene, wall_distances
 from flowsynth.stats import textureless_fraction
 
 AMBIENT = [Light("ambient", (1.0, 1.0, 1.0), 1.0)]  # flat mode then renders radiance = albedo exactly

@@ -27,8 +27,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
 from flowsynth.plan import make_plan
-from flowsynth.sampling import sample_seed
-from flowsynth.scene import Scene, provenance_json
+from flowsynth.scene import Scene, provenance_json, sample_seed
 
 __all__ = ["BouncingThings", "sample_seed"]
 
@@ -69,7 +68,7 @@ class BouncingThings(IterableDataset):
     def __init__(self, cfg=None, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
                  length: int | None = None, *, start: int = 0, occlusion: str = "exact",
                  device: str = "cpu", threads: int | None = None) -> None:
-        from flowsynth.config import BouncingThingsConfig
+        from flowsynth.scene import BouncingThingsConfig
 
         cfg = BouncingThingsConfig() if cfg is None else cfg
         if not isinstance(cfg, BouncingThingsConfig):
@@ -101,7 +100,7 @@ class BouncingThings(IterableDataset):
 
     def scene(self, i: int) -> Scene:
         """The simulated scene behind sample ``i``."""
-        from flowsynth.sampling import sample_scene
+        from flowsynth.scene import sample_scene
 
         return sample_scene(self.cfg, self.seed, int(i))
 

@@ -47,7 +47,7 @@ class Mixture(BouncingThings):
     def __init__(self, configs, weights=None, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
                  length: int | None = None, *, start: int = 0, occlusion: str = "exact", device: str = "cpu",
                  threads: int | None = None) -> None:
-        from flowsynth.config import BouncingThingsConfig
+        from flowsynth.scene import BouncingThingsConfig
 
         if isinstance(configs, Mapping):
             items = list(configs.items())

@@ -65,7 +65,7 @@ _U16 = (("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.
         + ("disparity_occ", "disparity_occ_right"))
 # Keys stored as JSON arrays in meta.json: cameras, object tables, and the sample's index and seed.
 META_KEYS = CAMERA_KEYS + TABLE_KEYS + ("index", "seed")
-# The sample's provenance (flowsynth.scene.provenance_json: a JSON string), stored in meta.json as a JSON object.
+# The sample's provenance (flowsynth.scene.scene.provenance_json: a JSON string), stored in meta.json as a JSON object.
 PROVENANCE_KEY = "provenance"
 
 

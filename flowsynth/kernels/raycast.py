@@ -120,7 +120,7 @@ def beyond_silhouette(sil: wp.array[wp.vec4d], sil_z: wp.array[wp.float64], item
 
 @wp.struct
 class Pinhole:
-    """Pinhole intrinsics: intr = (fx, fy, cx, cy) [px], skew = K[0, 1]; for a lens model (flowsynth.camera)
+    """Pinhole intrinsics: intr = (fx, fy, cx, cy) [px], skew = K[0, 1]; for a lens model (flowsynth.scene.camera)
     ``rays`` (H, W) holds each pixel centre's unit ray (z < 0: uncovered pixel), read by ``primary_kernel``'s
     lens variant only."""
 
@@ -313,7 +313,7 @@ def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
 
     ``lens``: the pixel rays come from ``cam.rays`` (H, W) (a lens model's unprojected pixel centres,
-    flowsynth.camera; a ray with z < 0 marks an uncovered pixel: no hit) instead of the pinhole ``cam``.
+    flowsynth.scene.camera; a ray with z < 0 marks an uncovered pixel: no hit) instead of the pinhole ``cam``.
 
     Launch dims (F, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread casts
     the W pixels of its row (a Warp CPU thread per pixel spends ~35 ns unravelling its 3-D index: the pair

@@ -9,7 +9,7 @@ object-frame point p (float32, promoted to float64) maps to
 
     X = cam_T_obj[r, n] @ p,  valid = X.z > 0,  (u', v') = (K X)[:2] / (K X)[2]   (full K, float64)
 
-(with a lens model, flowsynth/camera.py: valid = X in the model's domain, (u', v') = the model's projection,
+(with a lens model, flowsynth/scene/camera.py: valid = X in the model's domain, (u', v') = the model's projection,
 ``lens_project``, the same equations as cv2.projectPoints / cv2.fisheye.projectPoints)
 
 and, where requested, flow (u' - j, v' - i), occlusion (exact visibility ray, or the depth-buffer test),
@@ -46,7 +46,7 @@ __all__ = ["LENS_CODES", "OCC_DEPTH", "OCC_EXACT", "OCC_NONE", "PairOcclusion", 
            "lens_project", "pair_kernel", "world_points_kernel"]
 
 OCC_NONE, OCC_EXACT, OCC_DEPTH = 0, 1, 2
-# the pair kernel's lens variants (flowsynth.camera.LENS_MODELS)
+# the pair kernel's lens variants (flowsynth.scene.camera.LENS_MODELS)
 LENS_CODES = {"pinhole": 0, "brown_conrady": 1, "kannala_brandt": 2}
 
 
@@ -90,7 +90,7 @@ class PairOcclusion:
 @wp.func
 def lens_project(model: wp.int32, k: wp.array[wp.float64], lim: wp.float64, K: wp.mat33d, X: wp.vec3d):
     """(u, v, ok) of camera-frame X through lens ``model`` (1 Brown-Conrady, k = (k1, k2, p1, p2, k3, k4, k5, k6);
-    2 Kannala-Brandt, k = (k1, k2, k3, k4)), float64, flowsynth/camera.py's equations (OpenCV's); ``ok``: X
+    2 Kannala-Brandt, k = (k1, k2, k3, k4)), float64, flowsynth/scene/camera.py's equations (OpenCV's); ``ok``: X
     lies in the domain (z > 0 and r2 < lim, resp. atan(r) < lim); u, v = 0 where not."""
     zero = wp.float64(0.0)
     one = wp.float64(1.0)

@@ -127,7 +127,7 @@ def camera_ray(v: wp.float32, u: wp.float32, cam: Pinhole):
 def lens_ray(v: wp.float32, u: wp.float32, rays: wp.array2d[wp.vec3], pad: wp.int32):
     """Unit camera-frame direction through image point (u, v) [px] of a lens camera: the bilinear blend of the
     unit rays of the four pixel centres around it, renormalised. ``rays`` holds the centres of rows and columns
-    -pad .. H - 1 + pad (``flowsynth.camera.Camera.ray_grid``, z < 0: uncovered), pad >= 1, so every point within
+    -pad .. H - 1 + pad (``flowsynth.scene.camera.Camera.ray_grid``, z < 0: uncovered), pad >= 1, so every point within
     half a pixel of the image has its four. (0, 0, -1) when one of them is uncovered (the sample is black)."""
     y = v + wp.float32(pad)
     x = u + wp.float32(pad)
@@ -377,7 +377,7 @@ def shade_kernel(mode: str, lens: bool = False):
     Launch dims (T, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread shades
     the W pixels of its row. Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
 
-    ``lens``: a lens camera (flowsynth/camera.py); ``cam.rays`` holds ``Camera.ray_grid(pad)`` (rows and columns
+    ``lens``: a lens camera (flowsynth/scene/camera.py); ``cam.rays`` holds ``Camera.ray_grid(pad)`` (rows and columns
     -pad .. H - 1 + pad, pad = (rows - H) / 2 >= 1). The pixel-centre sample takes its centre's ray (the ray the
     G-buffer cast, so it still reuses that hit); a sub-pixel sample at (u, v) takes ``lens_ray``, the
     bilinear blend of the four surrounding centres' rays (tests/test_lens.py bounds how far it projects from

@@ -9,7 +9,7 @@ The render options (``OPTION_NAMES``: spp, edge_spp, ..., the final_* fields) ar
 building one (``cfg.render_options``): one rule and one default per option (docs/rendering.md, Options).
 
 Constructing a config reads no file: mesh paths, globs and ``texture_dir`` are checked by their form only, and are
-resolved when a scene is sampled (``flowsynth.sampling``; ``check_files`` does it up front), so
+resolved when a scene is sampled (``flowsynth.scene.sampling``; ``check_files`` does it up front), so
 ``from_dict(meta["config"])`` works on a machine without the meshes and textures it names.
 """
 
@@ -51,7 +51,7 @@ class BouncingThingsConfig:
     fov_deg: float = 60.0
     """Horizontal field of view [deg], in (0, 180) (of the pinhole part when a lens model is set)."""
     camera_model: str = "pinhole"
-    """Lens model: "pinhole", "brown_conrady" or "kannala_brandt" (equations: flowsynth/camera.py,
+    """Lens model: "pinhole", "brown_conrady" or "kannala_brandt" (equations: flowsynth/scene/camera.py,
     docs/conventions.md; OpenCV's conventions). A lens model allows no stereo outputs."""
     camera_dist: tuple[float, ...] = ()
     """Lens coefficients in OpenCV's order: (k1, k2, p1, p2[, k3[, k4, k5, k6]]) for brown_conrady, (k1, k2, k3,
@@ -64,7 +64,7 @@ class BouncingThingsConfig:
     """(min, max) number of flying objects per scene, drawn uniformly (inclusive) [count]."""
     assets: tuple[str, ...] = ("box", "sphere", "cylinder", "capsule", "cone", "torus", "rock", "crystal",
                                "star", "blob")
-    """Built-in asset names (flowsynth.assets.BUILTIN_ASSETS) and/or mesh file paths or globs (resolved and loaded
+    """Built-in asset names (flowsynth.scene.assets.BUILTIN_ASSETS) and/or mesh file paths or globs (resolved and loaded
     when a scene is sampled, not when the config is made)."""
     object_size: tuple[float, float] = (0.4, 1.2)
     """(min, max) bounding-sphere diameter of an object [m]; drawn log-uniformly over ``size_levels``."""
@@ -93,7 +93,7 @@ class BouncingThingsConfig:
     u * distance * fps / (f * max(0.5, sin angle(velocity, line of sight))) with f the focal length [px],
     clipped into [min_speed, max_speed]; the camera draws its own u and its drawn path (directions and the
     mix of translation, target motion and rotation from the camera fields below) is scaled so that the
-    median flow of the room between frames 0 and 1 is u (flowsynth/camerapath.py). What comes out is
+    median flow of the room between frames 0 and 1 is u (flowsynth/scene/camerapath.py). What comes out is
     measured by ``flowsynth stats``, not promised."""
     rest_fraction: float = 0.0
     """Chance in [0, 1] that each object starts at rest (no velocity, no spin; it moves only when something hits
@@ -101,7 +101,7 @@ class BouncingThingsConfig:
     moving ones. 0 draws nothing (the samples of a config without it are unchanged)."""
     camera_motion: str = "moving"
     """"static" or "moving": the eye translates (reflected inside the camera zone), the look-at target
-    moves, and pan / tilt / roll offsets turn the camera (flowsynth/camerapath.py)."""
+    moves, and pan / tilt / roll offsets turn the camera (flowsynth/scene/camerapath.py)."""
     camera_speed: tuple[float, float] = (0.2, 1.0)
     """(min, max) speed of the eye when ``camera_motion == "moving"`` [m/s] (with ``flow_px``: before scaling)."""
     camera_target_speed: tuple[float, float] = (0.0, 1.0)
@@ -241,7 +241,7 @@ class BouncingThingsConfig:
         """Resolve the files this config names, as sampling a scene does: every mesh path and glob of ``assets``
         loaded (returns the asset keys, globs expanded) and ``texture_dir`` listed. Raises AssetError / ConfigError
         naming the path that is missing or unreadable. Constructing a config never reads files; this does."""
-        from flowsynth.assets import resolve_assets
+        from flowsynth.scene.assets import resolve_assets
         from flowsynth.appearance import list_textures
 
         keys = resolve_assets(self.assets, field="assets")
@@ -365,7 +365,7 @@ def _choice(cfg, name: str, options: tuple[str, ...]) -> None:
 
 def _lens(cfg: BouncingThingsConfig) -> None:
     """camera_model, camera_dist and camera_dist_max: a valid lens at both ends of every range."""
-    from flowsynth.camera import Camera, check_lens
+    from flowsynth.scene.camera import Camera, check_lens
 
     model, lo = check_lens(cfg.camera_model, cfg.camera_dist)
     _set(cfg, "camera_dist", lo)
@@ -482,7 +482,7 @@ def _validate_assets(cfg: BouncingThingsConfig) -> None:
     if not hasattr(assets, "__iter__") or len(assets) == 0:
         raise ConfigError(f"assets must be a non-empty sequence of asset names or mesh paths, got {assets!r}")
     _set(cfg, "assets", tuple(assets))
-    from flowsynth.assets import check_asset_entries
+    from flowsynth.scene.assets import check_asset_entries
 
     try:
         check_asset_entries(cfg.assets, field="assets")

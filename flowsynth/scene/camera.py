@@ -28,7 +28,7 @@ import math
 import numpy as np
 import torch
 
-from flowsynth._checks import as_float64_array
+from flowsynth.scene._checks import as_float64_array
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
 

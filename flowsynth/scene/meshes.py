@@ -1,8 +1,8 @@
 """Mesh hygiene shared by the scene and the asset library: validation and cleaning, frozen (read-only) meshes,
 and the cleaned copies of library meshes.
 
-A leaf module (it imports only ``flowsynth.errors`` and ``flowsynth.caches``), so that ``flowsynth.scene`` (which
-cleans every mesh added to a scene) and ``flowsynth.assets`` (which makes the library meshes) both sit above it.
+A leaf module (it imports only ``flowsynth.errors`` and ``flowsynth.caches``), so that ``flowsynth.scene.scene`` (which
+cleans every mesh added to a scene) and ``flowsynth.scene.assets`` (which makes the library meshes) both sit above it.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ __all__ = ["DEGENERATE_AREA_REL", "clean_mesh", "freeze", "library_copy", "libra
 # Triangles with area below this fraction of (bounding-box diagonal)^2 are dropped as degenerate.
 DEGENERATE_AREA_REL = 1e-14
 
-# Cleaned copies of the meshes flowsynth.assets makes once per process and never modifies (get_asset, room_walls),
+# Cleaned copies of the meshes flowsynth.scene.assets makes once per process and never modifies (get_asset, room_walls),
 # keyed by identity: each is cleaned once and its copy shared by every scene, instead of cleaned per scene (which,
 # with the content hash every new mesh object then costs the ray caster, was ~6 ms of a 256x192 sample:
 # docs/decisions/0008-library-meshes-cleaned-once.md). A user's mesh, even one equal to a library mesh, is never
@@ -50,7 +50,7 @@ def freeze(mesh):
 
 
 def library_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
-    """Mark ``mesh``, made by flowsynth.assets, as shared: it is frozen (``freeze``), and ``Scene.add_object``
+    """Mark ``mesh``, made by flowsynth.scene.assets, as shared: it is frozen (``freeze``), and ``Scene.add_object``
     then uses one cleaned (and frozen) copy of it in every scene. Returns ``mesh``."""
     _LIBRARY_MESHES[freeze(mesh)] = clean_mesh(mesh, name=name)
     return mesh

@@ -27,9 +27,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from flowsynth.caches import register
-from flowsynth.camera import Camera
-from flowsynth.config import BouncingThingsConfig
-from flowsynth.motion import reflect_in_box
+from flowsynth.scene.camera import Camera
+from flowsynth.scene.config import BouncingThingsConfig
+from flowsynth.scene.motion import reflect_in_box
 
 __all__ = ["CameraMotion", "camera_box", "camera_poses", "look_at", "room_flow_median", "sample_camera_motion",
            "scale_to_flow"]

@@ -1,6 +1,6 @@
 """The state of N rigid objects: the initial state a motion starts from, the trajectory it makes, pose helpers.
 
-Shared by the motion models (flowsynth.motion: kinematic, static; flowsynth.physics: Newton). Plain numpy.
+Shared by the motion models (flowsynth.scene.motion: kinematic, static; flowsynth.scene.physics: Newton). Plain numpy.
 """
 
 from __future__ import annotations

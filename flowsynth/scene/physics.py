@@ -6,7 +6,7 @@ Substeps per frame follow :func:`choose_substeps`; after every substep each line
 here, on first use. Also here: the reuse of finished Newton scenes (``SCENE_REUSE``), free flight (``FREE_FLIGHT``:
 clips clear of contact on a bodies-only model, bit for bit) and the memoisation of Newton's private kernel
 factories, scoped to flowsynth's own calls (``memoise_newton_kernel_factories``).
-``flowsynth.motion.simulate`` dispatches here for ``motion="physics"``.
+``flowsynth.scene.motion.simulate`` dispatches here for ``motion="physics"``.
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ from typing import ClassVar
 
 import numpy as np
 
-from flowsynth.assets import Asset, unit_hull
+from flowsynth.scene.assets import Asset, unit_hull
 from flowsynth.caches import register
-from flowsynth.config import BouncingThingsConfig
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
-from flowsynth.trajectory import (InitialState, Trajectory, pose_matrices, quat_to_rotation, rotation_to_quat_xyzw,
-                                  simulate_static)
+from flowsynth.scene.trajectory import (InitialState, Trajectory, pose_matrices, quat_to_rotation,
+                                        rotation_to_quat_xyzw, simulate_static)
 
 __all__ = [
     "NewtonScene",

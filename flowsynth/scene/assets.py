@@ -12,7 +12,7 @@ collider, so colliders that never overlap imply visual meshes that never overlap
 
 Meshes are cached per process: the same (name, size) returns the same ``trimesh.Trimesh`` object, so
 objects that share an asset share an asset id in a :class:`flowsynth.Scene` and the renderer's per-asset
-acceleration structures are reused across samples. Returned meshes are frozen (``flowsynth.meshes.freeze``):
+acceleration structures are reused across samples. Returned meshes are frozen (``flowsynth.scene.meshes.freeze``):
 writing into their vertices or faces raises; ``mesh.copy()`` gives one to change. ``fs.clear_caches()`` empties
 these caches (``flowsynth.caches``).
 """
@@ -31,7 +31,7 @@ from scipy.spatial import HalfspaceIntersection
 
 from flowsynth.caches import register
 from flowsynth.errors import AssetError
-from flowsynth.meshes import clean_mesh, freeze, library_mesh
+from flowsynth.scene.meshes import clean_mesh, freeze, library_mesh
 
 __all__ = [
     "BUILTIN_ASSETS",

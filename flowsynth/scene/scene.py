@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from flowsynth._checks import as_float64_array, check_rigid
-from flowsynth.camera import Camera
+from flowsynth.scene._checks import as_float64_array, check_rigid
+from flowsynth.scene.camera import Camera
 from flowsynth.errors import ConfigError
-from flowsynth.meshes import clean_mesh, library_copy
+from flowsynth.scene.meshes import clean_mesh, library_copy
 
 __all__ = ["PROVENANCE_VERSION", "Scene", "SceneObject", "clean_mesh", "provenance_json"]
 
@@ -33,14 +33,14 @@ class SceneObject:
     Attributes:
         instance: instance id k >= 1 (0 is reserved for "nothing").
         mesh: triangle mesh in the object frame [m] (cleaned: finite, no zero-area triangles; frozen, i.e.
-            read-only: ``flowsynth.meshes.freeze``).
+            read-only: ``flowsynth.scene.meshes.freeze``).
         poses: (T, 4, 4) float64 world_T_obj per frame.
         category: category id >= 0 written to the ``category`` channel.
         asset: id of the mesh asset, >= 1; objects added with the same mesh object share it.
         material: resolved material dict (``flowsynth.appearance.materials.resolve_material``: every key explicit).
         background: part of the set (e.g. the room): rendered, but left out of the object tables.
         source: where the mesh comes from, for provenance: ``{"asset": name, "size": metres}`` for a
-            library asset (``flowsynth.assets.get_asset``); None stores the vertices and faces themselves.
+            library asset (``flowsynth.scene.assets.get_asset``); None stores the vertices and faces themselves.
     """
 
     instance: int
@@ -100,7 +100,7 @@ class Scene:
             material: shading parameters for RGB rendering (schema: docs/rendering.md); resolved here
                 (``flowsynth.appearance.materials.resolve_material``), so an empty one becomes the instance's default.
             background: scenery such as the room: rendered, not listed in the object tables.
-            source: ``{"asset": name, "size": metres}`` when ``mesh`` is ``flowsynth.assets.get_asset(name,
+            source: ``{"asset": name, "size": metres}`` when ``mesh`` is ``flowsynth.scene.assets.get_asset(name,
                 size).mesh``: provenance then names the asset instead of storing the mesh.
         """
         from flowsynth.appearance import resolve_material
@@ -150,7 +150,7 @@ class Scene:
         """Rebuild a scene from ``to_meta()`` output: the dict, its JSON string (a sample's ``provenance``),
         or a sample folder's meta.json dict (which holds it under ``provenance``). Rendering the result gives
         the sample bit for bit. Raises ConfigError when the description is not one."""
-        from flowsynth.assets import get_asset
+        from flowsynth.scene.assets import get_asset
         from flowsynth.appearance import Light
 
         if isinstance(meta, str):

@@ -6,7 +6,7 @@ index]))`` in a fixed order (below), runs the motion and returns a :class:`flows
 - instances 1..n: the flying objects, category ``OBJECT_CATEGORY_OFFSET + a`` where ``a`` is the index
   of the object's asset in ``resolve_assets(cfg.assets)`` (globs expanded);
 - instances n + 1 .. n + 6: the room, a box seen from inside spanning ``cfg.room_bounds``, one object per
-  face in ``flowsynth.assets.ROOM_WALLS`` order (floor, ceiling, walls), each with its own material,
+  face in ``flowsynth.scene.assets.ROOM_WALLS`` order (floor, ceiling, walls), each with its own material,
   category ``ROOM_CATEGORY``, identity pose, ``background=True`` (rendered, but no row in the object tables).
 
 Materials, lights and the render seed are resolved here, so the scene is the whole description of what is
@@ -19,14 +19,14 @@ World frame: +z up, floor at z = 0, room centred on x = y = 0. The camera sits i
 (the first ``cfg.camera_clearance`` metres along +x from the wall x = -room_x / 2), which objects never
 enter, and looks at a point near the centre of the objects' region; OpenCV axes (x right, y down,
 z forward) with world +z pointing up in the image. A moving camera translates, follows a moving look-at
-target and pans, tilts and rolls (flowsynth/camerapath.py). Objects start inside the objects' region
+target and pans, tilts and rolls (flowsynth/scene/camerapath.py). Objects start inside the objects' region
 with disjoint bounding spheres, preferably inside the camera's view frustum (aimed at the image inset by
 ``cfg.spawn_margin``, at a distance drawn log-uniformly along the ray, so near objects are common).
 With ``cfg.flow_px`` set, the camera's path and every object's speed are scaled to per-frame flow
 targets in pixels (config docstring); the targets drawn are kept in ``scene.meta["motion"]``.
 
 Draw order (changing it changes every dataset): n, asset indices, size levels, camera path
-(flowsynth.camerapath.sample_camera_motion), camera flow target, object positions (rejection sampling),
+(flowsynth.scene.camerapath.sample_camera_motion), camera flow target, object positions (rejection sampling),
 orientations, linear velocity directions and speeds, object flow targets, angular velocities, texture
 seeds (n objects, then the six room faces); then each surface's material from its own seed, the lights
 from ``SeedSequence([seed, index, 2])`` and the render seed (``sample_seed``).
@@ -38,14 +38,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from flowsynth.assets import ROOM_WALLS, Asset, get_asset, resolve_assets, room_walls
-from flowsynth.camera import Camera
-from flowsynth.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
-from flowsynth.config import BouncingThingsConfig
+from flowsynth.scene.assets import ROOM_WALLS, Asset, get_asset, resolve_assets, room_walls
+from flowsynth.scene.camera import Camera
+from flowsynth.scene.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
 from flowsynth.appearance import Light, sample_lights, sample_material
-from flowsynth.motion import InitialState, Trajectory, quat_to_rotation, simulate
-from flowsynth.scene import Scene
+from flowsynth.scene.motion import InitialState, Trajectory, quat_to_rotation, simulate
+from flowsynth.scene.scene import Scene
 
 __all__ = [
     "EXPOSURE",
@@ -367,13 +367,3 @@ def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tu
 
 def _unit(x: np.ndarray) -> np.ndarray:
     return x / np.linalg.norm(x, axis=-1, keepdims=True)
-
-
-def __getattr__(name: str):
-    if name == "Layout":  # deprecated alias (issue 41): one class per name across the package
-        import warnings
-
-        warnings.warn("flowsynth.sampling.Layout is renamed SceneLayout; the old name will be removed",
-                      DeprecationWarning, stacklevel=2)
-        return SceneLayout
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,10 +1,10 @@
 """Object motion for BouncingThings: rigid-body physics (Newton), kinematic, or static.
 
 All three return world_T_obj poses (T, N, 4, 4) float64 at the frame times t_k = k / fps, k = 0..T-1,
-with orthonormal rotations. The object origin is the centre of its bounding sphere (flowsynth.assets)
+with orthonormal rotations. The object origin is the centre of its bounding sphere (flowsynth.scene.assets)
 and is also its centre of mass in the physics, so "speed" is the speed of the origin.
 
-- ``physics``: Newton's XPBD solver on the Warp CPU device (``flowsynth.physics``: the Newton back-end, its
+- ``physics``: Newton's XPBD solver on the Warp CPU device (``flowsynth.scene.physics``: the Newton back-end, its
   scoped patches and scene reuse; ``simulate_physics``, ``choose_substeps`` and ``NewtonScene`` are re-exported
   here).
 - ``kinematic``: constant speed and angular velocity; the bounding sphere reflects specularly off the
@@ -18,12 +18,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from flowsynth.assets import Asset
-from flowsynth.config import BouncingThingsConfig
+from flowsynth.scene.assets import Asset
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError, ShapeError
-from flowsynth.physics import (NewtonScene, choose_substeps, memoise_newton_kernel_factories, simulate_physics,
+from flowsynth.scene.physics import (NewtonScene, choose_substeps, memoise_newton_kernel_factories, simulate_physics,
                                wall_boxes)
-from flowsynth.trajectory import InitialState, Trajectory, pose_matrices, quat_to_rotation, simulate_static
+from flowsynth.scene.trajectory import InitialState, Trajectory, pose_matrices, quat_to_rotation, simulate_static
 
 __all__ = [
     "InitialState",
