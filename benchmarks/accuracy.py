@@ -41,9 +41,9 @@ import trimesh
 from oracle import pair_truth, pose, silhouette
 
 import flowsynth as fs
-from flowsynth.accel import SceneAccel
+from flowsynth.raycast import SceneAccel
 from flowsynth.flow import reproject
-from flowsynth.gbuffer import cast_gbuffer, scene_arrays
+from flowsynth.raycast import cast_gbuffer, scene_arrays
 
 FOV_DEG = 60.0
 NUM_OBJECTS = 20

@@ -1,12 +1,12 @@
-"""Per-asset BVH on one CPU core: flowsynth's 4-wide BVH (``flowsynth.blas``) against Warp's ``wp.Mesh``.
+"""Per-asset BVH on one CPU core: flowsynth's 4-wide BVH (``flowsynth.raycast.blas``) against Warp's ``wp.Mesh``.
 
 flowsynth casts rays against one BVH per asset, in the asset's object frame. Until 2026-11-24 that was a
 ``wp.Mesh`` (Warp's CPU SAH builder, 4 triangles a leaf) queried with ``wp.mesh_query_ray``; now it is the
-4-wide tree of ``flowsynth.blas`` queried with ``flowsynth.kernels.blas.blas_closest`` / ``blas_any``. This
+4-wide tree of ``flowsynth.raycast.blas`` queried with ``flowsynth.kernels.blas.blas_closest`` / ``blas_any``. This
 script casts the same rays both ways in one kernel that differs only in that query:
 
 - ``wp.Mesh``: ``wp.mesh_query_ray`` / ``wp.mesh_query_ray_anyhit`` on ``wp.Mesh(points, indices)``;
-- ``bvh4``: ``blas_closest`` / ``blas_any`` on ``flowsynth.blas.atlas`` of the same mesh.
+- ``bvh4``: ``blas_closest`` / ``blas_any`` on ``flowsynth.raycast.blas.atlas`` of the same mesh.
 
 Scenes, 640x480 pixels, 60 deg horizontal fov, camera at the origin looking down +z:
 
@@ -19,7 +19,7 @@ Scenes, 640x480 pixels, 60 deg horizontal fov, camera at the origin looking down
 For icospheres of 1280, 5120, 20480 and 81920 faces: closest-hit and any-hit cast time of both, their ratio
 (``x_wp_mesh`` > 1: bvh4 is faster), hits compared (same hit mask, same instance, distance within 1e-5
 relative, any-hit mask equal to the closest-hit mask), and build times: ``wp.Mesh``; bvh4's tree (numpy, once
-per shape: ``flowsynth.blas.topology``); bvh4's per-mesh part (``atlas``: gather and refit; what every new size
+per shape: ``flowsynth.raycast.blas.topology``); bvh4's per-mesh part (``atlas``: gather and refit; what every new size
 of a shape costs).
 
 Times are medians of process CPU time over round-robin rounds on one pinned core. Run
@@ -59,8 +59,7 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from flowsynth import blas
-from flowsynth.accel import SceneAccel, pinhole
+from flowsynth.raycast import SceneAccel, blas, pinhole
 from flowsynth.caches import clear_caches
 from flowsynth.scene import Camera
 from flowsynth.kernels import wp_runtime
@@ -179,7 +178,7 @@ def measure(scene_name: str, faces: int, poses, camera: Camera, repeat: int, bui
     accel = SceneAccel([mesh] * N, cam_T_world, world_T_obj)
     A = accel.blas
     shape = (camera.height, camera.width)
-    warp_mesh = build_mesh(mesh)()  # what flowsynth.accel built per asset until d08ad06
+    warp_mesh = build_mesh(mesh)()  # what flowsynth.raycast.accel built per asset until d08ad06
     item_mesh = wp.array(np.full(accel.F * N, warp_mesh.id, np.uint64), dtype=wp.uint64)
     inputs = [pinhole(camera), accel.frame_items, accel.near, accel.lowers, accel.uppers, accel.obj_T_ref,
               item_mesh, accel.item_root, A["bounds"], A["kids"], A["tris"], A["face"]]

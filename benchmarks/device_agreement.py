@@ -122,7 +122,7 @@ def main() -> int:
     args = p.parse_args()
 
     import flowsynth as fs
-    from flowsynth.accel import resolve_device
+    from flowsynth.raycast import resolve_device
     from flowsynth.kernels import wp_runtime
 
     wp = wp_runtime()

@@ -46,7 +46,7 @@ VARIANTS = {
 
 def cold_caches() -> None:
     """Empty the per-process caches keyed by a mesh: scaled assets, asset BVH trees, hulls, culling planes."""
-    from flowsynth import accel, scene  # noqa: F401  (their caches, named below, are registered on import)
+    from flowsynth import raycast, scene  # noqa: F401  (their caches, named below, are registered on import)
     from flowsynth.caches import clear_caches
 
     clear_caches("assets.get_asset", "culling.hulls", "culling.face_planes", "blas.topology")

@@ -68,11 +68,10 @@ import numpy as np
 import torch
 
 import flowsynth as fs
-from flowsynth import blas
-from flowsynth.accel import SceneAccel, pinhole
+from flowsynth.raycast import SceneAccel, blas, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.plan import make_plan
-from flowsynth.gbuffer import cast_gbuffer, scene_arrays
+from flowsynth.raycast import cast_gbuffer, scene_arrays
 from flowsynth.renderer import gbuffer_outputs
 
 WIDTH, HEIGHT, FOV_DEG = RAYCAST_WIDTH, RAYCAST_HEIGHT, RAYCAST_FOV_DEG

@@ -99,8 +99,7 @@ def thread_scaling(counts: list[int], repeat: int) -> list[dict]:
     import torch
 
     import flowsynth as fs
-    from flowsynth.accel import SceneAccel
-    from flowsynth.gbuffer import cast_gbuffer, scene_arrays
+    from flowsynth.raycast import SceneAccel, cast_gbuffer, scene_arrays
 
     torch.set_num_threads(1)
     scene = raycast_scene()

@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 from _common import machine_info, pin_single_core, print_table, raycast_scene, time_round_robin, write_json
 
-from flowsynth.accel import SceneAccel, pinhole
+from flowsynth.raycast import SceneAccel, pinhole
 from flowsynth.kernels.blas import blas_closest
 from flowsynth.kernels.raycast import Instances, Pinhole, TileLists, thin_skip, tile_list, trace_closest
 

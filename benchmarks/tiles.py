@@ -1,4 +1,4 @@
-"""Primary cast with per-screen-tile candidate lists against one list per frame (``flowsynth.tiles.TILE``).
+"""Primary cast with per-screen-tile candidate lists against one list per frame (``flowsynth.raycast.tiles.TILE``).
 
 Below ``ORDERED_MAX`` instances a primary ray walks a near-to-far candidate list instead of the top-level
 BVH; the list is per TILE x TILE screen tile (the instances whose clipped hull projects onto the tile). A tile as
@@ -24,9 +24,7 @@ PINNING = pin_single_core()  # one core and one thread per library, before numpy
 
 import numpy as np
 
-from flowsynth import tiles as tiles_mod
-from flowsynth.accel import SceneAccel
-from flowsynth.gbuffer import cast_gbuffer, scene_arrays
+from flowsynth.raycast import SceneAccel, cast_gbuffer, scene_arrays, tiles as tiles_mod
 
 TILES = {"one list per frame": 1 << 20, "64 px tiles": 64, "16 px tiles (default)": 16, "8 px tiles": 8}
 

@@ -3,7 +3,7 @@ torch tensors. The orchestrator: it runs the stages a plan asks for (``flowsynth
 
 Output keys, shapes and meaning are those of docs/conventions.md. (This module was ``flowsynth.render`` until the
 function ``fs.render`` and a module of the same name shadowed each other; the G-buffer primitive it held is
-``flowsynth.gbuffer``.)
+``flowsynth.raycast.gbuffer``.)
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from flowsynth.accel import SceneAccel, resolve_device
+from flowsynth.raycast import SceneAccel, resolve_device
 from flowsynth.scene import check_lens_outputs
-from flowsynth.gbuffer import GBuffer, cast_gbuffer, scene_arrays
+from flowsynth.raycast import GBuffer, cast_gbuffer, scene_arrays
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
 from flowsynth.scene import Scene

@@ -21,10 +21,10 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from flowsynth.accel import SceneAccel, pinhole
+from flowsynth.raycast import SceneAccel, pinhole
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
-from flowsynth.gbuffer import to_torch
+from flowsynth.raycast import to_torch
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.appearance import mip_pyramid, resolve_lights, resolve_material, srgb_to_linear
@@ -57,7 +57,7 @@ def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch
     Args:
         scene: the scene (objects' ``material`` dicts, ``lights``; empty means defaults).
         accel: the G-buffer's acceleration structure (one group per frame).
-        gb: the G-buffer of the pixel-centre rays (``flowsynth.gbuffer.GBuffer``, on ``device``); reused as the
+        gb: the G-buffer of the pixel-centre rays (``flowsynth.raycast.gbuffer.GBuffer``, on ``device``); reused as the
             primary hit when spp == 1 and shutter == 0.
         plan: a validated ``flowsynth.plan.Plan``: ``render_mode``, ``spp``, ``shutter``, ``seed``, ``bounces``,
             ``tonemap``, ``exposure``.

@@ -27,7 +27,7 @@ import copy
 import numpy as np
 import torch
 
-from flowsynth.accel import SceneAccel
+from flowsynth.raycast import SceneAccel
 from flowsynth.flow import reproject_pixels
 
 __all__ = ["right_poses", "stereo_outputs"]
@@ -50,7 +50,7 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
                    device: str = "cpu", done=()) -> dict[str, torch.Tensor]:
     """Every stereo key the plan asks for except those in ``done`` (``disparity_change`` rides on the flow
     stage's fw gap-1 pass when that runs: flowsynth/flow.py); ``accel``/``gb`` are the left view's."""
-    from flowsynth.gbuffer import cast_gbuffer
+    from flowsynth.raycast import cast_gbuffer
 
     want = set(plan.outputs) - set(done)
     B = plan.stereo_baseline

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from flowsynth.flow import reproject, visibility
-from flowsynth.gbuffer import HostGBuffer
+from flowsynth.raycast import HostGBuffer
 
 __all__ = ["EDGE_REL_DEPTH", "track_outputs"]
 

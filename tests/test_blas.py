@@ -1,11 +1,11 @@
-"""The per-asset 4-wide BVH (flowsynth.blas, flowsynth.kernels.blas) against a float64 brute-force oracle."""
+"""The per-asset 4-wide BVH (flowsynth.raycast.blas, flowsynth.kernels.blas) against a float64 brute-force oracle."""
 
 import numpy as np
 import pytest
 import trimesh
 
 import oracle
-from flowsynth import blas
+from flowsynth.raycast import blas
 from flowsynth.kernels import wp_runtime
 
 wp = wp_runtime()

@@ -156,7 +156,7 @@ def test_clear_caches_by_name_and_bad_names():
 
 
 def test_cached_meshes_are_frozen(tmp_path):
-    from flowsynth.accel import SceneAccel
+    from flowsynth.raycast.accel import SceneAccel
     from flowsynth.scene.assets import get_asset, unit_hull
 
     lib = get_asset("cone", 0.6)

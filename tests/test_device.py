@@ -31,7 +31,7 @@ import pytest
 import torch
 
 import flowsynth as fs
-from flowsynth import gbuffer as gbuffer_mod
+from flowsynth.raycast import gbuffer as gbuffer_mod
 from flowsynth import renderer as renderer_mod
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
@@ -152,7 +152,7 @@ class Recorder:
                     if isinstance(a, wp.array) and _alias(a.device) != device]
         gb_ids = {id(a) for a in self._gb_arrays()}
         bad += [f"{who} read a G-buffer array into numpy" for i, who in self.numpy_calls
-                if i in gb_ids and who != "flowsynth.gbuffer:host"]
+                if i in gb_ids and who != "flowsynth.raycast.gbuffer:host"]
         hosts = [h for gb in self.gbuffers if gb._host is not None
                  for h in (gb._host.dist, gb._host.item, gb._host.face, gb._host.point, gb._host.normal)
                  if h is not None]
@@ -229,7 +229,7 @@ def test_recorder_catches_a_wrong_device_allocation(twin, scene, monkeypatch):
 
 
 def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
-    from flowsynth.accel import SceneAccel
+    from flowsynth.raycast.accel import SceneAccel
 
     rec = Recorder(monkeypatch)
     meshes, cam_T_world, world_T_obj = gbuffer_mod.scene_arrays(scene)
@@ -244,7 +244,7 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
     assert any("read a G-buffer array into numpy" in b for b in rec.violations(TWIN))
 
 
-STAGES = ["gbuffer", "renderer", "flow", "shading", "finalpass", "accel", "tiles", "culling", "blas", "stereo",
+STAGES = ["raycast/gbuffer", "renderer", "flow", "shading", "finalpass", "raycast/accel", "raycast/tiles", "raycast/culling", "raycast/blas", "stereo",
           "tracks", "annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
           "scene/motion", "scene/physics"]
 
@@ -273,7 +273,7 @@ def test_a_device_warp_does_not_find_is_a_config_error(scene, device):
 
 
 def test_resolved_devices_are_warps_aliases(twin):
-    from flowsynth.accel import resolve_device
+    from flowsynth.raycast.accel import resolve_device
 
     assert resolve_device("cpu") == "cpu"
     assert resolve_device(wp.get_device("cpu")) == "cpu"

@@ -296,7 +296,7 @@ def _subpixel_rays(cam: fs.Camera, uv: np.ndarray) -> np.ndarray:
     """kernels/shade.lens_ray at image points uv (P, 2), on the ray grid the shading kernel reads."""
     import warp as wp
 
-    from flowsynth.accel import pinhole
+    from flowsynth.raycast.accel import pinhole
     from flowsynth.kernels import wp_runtime
     from flowsynth.kernels.shade import lens_ray
     from flowsynth.shading import LENS_RAY_PAD
@@ -496,8 +496,8 @@ def test_lens_tile_lists_match_brute_force(lens, monkeypatch):
     (tiles.LENS_TILE_BOUNDS = False): G-buffer, flow with exact occlusion (visibility rays walk the tile of their
     target pixel) and rgb with sub-pixel samples at silhouettes (their blended rays walk their pixel's tile), on
     random rooms with objects; and the lists are shorter."""
-    from flowsynth import accel, tiles
-    from flowsynth.gbuffer import cast_gbuffer, scene_arrays
+    from flowsynth.raycast import accel, tiles
+    from flowsynth.raycast.gbuffer import cast_gbuffer, scene_arrays
 
     model, dist = lens
     cfg = fs.BouncingThingsConfig(width=80, height=60, num_frames=2, camera_model=model, camera_dist=dist)

@@ -130,7 +130,7 @@ def test_default_threads_is_one_in_export_workers(tmp_path):
 
 def test_face_planes_bit_identical_for_any_thread_count(fine_bands):
     """The visibility rays' face planes (a kernel whose item loops over the mesh's vertices) cut into bands."""
-    from flowsynth.culling import _face_planes_of
+    from flowsynth.raycast.culling import _face_planes_of
 
     mesh = trimesh.creation.icosphere(3, radius=0.7)
     ref = _face_planes_of(mesh, threads=1)

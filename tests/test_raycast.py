@@ -295,7 +295,7 @@ def test_camera_inside_room_and_mesh_across_camera_plane_match_brute_force():
     (``tiles._screen_bounds``): walls around the camera and a box reaching behind it must still be found
     wherever the float64 brute-force oracle hits them; the bounds hold every hit pixel and every sampled
     point of the clipped hull, and are tight enough to matter (a wall behind the camera is in no tile)."""
-    from flowsynth.tiles import CLIP_Z, _screen_bounds
+    from flowsynth.raycast.tiles import CLIP_Z, _screen_bounds
     from flowsynth.scene.assets import room_walls
 
     cam = fs.Camera.from_fov(64, 48, 70)
@@ -350,7 +350,7 @@ def test_more_than_ordered_max_instances_take_the_bvh_and_match_the_oracle(monke
     """Above ``ORDERED_MAX`` instances camera rays traverse the top-level BVH (``trace_closest`` /
     ``trace_any``, with the thin-instance box test) instead of the tile lists: same hits as the brute-force
     oracle, and the same G-buffer and exact occlusion as the list walk forced on the same scene."""
-    import flowsynth.accel as accel
+    import flowsynth.raycast.accel as accel
 
     rng = np.random.default_rng(5)
     cam = fs.Camera.from_fov(40, 30, 60)
@@ -387,7 +387,7 @@ def test_hull_points_are_the_convex_hull_vertices():
     """The tight boxes' and silhouettes' hull points (Qhull called directly) are the rows of trimesh's
     ``mesh.convex_hull.vertices`` on every built-in asset at two sizes, and every mesh vertex lies within them
     along random directions (the support over the hull points equals that over all vertices)."""
-    from flowsynth.culling import hull_points
+    from flowsynth.raycast.culling import hull_points
     from flowsynth.scene.assets import BUILTIN_ASSETS, get_asset
 
     dirs = np.random.default_rng(1).normal(size=(64, 3))

@@ -15,10 +15,10 @@ import trimesh
 from oracle import pose
 
 import flowsynth as fs
-from flowsynth.accel import SceneAccel
+from flowsynth.raycast.accel import SceneAccel
 from flowsynth.flow import DEPTH_TEST_REL_TOL, MOTION_TOL, reproject_pixels, visibility, world_points
 
-render_mod = importlib.import_module("flowsynth.gbuffer")
+render_mod = importlib.import_module("flowsynth.raycast.gbuffer")
 
 W, H, T = 64, 48, 4
 K = np.array([[52.0, 6.0, 30.3], [0.0, 49.0, 22.8], [0.0, 0.0, 1.0]])
@@ -201,13 +201,13 @@ def test_scene_flow_equals_numpy(setup, step):
 
 
 def test_culling_bounds_hold_against_brute_force():
-    """The culling data of ``SceneAccel.culling`` (flowsynth.culling._face_planes) against float64 brute force:
+    """The culling data of ``SceneAccel.culling`` (flowsynth.raycast.culling._face_planes) against float64 brute force:
     every vertex behind every face plane, inside the bounding sphere, and the inner ball free of surface
     (rays from its centre, Moller-Trumbore over every triangle, first hit no nearer than the radius; every
     ray hits: the centre is enclosed). Flat meshes (room walls) get a zero-width slab, non-convex ones no ball."""
     from oracle import ray_cast
 
-    from flowsynth.culling import _face_planes
+    from flowsynth.raycast.culling import _face_planes
     from flowsynth.scene.assets import get_asset, room_walls
 
     rng = np.random.default_rng(0)
@@ -282,7 +282,7 @@ def test_sphere_bounded_face_planes_keep_visibility_exact(monkeypatch):
     give no inner ball, and leave the culled visibility equal to the visibility kernel's full walk."""
     from collections import OrderedDict
 
-    import flowsynth.culling as culling_mod
+    import flowsynth.raycast.culling as culling_mod
 
     monkeypatch.setattr(culling_mod, "FACE_PLANES_BUDGET", 0)
     monkeypatch.setattr(culling_mod, "_PLANES", OrderedDict())
@@ -305,7 +305,7 @@ def test_silhouette_planes_hold_every_vertex_and_clear_only_missing_segments():
     import warp as wp
     from oracle import ray_cast
 
-    from flowsynth.culling import _silhouette_planes
+    from flowsynth.raycast.culling import _silhouette_planes
     from flowsynth.scene.assets import get_asset
     from flowsynth.kernels.raycast import SIL_K, beyond_silhouette
 

@@ -548,7 +548,7 @@ def test_smooth_shading_matches_the_true_sphere():
 def test_smooth_shading_keeps_creases_and_defaults_off():
     """A box's 90-degree edges are creases: smooth shading renders it as flat shading does (to float32 rounding
     of the interpolated normal), and ``smooth_shading`` is off unless asked for (config and RenderOptions)."""
-    from flowsynth.blas import corner_normals
+    from flowsynth.raycast.blas import corner_normals
 
     box = trimesh.creation.box((1.0, 2.0, 0.5))
     faces = np.cross(*(box.vertices[box.faces[:, k]] - box.vertices[box.faces[:, 0]] for k in (1, 2)))

@@ -106,7 +106,7 @@ class BouncingThings(IterableDataset):
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
         """Sample ``i``: exactly the item the stream yields for index ``i``."""
-        from flowsynth.accel import resolve_device
+        from flowsynth.raycast import resolve_device
         from flowsynth.renderer import render_plan
 
         if not isinstance(i, (int, np.integer)) or i < 0:

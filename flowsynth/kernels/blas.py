@@ -1,4 +1,4 @@
-"""Traversal of the per-asset 4-wide BVHs (layout: ``flowsynth.blas``) and their refit kernel.
+"""Traversal of the per-asset 4-wide BVHs (layout: ``flowsynth.raycast.blas``) and their refit kernel.
 
 ``blas_closest`` and ``blas_any`` replace ``wp.mesh_query_ray`` / ``wp.mesh_query_ray_anyhit`` (and
 ``face_vertices`` / ``eval_position`` replace ``wp.mesh_get`` / ``wp.mesh_eval_position``): the same
@@ -16,7 +16,7 @@ import warp as wp
 
 __all__ = ["STACK", "blas_any", "blas_closest", "eval_position", "face_vertices", "refit_kernel"]
 
-# Stack entries per ray: a 4-wide tree of depth D needs at most 3 D + 1 (flowsynth.blas checks each tree).
+# Stack entries per ray: a 4-wide tree of depth D needs at most 3 D + 1 (flowsynth.raycast.blas checks each tree).
 STACK = 64
 # Far slab distances are scaled up by 1 + 2 gamma(3) (Ize 2013, "Robust BVH ray traversal"), so float32
 # rounding of the slab test never drops a box the ray touches.
@@ -229,7 +229,7 @@ def refit_kernel(kids: wp.array[wp.vec4i], tris: wp.array[wp.vec3],
                  bounds: wp.array[wp.vec4]):
     """Child boxes of every node of an atlas (one thread): nodes from last to first, since a child's index is
     larger than its parent's; a leaf child's box is its triangles' vertices' min / max, an inner child's the
-    union of its own four boxes, an empty child's lo 1e30 > hi -1e30 (flowsynth.blas layout)."""
+    union of its own four boxes, an empty child's lo 1e30 > hi -1e30 (flowsynth.raycast.blas layout)."""
     for back in range(kids.shape[0]):
         n = kids.shape[0] - 1 - back
         ch = kids[n]

@@ -2,13 +2,13 @@
 
 Top level: one grouped ``wp.Bvh`` over instance boxes, group f = frame f, boxes in that frame's
 *reference* frame (the camera frame of frame f). Bottom level: one 4-wide BVH per asset in the object frame
-(``flowsynth.blas``, traversed by ``flowsynth.kernels.blas``, which also holds every face's vertices). A ray
+(``flowsynth.raycast.blas``, traversed by ``flowsynth.kernels.blas``, which also holds every face's vertices). A ray
 (origin o, unit direction d, reference frame) visits the instances whose box it
 crosses, is mapped into each object's frame with ``obj_T_ref`` (float32, composed in float64 on the
 host) and tested against that asset's mesh. Nothing is rebuilt when objects move.
 
 Item index of instance n in frame f is ``f * N + n``. Kernels receive the scene as one ``Instances``
-struct (filled by ``flowsynth.accel.SceneAccel.instances``): a new per-instance field is one new struct
+struct (filled by ``flowsynth.raycast.accel.SceneAccel.instances``): a new per-instance field is one new struct
 member, read wherever it is needed.
 
 Closest hit only for primary and path rays; visibility and shadow rays ask "is anything in the way"
@@ -28,7 +28,7 @@ __all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "ti
 
 @wp.struct
 class Instances:
-    """F frames x N rigid instances, as every tracing kernel reads them (flowsynth.accel.SceneAccel)."""
+    """F frames x N rigid instances, as every tracing kernel reads them (flowsynth.raycast.accel.SceneAccel)."""
 
     bvh: wp.uint64  # grouped top-level BVH over instance boxes, group f = frame f
     roots: wp.array[wp.int32]  # (F,) root node of each group
@@ -40,7 +40,7 @@ class Instances:
     uppers: wp.array[wp.vec3]
     item_root: wp.array[wp.int32]  # (F * N,) root code of the item's asset tree in the blas_* atlas
     item_face0: wp.array[wp.int32]  # (F * N,) first blas_slot row of the item's asset (its face 0)
-    blas_bounds: wp.array[wp.vec4]  # the scene's asset trees (flowsynth.blas.atlas): child boxes,
+    blas_bounds: wp.array[wp.vec4]  # the scene's asset trees (flowsynth.raycast.blas.atlas): child boxes,
     blas_kids: wp.array[wp.vec4i]  # child codes,
     blas_tris: wp.array[wp.vec3]  # triangles in leaf order,
     blas_face: wp.array[wp.int32]  # and each one's face index; blas_slot: each face's triangle
@@ -73,7 +73,7 @@ def tile_list(tiles_x: wp.int32, tiles_y: wp.int32, tile_shift: wp.int32, f: wp.
 
 @wp.struct
 class Culling:
-    """Exact culling data of visibility rays (flowsynth.accel.SceneAccel.culling), float64.
+    """Exact culling data of visibility rays (flowsynth.raycast.accel.SceneAccel.culling), float64.
 
     A mesh lying in a half-space (or slab) that the segment from the camera to the target point does not
     enter cannot block it: no mesh query is needed.

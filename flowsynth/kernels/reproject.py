@@ -17,7 +17,7 @@ disparity change fB / X.z - fB / (cam_T_obj[s, n] @ p).z and scene flow sfM[t, n
 
 The exact visibility ray (occlusion="exact") is the segment from the camera centre of frame r to
 (1 - tol) X; it is blocked when any mesh meets it (first blocker ends the test). Exact culls spare the
-mesh queries that cannot hit (``Culling``, flowsynth.accel.SceneAccel.culling), all proved on float64
+mesh queries that cannot hit (``Culling``, flowsynth.raycast.accel.SceneAccel.culling), all proved on float64
 planes with a margin of 1e-6 |X| + 1e-9 m (float32 rounding of the ray the mesh queries trace is ~1e-7 |X|;
 |X| is taken as its float32 length L):
 - own item: its mesh lies in the half-space n . x <= e of the hit face's plane (e: max of n . v over the

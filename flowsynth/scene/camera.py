@@ -141,7 +141,7 @@ class Camera:
         """Read-only cached (H + 2 pad, W + 2 pad, 3) float64 unit rays through the pixel centres of rows -pad ..
         H - 1 + pad and columns -pad .. W - 1 + pad (``pixel_rays_numpy`` inside, bit for bit; the ring outside
         through ``unproject`` too), 0 where uncovered: the stencils of shading's sub-pixel rays and the lens tile
-        bounds of ``flowsynth.accel`` (one ring each)."""
+        bounds of ``flowsynth.raycast.accel`` (one ring each)."""
         if pad == 0:
             return self.pixel_rays_numpy()
         return _ray_grid(self._K.tobytes(), self.width, self.height, self.model, self.dist, int(pad))

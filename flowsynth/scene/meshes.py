@@ -34,8 +34,8 @@ def freeze(mesh):
 
     For a ``trimesh.Trimesh`` this is ``mesh.mutable = False``: writing into ``mesh.vertices`` or ``mesh.faces``
     raises ValueError ("assignment destination is read-only"), and so does assigning new arrays. Per-process
-    caches keyed by a mesh object (``flowsynth.accel``, ``flowsynth.blas``) freeze it before they keep anything
-    of it, so a mesh changed after it was cached fails loudly instead of being drawn with a stale tree. Other
+    caches keyed by a mesh object (``flowsynth.raycast.accel``, ``flowsynth.raycast.blas``) freeze it before they keep
+    anything of it, so a mesh changed after it was cached fails loudly instead of being drawn with a stale tree. Other
     objects with numpy ``vertices`` and ``faces`` get those arrays' ``writeable`` flag cleared.
     """
     if isinstance(mesh, trimesh.Trimesh):

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from flowsynth.accel import SceneAccel, pinhole
+from flowsynth.raycast.accel import SceneAccel, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
 from flowsynth.scene import Scene

@@ -1,6 +1,6 @@
 """Screen tiles: the primary cast's and the visibility rays' per-(frame, tile) candidate lists, near to far.
 
-Below ``flowsynth.accel.ORDERED_MAX`` instances a camera ray walks the list of its TILE x TILE pixel screen tile
+Below ``flowsynth.raycast.accel.ORDERED_MAX`` instances a camera ray walks the list of its TILE x TILE pixel screen tile
 instead of the top-level BVH: the instances whose convex hull, clipped to z >= ``CLIP_Z``, projects within a pixel
 of the tile (``_screen_bounds``; a lens camera bounds its rays' normalised coordinates instead, ``_lens_tile_mask``).
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from flowsynth.culling import hull_points
+from flowsynth.raycast.culling import hull_points
 from flowsynth.kernels import wp_runtime
 
 __all__ = ["CLIP_Z", "LENS_TILE_BOUNDS", "TILE", "tile_lists"]
@@ -32,7 +32,7 @@ def tile_lists(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, order: np.n
 
     wp = wp_runtime()
     if TILE <= 0 or TILE & (TILE - 1):
-        raise ValueError(f"flowsynth.tiles.TILE must be a power of two, got {TILE}")
+        raise ValueError(f"flowsynth.raycast.tiles.TILE must be a power of two, got {TILE}")
     if order is None:
         start, items, tx, ty = np.zeros(2, np.int32), np.zeros(1, np.int32), 1, 1
     else:

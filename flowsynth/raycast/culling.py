@@ -1,9 +1,9 @@
 """Exact bounds of the instances of a clip, for culling rays: convex hulls, face planes, flat slabs, silhouettes.
 
 Per mesh (cached per process, keyed by the mesh's content: ``flowsynth.scene.meshes.freeze`` makes it read-only first)
-its convex hull's points (``hull_points``: the tight boxes of ``flowsynth.accel`` and the screen bounds of
-``flowsynth.tiles``) and its face planes (``_face_planes``); per clip the ``Culling`` struct of the visibility rays
-(``build_culling``: flowsynth/kernels/reproject.py tests it before a mesh query).
+its convex hull's points (``hull_points``: the tight boxes of ``flowsynth.raycast.accel`` and the screen bounds of
+``flowsynth.raycast.tiles``) and its face planes (``_face_planes``); per clip the ``Culling`` struct of the visibility
+rays (``build_culling``: flowsynth/kernels/reproject.py tests it before a mesh query).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Host side of the two-level ray caster: per-clip instance BVH over the assets' own trees (``flowsynth.blas``).
+"""Host side of the two-level ray caster: per-clip instance BVH over the assets' own trees (``flowsynth.raycast.blas``).
 
 ``SceneAccel`` takes F "frames" (camera pose + one pose per instance); frames need not be the clip's
 frames (motion blur passes sub-frame times). All poses are composed in float64 here and handed to the
@@ -13,15 +13,15 @@ from collections import OrderedDict
 import numpy as np
 import trimesh
 
-from flowsynth.blas import atlas, corner_normals
+from flowsynth.raycast.blas import atlas, corner_normals
 from flowsynth.caches import register
-from flowsynth.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
+from flowsynth.raycast.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
-from flowsynth.tiles import posed_hull, tile_lists
+from flowsynth.raycast.tiles import posed_hull, tile_lists
 
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH
-# (``flowsynth.tiles``).
+# (``flowsynth.raycast.tiles``).
 ORDERED_MAX = 64
 
 __all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "pinhole", "resolve_device"]
@@ -98,7 +98,7 @@ class SceneAccel:
         self.frame_items = wp.array(order.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
         self.use_bvh = int(N > ORDERED_MAX)
         self._tiles: dict = {}
-        self._bounds: dict = {}  # camera (size, K, lens) -> its screen bounds (flowsynth.tiles)
+        self._bounds: dict = {}  # camera (size, K, lens) -> its screen bounds (flowsynth.raycast.tiles)
         groups = np.repeat(np.arange(F, dtype=np.int32), N)
         self.lowers = wp.array(lowers, dtype=wp.vec3, device=device)  # (F * N,) padded instance boxes, camera frame
         self.uppers = wp.array(uppers, dtype=wp.vec3, device=device)
@@ -145,9 +145,9 @@ class SceneAccel:
         return inst
 
     def corner_normals(self):
-        """Smooth shading's corner normals of every face of the atlas (``flowsynth.blas.corner_normals``): a vec3
-        Warp array, the normal of corner k of face ``face`` of an item at ``3 * (item_face0 + face) + k``; built once
-        per accel."""
+        """Smooth shading's corner normals of every face of the atlas (``flowsynth.raycast.blas.corner_normals``): a
+        vec3 Warp array, the normal of corner k of face ``face`` of an item at ``3 * (item_face0 + face) + k``; built
+        once per accel."""
         if self._corners is None:
             wp = wp_runtime()
             n = [corner_normals(m).reshape(-1, 3) for m in self._distinct]
@@ -157,15 +157,15 @@ class SceneAccel:
 
     def culling(self, threads: int | None = None):
         """The visibility rays' exact culling data: a ``Culling`` struct (flowsynth.kernels.raycast), built once per
-        accel by ``flowsynth.culling.build_culling`` (face planes, flat slabs, silhouette planes; ``threads``: those of
-        the face planes' kernel on a mesh not yet cached)."""
+        accel by ``flowsynth.raycast.culling.build_culling`` (face planes, flat slabs, silhouette planes; ``threads``:
+        those of the face planes' kernel on a mesh not yet cached)."""
         if self._cull is None:
             self._cull, self._flat = build_culling(self._meshes, self._cam_T_obj, threads, self.device)
         return self._cull
 
     def tile_lists(self, camera, flat: bool = True, threads: int | None = None):
         """The primary cast's per-(frame, screen tile) candidate lists: a ``TileLists`` struct
-        (flowsynth.kernels.raycast) built by ``flowsynth.tiles.tile_lists`` (empty when the rays walk the BVH),
+        (flowsynth.kernels.raycast) built by ``flowsynth.raycast.tiles.tile_lists`` (empty when the rays walk the BVH),
         once per camera; ``flat=False``: without the flat instances of ``culling()`` (visibility rays test those
         apart; ``threads``: those of ``culling``)."""
         key = (camera.width, camera.height, camera.K.tobytes(), flat, camera.model, camera.dist)
