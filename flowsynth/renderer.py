@@ -8,6 +8,7 @@ function ``fs.render`` and a module of the same name shadowed each other; the G-
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 
 import numpy as np
@@ -75,9 +76,12 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
 
         out.update(flow_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world))
     if plan.stereo:
-        from flowsynth.stereo import stereo_outputs
+        from flowsynth.stereo import right_view, stereo_outputs
 
-        out.update(stereo_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world, device=device, done=out))
+        right = right_view(scene, world_T_obj, plan, device=device)
+        out.update(stereo_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world, right=right, done=out))
+        if "rgb_right" in plan.outputs:
+            out["rgb_right"] = _rgb_right(scene, right, gb, plan, device)
     if plan.tracks:
         from flowsynth.tracks import track_outputs
 
@@ -131,3 +135,15 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
             table0 = np.concatenate([table, np.zeros(1, np.int32)])  # index -1 -> 0
             out[key] = torch.from_numpy(table0[idx][:, None])  # a fresh array: indexing copies
     return out
+
+
+def _rgb_right(scene: Scene, right, gb: GBuffer, plan: Plan, device: str) -> torch.Tensor:
+    """The right view (``flowsynth.stereo.right_view``) shaded with exactly the left view's lights (the defaults are
+    placed from the left view's G-buffer ``gb``)."""
+    from flowsynth.appearance import resolve_lights
+    from flowsynth.shading import median_hit_distance, render_rgb
+
+    view = copy.copy(scene)
+    view.lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
+    view.world_T_cam = right.world_T_cam
+    return render_rgb(view, right.accel, right.gb, plan, device=device)

@@ -7,7 +7,8 @@ camera is (x - B, y, z) in the right one, so it projects to the same row and to 
 
 | key                 | shape, dtype         | value                                                              |
 |---------------------|----------------------|--------------------------------------------------------------------|
-| rgb_right           | (T,3,H,W) float32    | the right view, shaded with the left view's lights                 |
+| rgb_right           | (T,3,H,W) float32    | the right view, shaded with the left view's lights (by the         |
+|                     |                      | renderer, from ``right_view``: an image, not geometry)             |
 | depth_right         | (T,1,H,W) float32    | planar depth of the right view [m], 0 = no hit                     |
 | disparity           | (T,1,H,W) float32    | fx B / depth [px] of the left view, 0 = no hit                     |
 | disparity_right     | (T,1,H,W) float32    | fx B / depth_right [px], 0 = no hit                                |
@@ -22,15 +23,18 @@ behind the camera, or hidden per the exact visibility ray (always "exact"; False
 
 from __future__ import annotations
 
-import copy
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from flowsynth.raycast import SceneAccel
 from flowsynth.flow import reproject_pixels
+from flowsynth.raycast import SceneAccel
 
-__all__ = ["right_poses", "stereo_outputs"]
+__all__ = ["RIGHT_VIEW_KEYS", "RightView", "right_poses", "right_view", "stereo_outputs"]
+
+# The keys that need the right view's own cast (``right_view``).
+RIGHT_VIEW_KEYS = frozenset({"rgb_right", "depth_right", "disparity_right", "disparity_occ", "disparity_occ_right"})
 
 
 def right_poses(world_T_cam: np.ndarray, baseline: float) -> np.ndarray:
@@ -46,45 +50,61 @@ def _occlusion(camera, accel, gb, cam_T_obj_target: np.ndarray, threads) -> np.n
                             occlusion="exact", threads=threads)["occ"]
 
 
-def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray,
-                   device: str = "cpu", done=()) -> dict[str, torch.Tensor]:
-    """Every stereo key the plan asks for except those in ``done`` (``disparity_change`` rides on the flow
-    stage's fw gap-1 pass when that runs: flowsynth/flow.py); ``accel``/``gb`` are the left view's."""
+class RightView(NamedTuple):
+    """The right camera's view of a clip: its poses, scene acceleration and G-buffer."""
+
+    world_T_cam: np.ndarray  # (T, 4, 4) world_T_cam of the right camera
+    cam_T_world: np.ndarray  # (T, 4, 4) its inverse
+    accel: SceneAccel
+    gb: object  # flowsynth.raycast.GBuffer of the right view
+
+
+def right_view(scene, world_T_obj: np.ndarray, plan, device: str = "cpu") -> RightView | None:
+    """The right view, cast once when the plan asks for a key of it (``RIGHT_VIEW_KEYS``), else None; normals only for
+    ``rgb_right``, object-frame points only for ``rgb_right`` and ``disparity_occ_right``."""
     from flowsynth.raycast import cast_gbuffer
 
-    want = set(plan.outputs) - set(done)
+    want = set(plan.outputs)
+    if not want & RIGHT_VIEW_KEYS:
+        return None
+    world_T_cam_r = right_poses(scene.world_T_cam, plan.stereo_baseline)
+    cam_T_world_r = np.linalg.inv(world_T_cam_r)
+    accel_r = SceneAccel([o.mesh for o in scene.objects], cam_T_world_r, world_T_obj, device=device)
+    need_points = bool(want & {"rgb_right", "disparity_occ_right"})
+    gb_r = cast_gbuffer(accel_r, scene.camera, want_normals="rgb_right" in want, want_points=need_points,
+                        threads=plan.threads)
+    return RightView(world_T_cam_r, cam_T_world_r, accel_r, gb_r)
+
+
+def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray,
+                   right: RightView | None = None, done=()) -> dict[str, torch.Tensor]:
+    """Every stereo key the plan asks for except ``rgb_right`` (an image: the renderer shades it from ``right``) and
+    those in ``done`` (``disparity_change`` rides on the flow stage's fw gap-1 pass when that runs:
+    flowsynth/flow.py); ``accel``/``gb`` are the left view's, ``right`` is ``right_view``'s (needed for the right
+    view's keys)."""
+    want = set(plan.outputs) - set(done) - {"rgb_right"}
     B = plan.stereo_baseline
     cam = scene.camera
     fB = cam.fx * B
     dz = cam.pixel_rays_numpy()[..., 2]
     out: dict[str, np.ndarray | torch.Tensor] = {}
-    meshes = [o.mesh for o in scene.objects]
     if "disparity" in want:
         out["disparity"] = _disparity(gb, dz, fB)
     if "disparity_change" in want:
         cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)
         out["disparity_change"] = reproject_pixels(gb, cam_T_obj, cam.K, 0, 1, max(gb.shape[0] - 1, 0), fB=fB,
                                                    threads=plan.threads)["dc"]
-    right_keys = {"rgb_right", "depth_right", "disparity_right", "disparity_occ", "disparity_occ_right"}
-    if want & right_keys:
-        world_T_cam_r = right_poses(scene.world_T_cam, B)
-        cam_T_world_r = np.linalg.inv(world_T_cam_r)
-        accel_r = SceneAccel(meshes, cam_T_world_r, world_T_obj, device=device)
-        need_points = bool(want & {"rgb_right", "disparity_occ_right"})
-        gb_r = cast_gbuffer(accel_r, cam, want_normals="rgb_right" in want, want_points=need_points,
-                            threads=plan.threads)
+    if want & RIGHT_VIEW_KEYS:
         if "depth_right" in want:
-            out["depth_right"] = (gb_r.host().dist * dz).astype(np.float32)[:, None]  # dist is 0 where no hit
+            out["depth_right"] = (right.gb.host().dist * dz).astype(np.float32)[:, None]  # dist is 0 where no hit
         if "disparity_right" in want:
-            out["disparity_right"] = _disparity(gb_r, dz, fB)
+            out["disparity_right"] = _disparity(right.gb, dz, fB)
         if "disparity_occ" in want:
-            out["disparity_occ"] = _occlusion(cam, accel_r, gb, np.matmul(cam_T_world_r[:, None], world_T_obj),
+            out["disparity_occ"] = _occlusion(cam, right.accel, gb, np.matmul(right.cam_T_world[:, None], world_T_obj),
                                               plan.threads)
         if "disparity_occ_right" in want:
-            out["disparity_occ_right"] = _occlusion(cam, accel, gb_r, np.matmul(cam_T_world[:, None], world_T_obj),
+            out["disparity_occ_right"] = _occlusion(cam, accel, right.gb, np.matmul(cam_T_world[:, None], world_T_obj),
                                                     plan.threads)
-        if "rgb_right" in want:
-            out["rgb_right"] = _rgb_right(scene, accel_r, gb, gb_r, plan, world_T_cam_r, device)
     return {k: v if isinstance(v, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(v)).to(
         torch.bool if v.dtype == bool else torch.float32) for k, v in out.items()}
 
@@ -96,14 +116,3 @@ def _disparity(gb, dz: np.ndarray, fB: float) -> np.ndarray:
     d = np.zeros(host.dist.shape, np.float32)
     np.divide(fB, host.dist * dz, out=d, where=host.hit)
     return d[:, None]
-
-
-def _rgb_right(scene, accel_r, gb, gb_r, plan, world_T_cam_r: np.ndarray, device: str) -> torch.Tensor:
-    """The right view shaded with exactly the left view's lights (defaults are placed from the left view)."""
-    from flowsynth.appearance import resolve_lights
-    from flowsynth.shading import median_hit_distance, render_rgb
-
-    right = copy.copy(scene)
-    right.lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
-    right.world_T_cam = world_T_cam_r
-    return render_rgb(right, accel_r, gb_r, plan, device=device)
