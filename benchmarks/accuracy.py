@@ -42,7 +42,7 @@ from oracle import pair_truth, pose, silhouette
 
 import flowsynth as fs
 from flowsynth.raycast import SceneAccel
-from flowsynth.flow import reproject
+from flowsynth.truth import reproject
 from flowsynth.raycast import cast_gbuffer, scene_arrays
 
 FOV_DEG = 60.0

@@ -262,7 +262,7 @@ def streams_only(cpus: int, rounds: int, n: int, default: bool = False) -> None:
 # The stages of a full sample, timed by ``--stages``: (module, function) wrapped for the run (render_plan looks them
 # up in their modules at call time), and the scene itself (``BouncingThings.scene``: layout, materials, physics).
 STAGES = (("flowsynth.renderer", "SceneAccel", "accel"), ("flowsynth.renderer", "cast_gbuffer", "cast"),
-          ("flowsynth.renderer", "gbuffer_outputs", "gbuffer outputs"), ("flowsynth.flow", "flow_outputs", "flow"),
+          ("flowsynth.renderer", "gbuffer_outputs", "gbuffer outputs"), ("flowsynth.truth", "flow_outputs", "flow"),
           ("flowsynth.shading", "render_rgb", "rgb"))
 
 

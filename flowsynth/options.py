@@ -195,7 +195,7 @@ class RenderOptions:
     num_tracks: int = 256
     """Point tracks per clip Q [count], >= 1."""
     track_sampling: str = "uniform"
-    """Where track query points are drawn: "uniform", "objects" or "edges" (flowsynth/tracks.py)."""
+    """Where track query points are drawn: "uniform", "objects" or "edges" (flowsynth/truth/tracks.py)."""
     stereo_baseline: float = 0.0
     """Distance of the rectified right camera along the left camera's +x [m], finite and >= 0; 0 = none."""
     smooth_shading: bool = False

@@ -51,10 +51,10 @@ SCENE_FLOW_KEYS = ("scene_flow_fw", "scene_flow_bw")
 # Per-pair keys that exist for every frame gap k of ``flow_gaps``: k = 1 under these names, k >= 2 as
 # ``gap_key(key, k)`` = KEY_kK (e.g. flow_fw_k2), shape (T-k, C, H, W), index t = pair (t, t+k).
 GAP_KEYS = FLOW_KEYS[:-1] + SCENE_FLOW_KEYS
-# Point tracks in the TAP-Vid layout (flowsynth/tracks.py); the alias ``tracks`` requests all three.
+# Point tracks in the TAP-Vid layout (flowsynth/truth/tracks.py); the alias ``tracks`` requests all three.
 TRACK_KEYS = ("target_points", "occluded", "query_points")
 ALIASES = {"tracks": TRACK_KEYS}
-# Rectified right camera at ``stereo_baseline`` metres along the left camera's +x (flowsynth/stereo.py).
+# Rectified right camera at ``stereo_baseline`` metres along the left camera's +x (flowsynth/truth/stereo.py).
 STEREO_KEYS = ("rgb_right", "depth_right", "disparity", "disparity_right", "disparity_change", "disparity_occ",
                "disparity_occ_right")
 # The outputs before scene flow, tracks and stereo (benchmarks/throughput.py keeps timing this set).

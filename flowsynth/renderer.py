@@ -72,22 +72,22 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
     out: dict[str, torch.Tensor] = {}
     out.update(gbuffer_outputs(scene, gb, plan, world_T_obj))
     if plan.flow_stage:
-        from flowsynth.flow import flow_outputs
+        from flowsynth.truth import flow_outputs
 
         out.update(flow_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world))
     if plan.stereo:
-        from flowsynth.stereo import right_view, stereo_outputs
+        from flowsynth.truth import right_view, stereo_outputs
 
         right = right_view(scene, world_T_obj, plan, device=device)
         out.update(stereo_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world, right=right, done=out))
         if "rgb_right" in plan.outputs:
             out["rgb_right"] = _rgb_right(scene, right, gb, plan, device)
     if plan.tracks:
-        from flowsynth.tracks import track_outputs
+        from flowsynth.truth import track_outputs
 
         out.update(track_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world))
     if plan.boxes:
-        from flowsynth.annotations import object_tables
+        from flowsynth.truth import object_tables
 
         out.update(object_tables(scene, gb, plan, world_T_obj, cam_T_world))
     if plan.rgb:
@@ -109,8 +109,8 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
     """depth, distance, normals, position, instance, category, asset from the raw G-buffer."""
     out = {}
     want = set(plan.outputs)
-    if "position" in want:  # world points on the G-buffer's device (flowsynth.flow.world_points)
-        from flowsynth.flow import world_points
+    if "position" in want:  # world points on the G-buffer's device (flowsynth.truth.flow.world_points)
+        from flowsynth.truth import world_points
 
         pos = world_points(gb, world_T_obj, moved=False, threads=plan.threads)[0]
         out["position"] = torch.from_numpy(np.ascontiguousarray(pos.astype(np.float32).transpose(0, 3, 1, 2)))
@@ -138,8 +138,8 @@ def gbuffer_outputs(scene: Scene, gb: GBuffer, plan: Plan, world_T_obj: np.ndarr
 
 
 def _rgb_right(scene: Scene, right, gb: GBuffer, plan: Plan, device: str) -> torch.Tensor:
-    """The right view (``flowsynth.stereo.right_view``) shaded with exactly the left view's lights (the defaults are
-    placed from the left view's G-buffer ``gb``)."""
+    """The right view (``flowsynth.truth.stereo.right_view``) shaded with exactly the left view's lights (the defaults
+    are placed from the left view's G-buffer ``gb``)."""
     from flowsynth.appearance import resolve_lights
     from flowsynth.shading import median_hit_distance, render_rgb
 

@@ -163,7 +163,7 @@ def dataset_stats(cfg=None, num: int = 16, *, seed: int = 0, start: int = 0, occ
         cfg: BouncingThingsConfig (defaults when None) with num_frames >= 2.
         num: number of samples, >= 1.
         seed, start: which samples.
-        occlusion: "exact" or "depth" (flowsynth.flow).
+        occlusion: "exact" or "depth" (flowsynth.truth.flow).
         dis: also run :func:`dis_check` on every frame pair (needs opencv-python).
         progress: called with the number of samples done after each one.
 

@@ -190,7 +190,7 @@ def visible(X_world: np.ndarray, world_T_cam: np.ndarray, meshes, world_T_obj: n
 
 def pair_truth(K, width, height, world_T_cam, meshes, world_T_obj, src: int, dst: int,
                casts: dict | None = None, occlusion: bool = True) -> dict:
-    """Flow-family ground truth of frame ``src`` towards frame ``dst`` (definitions of flowsynth/flow.py).
+    """Flow-family ground truth of frame ``src`` towards frame ``dst`` (definitions of flowsynth/truth/flow.py).
 
     Args:
         world_T_cam: (T, 4, 4); world_T_obj: (T, N, 4, 4); casts: optional cache {frame: cast_frame(...)}.

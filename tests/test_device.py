@@ -244,8 +244,8 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
     assert any("read a G-buffer array into numpy" in b for b in rec.violations(TWIN))
 
 
-STAGES = ["raycast/gbuffer", "renderer", "flow", "shading", "finalpass", "raycast/accel", "raycast/tiles", "raycast/culling", "raycast/blas", "stereo",
-          "tracks", "annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
+STAGES = ["raycast/gbuffer", "renderer", "truth/flow", "shading", "finalpass", "raycast/accel", "raycast/tiles", "raycast/culling", "raycast/blas", "truth/stereo",
+          "truth/tracks", "truth/annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
           "scene/motion", "scene/physics"]
 
 

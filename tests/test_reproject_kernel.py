@@ -1,10 +1,10 @@
-"""The per-(pair, pixel) Warp reprojection kernel (flowsynth.flow.reproject_pixels) against a float64 numpy
+"""The per-(pair, pixel) Warp reprojection kernel (flowsynth.truth.flow.reproject_pixels) against a float64 numpy
 reprojection of the same G-buffer (the gather/scatter code the kernel replaced, kept here as the oracle).
 
 The scene has a moving, turning camera with a skewed K, objects leaving the image and objects passing behind
 the camera, so every branch (valid, out of frame, behind the camera, occluded, visible) is taken. The
 exact occlusion is compared with the visibility kernel over each frame's whole instance list
-(flowsynth.flow.visibility), the depth test with its numpy form.
+(flowsynth.truth.flow.visibility), the depth test with its numpy form.
 """
 
 import importlib
@@ -16,7 +16,7 @@ from oracle import pose
 
 import flowsynth as fs
 from flowsynth.raycast.accel import SceneAccel
-from flowsynth.flow import DEPTH_TEST_REL_TOL, MOTION_TOL, reproject_pixels, visibility, world_points
+from flowsynth.truth.flow import DEPTH_TEST_REL_TOL, MOTION_TOL, reproject_pixels, visibility, world_points
 
 render_mod = importlib.import_module("flowsynth.raycast.gbuffer")
 

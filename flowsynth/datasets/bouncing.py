@@ -52,7 +52,7 @@ class BouncingThings(IterableDataset):
         seed: dataset seed; any integer >= 0, 0 included.
         length: samples per epoch, or None for an endless stream.
         start: first index of the stream.
-        occlusion: "exact" or "depth" (see flowsynth.flow).
+        occlusion: "exact" or "depth" (see flowsynth.truth.flow).
         device: Warp device of the renderer's stages ("cpu", the default; "cuda" or "cuda:N" where Warp finds one,
             else a ConfigError from the first sample, in the process that renders it: Warp is not initialised
             before DataLoader workers fork). Written for any Warp device; device placement tested on an H100,

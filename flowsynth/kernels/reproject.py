@@ -3,7 +3,7 @@ validity, out-of-frame and occlusion tests fused in: one thread per (pair, row) 
 pixels (a Warp CPU thread per pixel spends more on unravelling its 3-D index than on the reprojection:
 docs/decisions/0004-pair-kernel-rows-and-culls.md), no gather.
 
-Definitions are those of flowsynth/flow.py's module docstring. For pair t the source frame is
+Definitions are those of flowsynth/truth/flow.py's module docstring. For pair t the source frame is
 s = src0 + t and the target frame r = s + step; the pixel (i, j) of frame s holding instance n at
 object-frame point p (float32, promoted to float64) maps to
 
@@ -452,7 +452,7 @@ def world_points_kernel(
     its row. Pixel (i, j) of frame f holding instance n (``item`` f N + n, -1: no hit) at object-frame point p
     (float32, promoted) gets ``world`` x = world_T_obj[f, n] p (0 where not hit). With ``want_moved`` != 0,
     ``moved`` (T-1, H, W) gets, for the frames 0 .. T-2, 1 where the next frame's pose moves the same point by
-    more than motion_tol + 1e-12 |x|: |world_T_obj[f + 1, n] p - x| (the ``motion`` output, flowsynth/flow.py).
+    more than motion_tol + 1e-12 |x|: |world_T_obj[f + 1, n] p - x| (the ``motion`` output, flowsynth/truth/flow.py).
     """
     f, i = wp.tid()
     i += band0

@@ -151,10 +151,10 @@ class BouncingThingsConfig:
     """Point tracks per clip Q (outputs ``tracks`` = target_points, occluded, query_points), >= 1 [count]."""
     track_sampling: str = _OPT.track_sampling
     """Where query points are drawn: "uniform" (any surface), "objects" (not the room) or "edges" (near depth
-    edges); see flowsynth/tracks.py."""
+    edges); see flowsynth/truth/tracks.py."""
     stereo_baseline: float = _OPT.stereo_baseline
     """Distance of a rectified right camera along the left camera's +x [m], >= 0; 0 = no right camera.
-    Needed (> 0) for rgb_right, depth_right, disparity* (flowsynth/stereo.py)."""
+    Needed (> 0) for rgb_right, depth_right, disparity* (flowsynth/truth/stereo.py)."""
     smooth_shading: bool = _OPT.smooth_shading
     """Shade curved meshes with interpolated corner normals instead of flat faces (RenderOptions.smooth_shading);
     off by default."""

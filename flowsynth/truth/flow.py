@@ -177,7 +177,7 @@ def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: n
             src = np.arange(P) + src0
             sfT = np.matmul(cam_T_world[src][:, None], world_T_obj[src + step] - world_T_obj[src])
         # stereo's disparity change maps the pairs (t, t + 1) of the left view too: it rides on the fw gap-1
-        # pass when that pass runs anyway (flowsynth/stereo.py computes it otherwise)
+        # pass when that pass runs anyway (flowsynth/truth/stereo.py computes it otherwise)
         fB = (scene.camera.fx * plan.stereo_baseline
               if (name, k) == ("fw", 1) and "disparity_change" in want else None)
         res = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,

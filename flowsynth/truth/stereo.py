@@ -17,7 +17,7 @@ camera is (x - B, y, z) in the right one, so it projects to the same row and to 
 | disparity_occ       | (T,1,H,W) bool       | the left pixel's surface point is not visible in the right view    |
 | disparity_occ_right | (T,1,H,W) bool       | the right pixel's surface point is not visible in the left view    |
 
-Both occlusion masks are ``occ`` of flowsynth/flow.py with the other view as target: out of frame,
+Both occlusion masks are ``occ`` of flowsynth/truth/flow.py with the other view as target: out of frame,
 behind the camera, or hidden per the exact visibility ray (always "exact"; False where no hit).
 """
 
@@ -28,7 +28,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from flowsynth.flow import reproject_pixels
+from flowsynth.truth.flow import reproject_pixels
 from flowsynth.raycast import SceneAccel
 
 __all__ = ["RIGHT_VIEW_KEYS", "RightView", "right_poses", "right_view", "stereo_outputs"]
@@ -80,7 +80,7 @@ def stereo_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world:
                    right: RightView | None = None, done=()) -> dict[str, torch.Tensor]:
     """Every stereo key the plan asks for except ``rgb_right`` (an image: the renderer shades it from ``right``) and
     those in ``done`` (``disparity_change`` rides on the flow stage's fw gap-1 pass when that runs:
-    flowsynth/flow.py); ``accel``/``gb`` are the left view's, ``right`` is ``right_view``'s (needed for the right
+    flowsynth/truth/flow.py); ``accel``/``gb`` are the left view's, ``right`` is ``right_view``'s (needed for the right
     view's keys)."""
     want = set(plan.outputs) - set(done) - {"rgb_right"}
     B = plan.stereo_baseline

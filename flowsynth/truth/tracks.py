@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from flowsynth.flow import reproject, visibility
+from flowsynth.truth.flow import reproject, visibility
 from flowsynth.raycast import HostGBuffer
 
 __all__ = ["EDGE_REL_DEPTH", "track_outputs"]
