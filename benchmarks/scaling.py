@@ -261,9 +261,10 @@ def streams_only(cpus: int, rounds: int, n: int, default: bool = False) -> None:
 
 # The stages of a full sample, timed by ``--stages``: (module, function) wrapped for the run (render_plan looks them
 # up in their modules at call time), and the scene itself (``BouncingThings.scene``: layout, materials, physics).
-STAGES = (("flowsynth.renderer", "SceneAccel", "accel"), ("flowsynth.renderer", "cast_gbuffer", "cast"),
-          ("flowsynth.renderer", "gbuffer_outputs", "gbuffer outputs"), ("flowsynth.truth", "flow_outputs", "flow"),
-          ("flowsynth.shading", "render_rgb", "rgb"))
+STAGES = (("flowsynth.renderer.pipeline", "SceneAccel", "accel"),
+          ("flowsynth.renderer.pipeline", "cast_gbuffer", "cast"),
+          ("flowsynth.renderer.pipeline", "gbuffer_outputs", "gbuffer outputs"),
+          ("flowsynth.truth", "flow_outputs", "flow"), ("flowsynth.renderer.shading", "render_rgb", "rgb"))
 
 
 def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:

@@ -14,13 +14,13 @@ or 1, one layer; the families table run at the revision before and after shows w
      ``cells_per_improvement`` (the form before 2026-11-24, in this file: the value hashed every time a nearer
      feature is found); the outputs must be identical;
    - ``wp.noise`` (Perlin, the "noise" family) and ``value_noise`` for scale.
-2. **Shading** (``families``): process CPU of ``flowsynth.shading.shade_radiance`` per 2-frame 512x384
+2. **Shading** (``families``): process CPU of ``flowsynth.renderer.shading.shade_radiance`` per 2-frame 512x384
    sample (flat mode, 20 objects, edge_spp 1, seed 0) with every object and wall given one texture family,
    beside "solid" (x_solid: its time over solid's, the cost of the texture), and the default mix; and the
    default config's whole sample with the radiance share.
 3. **Camera rays** (``camera_rays``): the shading kernel traces rays of its own from the camera for the extra
    samples of edge pixels (``edge_spp``) and for spp > 1. Without motion blur they walk the G-buffer cast's
-   screen-tile lists near to far (``flowsynth.shading.CAMERA_RAY_TILES``, since 2026-11-24) instead of the
+   screen-tile lists near to far (``flowsynth.renderer.shading.CAMERA_RAY_TILES``, since 2026-11-24) instead of the
    top-level BVH; render_radiance per sample both ways, round-robin, with the images compared (identical).
    Settings: the default config (flat, edge_spp 4), issue 13's full sample (512x384, 2 frames, direct, 20
    objects, edge_spp 4) and the same with spp 4.
@@ -125,9 +125,9 @@ def lookups(n: int, rounds: int) -> list[dict]:
 
 @contextmanager
 def radiance_timer():
-    """Wraps ``flowsynth.shading.shade_radiance`` (which ``render_rgb`` calls) for the ``with`` block: yields a
+    """Wraps ``flowsynth.renderer.shading.shade_radiance`` (which ``render_rgb`` calls) for the ``with`` block: yields a
     dict whose "s" the wrapper adds each call's process CPU time to; the original is put back on exit."""
-    from flowsynth import shading
+    from flowsynth.renderer import shading
 
     orig = shading.shade_radiance
     spent = {"s": 0.0}
@@ -190,8 +190,7 @@ def _tiles_vs_bvh(ds, scenes: list, rounds: int) -> tuple[float, float, bool]:
     alternating each round (one untimed warm-up round), and whether every image came out identical."""
     import torch
 
-    from flowsynth import shading
-    from flowsynth.renderer import render_plan
+    from flowsynth.renderer import render_plan, shading
 
     per = {True: [], False: []}
     images = {}

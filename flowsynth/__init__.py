@@ -3,7 +3,7 @@
 Importing flowsynth compiles nothing; Warp kernels load on first use.
 
 Every public name is an attribute of this package (``fs.render``, ``fs.render_plan``, ``fs.clear_caches``...);
-no function shares its name with a module: the renderer's module is ``flowsynth.renderer``.
+no function shares its name with a module: ``fs.render`` comes from the folder ``flowsynth.renderer``.
 """
 
 from flowsynth.caches import clear_caches

@@ -97,7 +97,8 @@ def check_flow_gaps(flow_gaps: Any) -> tuple[int, ...]:
 
 @dataclass(frozen=True)
 class FinalPass:
-    """Settings of the final pass, ``rgb_final`` (flowsynth/finalpass.py; the models: docs/rendering.md, Final pass).
+    """Settings of the final pass, ``rgb_final`` (flowsynth/renderer/finalpass.py; the models: docs/rendering.md, Final
+    pass).
 
     ``RenderOptions``, ``BouncingThingsConfig`` and ``make_plan`` take each field as ``final_<name>``. Per-clip values
     (DoF or not, aperture, focus, noise levels) and per-frame gains are drawn from the scene's render seed. Validated

@@ -60,7 +60,8 @@ STEREO_KEYS = ("rgb_right", "depth_right", "disparity", "disparity_right", "disp
 # The outputs before scene flow, tracks and stereo (benchmarks/throughput.py keeps timing this set).
 CORE_OUTPUTS = ("rgb",) + GBUFFER_KEYS + FLOW_KEYS + TABLE_KEYS + CAMERA_KEYS
 # The "final" pass beside the clean ``rgb``: motion blur, depth of field, fog, exposure / white balance, sensor noise
-# (flowsynth/finalpass.py, docs/rendering.md "Final pass"); ground truth stays that of the clean pinhole geometry.
+# (flowsynth/renderer/finalpass.py, docs/rendering.md "Final pass"); ground truth stays that of the clean pinhole
+# geometry.
 FINAL_KEYS = ("rgb_final",)
 OUTPUTS = CORE_OUTPUTS + SCENE_FLOW_KEYS + TRACK_KEYS + STEREO_KEYS + FINAL_KEYS
 _GAP_RE = re.compile(r"^(?P<base>[a-z_]+_(?:fw|bw))_k(?P<k>[0-9]+)$")

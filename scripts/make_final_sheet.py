@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 import flowsynth as fs
-from flowsynth.finalpass import draw_final
+from flowsynth.renderer import draw_final
 from flowsynth.plan import FinalPass
 from flowsynth.viz import contact_sheet, save_png
 

@@ -32,7 +32,7 @@ import torch
 
 import flowsynth as fs
 from flowsynth.raycast import gbuffer as gbuffer_mod
-from flowsynth import renderer as renderer_mod
+from flowsynth.renderer import pipeline as renderer_mod
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
 
@@ -244,8 +244,9 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
     assert any("read a G-buffer array into numpy" in b for b in rec.violations(TWIN))
 
 
-STAGES = ["raycast/gbuffer", "renderer", "truth/flow", "shading", "finalpass", "raycast/accel", "raycast/tiles", "raycast/culling", "raycast/blas", "truth/stereo",
-          "truth/tracks", "truth/annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
+STAGES = ["raycast/gbuffer", "renderer/pipeline", "truth/flow", "renderer/shading", "renderer/finalpass",
+          "raycast/accel", "raycast/tiles", "raycast/culling", "raycast/blas", "truth/stereo", "truth/tracks",
+          "truth/annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
           "scene/motion", "scene/physics"]
 
 

@@ -1,4 +1,4 @@
-"""The final pass (rgb_final, flowsynth/finalpass.py) against its models: each effect alone on a known scene,
+"""The final pass (rgb_final, flowsynth/renderer/finalpass.py) against its models: each effect alone on a known scene,
 checked against an oracle written here (kornia's sRGB decoding, analytic ray lengths, the thin-lens formula,
 a brute-force numpy gather, the Poisson-Gaussian moments); the ground truth untouched; determinism."""
 
@@ -14,10 +14,10 @@ import trimesh
 
 import flowsynth as fs
 from flowsynth.errors import ConfigError
-from flowsynth.finalpass import apply_dof, draw_final
+from flowsynth.renderer.finalpass import apply_dof, draw_final
 from flowsynth.appearance.lights import Light
 from flowsynth.plan import FinalPass
-from flowsynth.shading import poses_at
+from flowsynth.renderer.shading import poses_at
 
 # Every effect off: the final pass must equal the clean pass bit for bit.
 OFF = dict(final_shutter=0.0, final_dof_prob=0.0, final_shot_noise=(0.0, 0.0), final_read_noise=(0.0, 0.0),

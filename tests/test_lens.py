@@ -299,7 +299,7 @@ def _subpixel_rays(cam: fs.Camera, uv: np.ndarray) -> np.ndarray:
     from flowsynth.raycast.accel import pinhole
     from flowsynth.kernels import wp_runtime
     from flowsynth.kernels.shade import lens_ray
-    from flowsynth.shading import LENS_RAY_PAD
+    from flowsynth.renderer.shading import LENS_RAY_PAD
 
     wp_runtime()
 

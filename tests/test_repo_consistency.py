@@ -107,8 +107,8 @@ def _resolves(name: str) -> bool:
 
 
 def test_dotted_names_resolve():
-    # "flowsynth.shading.pack_materials" in a docstring or document names something that exists.
+    # "flowsynth.renderer.shading.pack_materials" in a docstring or document names something that exists.
     stale = sorted({f"{src.relative_to(ROOT)}: {name}" for src in SOURCES if src.suffix in (".py", ".md")
                     for name in DOTTED.findall(src.read_text()) if not _resolves(name.rstrip("."))})
     assert not stale, "names of things that do not exist:\n" + "\n".join(stale)
-    assert not _resolves("flowsynth.shading.no_such_function") and _resolves("flowsynth.plan.OUTPUTS")
+    assert not _resolves("flowsynth.renderer.shading.no_such_function") and _resolves("flowsynth.plan.OUTPUTS")

@@ -17,7 +17,7 @@ from flowsynth.appearance.lights import Light, sample_lights
 from flowsynth.appearance.materials import resolve_material, sample_material
 from flowsynth.appearance.textures import list_textures, srgb_to_linear
 from flowsynth.kernels.tonemap import SrgbPow, srgb_pow, srgb_pow_tables
-from flowsynth.shading import poses_at, tonemap_frames, tonemap_srgb
+from flowsynth.renderer.shading import poses_at, tonemap_frames, tonemap_srgb
 
 LIGHT_DIR = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])  # travel direction, world frame
 LIGHTS = [Light("directional", (1.0, 0.95, 0.9), 0.7, direction=tuple(LIGHT_DIR)),
@@ -216,7 +216,7 @@ def test_camera_rays_find_the_same_hits_through_tiles_as_through_the_bvh(monkeyp
     """Without motion blur the shading kernel's own camera rays (edge_spp, spp > 1) walk the G-buffer cast's
     screen-tile lists; the top-level BVH (``CAMERA_RAY_TILES = False``, what motion blur uses) is an independent
     walk to the same closest hits, so both render the same image bit for bit."""
-    from flowsynth import shading
+    from flowsynth.renderer import shading
 
     scene = moving_boxes(3, W=64, H=48, camera_motion=True)
     opts = {"render_mode": mode, "spp": 4, "edge_spp": 16, "seed": 7}

@@ -1,7 +1,7 @@
 """Image textures: files found in a folder, loaded as linear RGB, and their mip pyramids (cached per process).
 
 Plain numpy and Pillow: importing this module loads no Warp kernel. A material's "image" layer (docs/rendering.md)
-names a file; flowsynth.shading packs its mip levels into the texel table the shading kernel reads.
+names a file; flowsynth.renderer.shading packs its mip levels into the texel table the shading kernel reads.
 """
 
 from __future__ import annotations

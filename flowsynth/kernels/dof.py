@@ -10,7 +10,7 @@ per unit area), and divides by the sum of the weights:
 The second bracket is the occlusion rule: a sample behind p (z_q > z_p) reaches p only where p's own disc
 reaches q, so a sharp foreground never takes on the blur of the background behind it, while a blurred
 foreground spreads over whatever lies behind it. p itself always has weight 1 / r_p^2 > 0.
-flowsynth/finalpass.py launches it; docs/rendering.md (Final pass) states the model and its limits.
+flowsynth/renderer/finalpass.py launches it; docs/rendering.md (Final pass) states the model and its limits.
 """
 
 from __future__ import annotations

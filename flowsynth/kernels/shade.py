@@ -69,7 +69,7 @@ class ShadeScene:
 
     inst: Instances
     max_t: wp.float32
-    mats: wp.array[Material]  # one per instance (``flowsynth.shading.pack_materials``)
+    mats: wp.array[Material]  # one per instance (``flowsynth.renderer.shading.pack_materials``)
     img_data: wp.array[wp.vec3]
     img_info: wp.array2d[wp.int32]
     n_lights: wp.int32

@@ -1,6 +1,6 @@
 """Textures evaluated in object-local coordinates, so a texture moves exactly with its object.
 
-A material is one ``Material`` struct of an array (packed by field name in ``flowsynth.shading.pack_materials``
+A material is one ``Material`` struct of an array (packed by field name in ``flowsynth.renderer.shading.pack_materials``
 from a numpy structured array of ``Material.numpy_dtype()``, so the packer and the kernels share one definition of
 every field and a misnamed one fails: numpy raises on an unknown field, Warp does not compile one). It has two
 texture *layers* (``a``, ``b``, each a ``Layer``) and a blend mask; a single-layer material has layer b's family

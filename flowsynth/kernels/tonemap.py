@@ -1,6 +1,6 @@
 """Tone mapping: linear radiance to sRGB-encoded float32, in float64 steps, on the render device.
 
-``tonemap_kernel`` is ``flowsynth.shading.tonemap_srgb`` (numpy) per pixel: exposure, the optional extended
+``tonemap_kernel`` is ``flowsynth.renderer.shading.tonemap_srgb`` (numpy) per pixel: exposure, the optional extended
 Reinhard operator, the sRGB transfer function with its power from a table (``srgb_pow``, no libm call), the same
 float32 values bit for bit (docs/decisions/0013-tonemap-kernel.md).
 """
@@ -50,7 +50,7 @@ def srgb_pow(x: wp.float64, tab: SrgbPow) -> wp.float64:
 @wp.func
 def srgb_encode(c: wp.float32, exposure: wp.float64, reinhard: wp.int32, white2: wp.float64,
                 tab: SrgbPow) -> wp.float32:
-    """flowsynth.shading.tonemap_srgb of one linear value, in the same float64 steps: x = exposure c (NaN -> 0,
+    """flowsynth.renderer.shading.tonemap_srgb of one linear value, in the same float64 steps: x = exposure c (NaN -> 0,
     +inf -> 1e30, < 0 -> 0), extended Reinhard x (1 + x / white^2) / (1 + x) when asked, min(x, 1), then the
     sRGB transfer function, clipped to [0, 1] and rounded to float32. The power comes from ``srgb_pow`` unless
     the float32 rounding is in doubt (then from ``wp.pow``, as before): rounding to float32 is monotonic, so
@@ -86,7 +86,7 @@ def tonemap_kernel(radiance: wp.array3d[wp.vec3], exposure: wp.float64, reinhard
 
 
 def srgb_pow_tables(device: str = "cpu") -> SrgbPow:
-    """The tables of ``srgb_pow`` on ``device`` (flowsynth.shading.srgb_tables keeps one per device): Taylor
+    """The tables of ``srgb_pow`` on ``device`` (flowsynth.renderer.shading.srgb_tables keeps one per device): Taylor
     coefficients binom(a, n) c^(a - n), n = 0 .. 4, of m^a, a = 1/2.4, about each bin centre c, and 2^(-k a) for
     k = 0 .. 10."""
     a = 1.0 / 2.4

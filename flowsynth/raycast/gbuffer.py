@@ -1,7 +1,7 @@
 """The G-buffer primitive: one primary ray per pixel centre and frame, cast on a ``SceneAccel``.
 
-``fs.render`` (``flowsynth.renderer``) casts it once per clip; the right camera of ``flowsynth.truth.stereo`` casts it
-again. It sits below both, so neither imports the other (docs/architecture.md).
+``fs.render`` (``flowsynth.renderer.pipeline``) casts it once per clip; the right camera of ``flowsynth.truth.stereo``
+casts it again. It sits below both, so neither imports the other (docs/architecture.md).
 
 The G-buffer stays in Warp arrays on the accel's device: the stages that run kernels (flow, position and motion,
 shading) read those arrays. ``GBuffer.host()`` is the one hand-over to numpy, made at most once per G-buffer (no

@@ -170,8 +170,8 @@ class BouncingThingsConfig:
     """Texture families to draw each surface's material from (non-empty;
     flowsynth.appearance.materials.TEXTURE_FAMILIES). "solid" (one flat colour) and "leaves" (dead-leaves discs) are
     drawn only when listed."""
-    # The final pass, output ``rgb_final`` (flowsynth/finalpass.py; models and defaults: docs/rendering.md, Final
-    # pass). Only read when rgb_final is requested; the ground truth never depends on them.
+    # The final pass, output ``rgb_final`` (flowsynth/renderer/finalpass.py; models and defaults: docs/rendering.md,
+    # Final pass). Only read when rgb_final is requested; the ground truth never depends on them.
     final_shutter: float = _OPT.final_shutter
     """Final pass: shutter open time [fraction of the frame interval] in [0, 1], centred on the frame instant
     (the ground truth's instant); 0 = no motion blur (the clean pass's own ``shutter`` then applies)."""

@@ -11,7 +11,7 @@
         occlusions/scene_00000/frame_0001.png ...               occ_fw, 8-bit 0 / 255 (when exported)
 
 One scene per sample, frames numbered from 1 as in Sintel. The ``final`` pass is written when ``rgb_final``
-is among the outputs (``--outputs rgb,rgb_final,flow_fw,occ_fw``; flowsynth/finalpass.py), read by
+is among the outputs (``--outputs rgb,rgb_final,flow_fw,occ_fw``; flowsynth/renderer/finalpass.py), read by
 ``torchvision.datasets.Sintel(root=DIR, pass_name="final")`` (or "both"); flow and occlusions are the same
 for both passes. ``.flo`` holds the stream's flow, 0 where not ``valid_fw``: the format has no mask.
 """

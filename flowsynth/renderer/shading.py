@@ -1,6 +1,6 @@
 """RGB rendering: materials and lights packed for the shading kernel, motion-blur time slices, tone mapping.
 
-``render_rgb`` is called by ``flowsynth.renderer.render_plan`` when "rgb" is requested. The model (render
+``render_rgb`` is called by ``flowsynth.renderer.pipeline.render_plan`` when "rgb" is requested. The model (render
 modes, material schema, lights, time model, tone mapping, RNG) is documented in docs/rendering.md.
 
 Motion-blur time model: the shutter opens at the frame instant. Frame t integrates times

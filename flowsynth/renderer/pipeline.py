@@ -1,9 +1,9 @@
 """``fs.render`` and ``fs.render_plan``: one primary ray cast per frame -> G-buffer -> requested ground truth, as
 torch tensors. The orchestrator: it runs the stages a plan asks for (``flowsynth.plan``), each in its own module.
 
-Output keys, shapes and meaning are those of docs/conventions.md. (This module was ``flowsynth.render`` until the
-function ``fs.render`` and a module of the same name shadowed each other; the G-buffer primitive it held is
-``flowsynth.raycast.gbuffer``.)
+Output keys, shapes and meaning are those of docs/conventions.md. (This module was ``flowsynth.renderer`` until the
+folders of issue 48, and ``flowsynth.render`` before the function ``fs.render`` and a module of that name shadowed each
+other; the G-buffer primitive it held is ``flowsynth.raycast.gbuffer``.)
 """
 
 from __future__ import annotations
@@ -14,12 +14,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from flowsynth.raycast import SceneAccel, resolve_device
-from flowsynth.scene import check_lens_outputs
-from flowsynth.raycast import GBuffer, cast_gbuffer, scene_arrays
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
-from flowsynth.scene import Scene
+from flowsynth.raycast import GBuffer, SceneAccel, cast_gbuffer, resolve_device, scene_arrays
+from flowsynth.scene import Scene, check_lens_outputs
 
 __all__ = ["HOST_KEYS", "gbuffer_outputs", "render", "render_plan"]
 
@@ -91,11 +89,11 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
 
         out.update(object_tables(scene, gb, plan, world_T_obj, cam_T_world))
     if plan.rgb:
-        from flowsynth.shading import render_rgb
+        from flowsynth.renderer.shading import render_rgb
 
         out["rgb"] = render_rgb(scene, accel, gb, plan, device=device)
-    if plan.final:  # the final pass (flowsynth/finalpass.py): camera effects, the ground truth untouched
-        from flowsynth.finalpass import render_final
+    if plan.final:  # the final pass (flowsynth/renderer/finalpass.py): camera effects, the ground truth untouched
+        from flowsynth.renderer.finalpass import render_final
 
         out["rgb_final"] = render_final(scene, accel, gb, plan, device=device)
     if "K" in plan.outputs:
@@ -141,7 +139,7 @@ def _rgb_right(scene: Scene, right, gb: GBuffer, plan: Plan, device: str) -> tor
     """The right view (``flowsynth.truth.stereo.right_view``) shaded with exactly the left view's lights (the defaults
     are placed from the left view's G-buffer ``gb``)."""
     from flowsynth.appearance import resolve_lights
-    from flowsynth.shading import median_hit_distance, render_rgb
+    from flowsynth.renderer.shading import median_hit_distance, render_rgb
 
     view = copy.copy(scene)
     view.lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
