@@ -17,7 +17,7 @@ restarted and its batch runs again.
 
 Export needs no dataset, only "run this job somewhere and give me its record": ``export_results``
 drives plain actors with the same restart options itself, each holding the exporter's own
-:class:`flowsynth.writer.ExportWriter` (the object the local engine calls). Samples are pure functions
+:class:`flowsynth.export.writer.ExportWriter` (the object the local engine calls). Samples are pure functions
 of (config, seed, index), so a retry writes the same bytes.
 
 Nothing outside this module imports Ray, and this module imports it only inside its functions.
@@ -127,7 +127,7 @@ def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] 
 
 
 class WriterActor:
-    """Ray actor around a :class:`flowsynth.writer.ExportWriter`: opens it once as a worker process
+    """Ray actor around a :class:`flowsynth.export.writer.ExportWriter`: opens it once as a worker process
     (one thread), then ``write(job)`` is ``writer(job)`` (the files are on disk, the record comes back)."""
 
     def __init__(self, writer) -> None:
@@ -141,7 +141,7 @@ _IN_FLIGHT = 2  # jobs queued per actor: the next one waits in the actor while t
 
 
 def export_results(jobs: list, writer, *, actors: int | None = None, address: str | None = None) -> Iterator:
-    """Run ``writer(job)`` (a :class:`flowsynth.writer.ExportWriter`) for every job in a pool of Ray actors;
+    """Run ``writer(job)`` (a :class:`flowsynth.export.writer.ExportWriter`) for every job in a pool of Ray actors;
     yields its return values in completion order. Each actor opens its copy of the writer once.
 
     Plain actors, not Ray Data (whose map operator would add a stats actor, a Ray Data import in every

@@ -161,8 +161,8 @@ def test_killed_actor_loses_nothing(cluster, tmp_path):
 @pytest.mark.ray
 def test_killed_driver_resumes(cluster, tmp_path):
     """The driver SIGKILLs itself once 2 samples are journaled and placed (FLOWSYNTH_TEST_KILL_AFTER, a hook in
-    flowsynth/export.py: a crash at that point on a machine of any speed, not after a sleep), with the next jobs
-    running in its actors. Once those actors are gone, the same command resumes: the 2 samples are kept (their
+    flowsynth/export/exporter.py: a crash at that point on a machine of any speed, not after a sleep), with the next
+    jobs running in its actors. Once those actors are gone, the same command resumes: the 2 samples are kept (their
     files not written again), and the files equal a local export's byte for byte."""
     out, num = tmp_path / "ray", 8
     cmd = [sys.executable, "-m", "flowsynth.cli", "export", "--out", str(out), "--num", str(num), "--engine", "ray",
@@ -198,7 +198,7 @@ def test_ray_job_error_is_the_local_one(cluster, tmp_path):
     Ray's wrapper: the exporter turns an OSError into StorageError (exit status 3) with its errno."""
     from flowsynth.distributed import export_results
     from flowsynth.io import layouts
-    from flowsynth.writer import ExportWriter
+    from flowsynth.export.writer import ExportWriter
 
     writer = ExportWriter(CFG, OUTS.split(","), 0, "exact", layouts.get("native"))
     job = ((0,), str(tmp_path / "missing"))  # the staging folder cannot be made there
@@ -214,7 +214,7 @@ def test_ray_job_error_is_the_local_one(cluster, tmp_path):
 def test_driver_failure_stops_the_actors_before_cleaning_up(cluster, tmp_path, monkeypatch):
     """The driver fails placing its first sample: the export raises StorageError, its actors are gone, and no
     staging folder is left, nor written later by an actor still working on a queued sample."""
-    import flowsynth.export as ex
+    import flowsynth.export.exporter as ex
 
     def full_disk(src, dst):
         raise OSError(28, "No space left on device")

@@ -78,8 +78,9 @@ def test_exported_rgb_within_quantisation(tmp_path):
 def test_sigkill_then_resume(tmp_path):
     """SIGKILL after the 17th of 18 samples, one past a manifest rewrite (every 16 samples): the manifest holds 16
     records and the journal the 17th. The export kills itself there (FLOWSYNTH_TEST_KILL_AFTER, a hook in
-    flowsynth/export.py), so the crash is at that point on a machine of any speed. The resume keeps all 17 (their
-    files are not written again), and the result is a complete export equal byte for byte to an uninterrupted one."""
+    flowsynth/export/exporter.py), so the crash is at that point on a machine of any speed. The resume keeps all 17
+    (their files are not written again), and the result is a complete export equal byte for byte to an uninterrupted
+    one."""
     from flowsynth.export import export_dataset
 
     out, num, outputs = tmp_path / "ds", 18, ["depth", "flow_fw", "instance"]

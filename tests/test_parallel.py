@@ -120,7 +120,7 @@ def test_default_threads_is_one_in_export_workers(tmp_path):
     from concurrent.futures import ProcessPoolExecutor
 
     from flowsynth.io import layouts
-    from flowsynth.writer import ExportWriter
+    from flowsynth.export.writer import ExportWriter
 
     cfg = fs.BouncingThingsConfig(width=16, height=12, num_frames=1, num_objects=(1, 1), motion="static")
     writer = ExportWriter(cfg, ("depth",), 0, "exact", layouts.get("native"))

@@ -118,9 +118,10 @@ def test_resume_checks_every_file_and_repairs(tmp_path, capsys):
 
 def test_killed_at_a_known_sample_resumes_to_the_same_bytes(tmp_path):
     """The export kills itself (SIGKILL) right after its second sample is journaled and placed
-    (FLOWSYNTH_TEST_KILL_AFTER, a hook in flowsynth/export.py): a crash at a known point, whatever the machine's
-    speed, where a kill timed by polling could come after the export had finished. Resume keeps the two samples
-    (their files are not written again), makes the rest, and the result equals an uninterrupted export's bytes."""
+    (FLOWSYNTH_TEST_KILL_AFTER, a hook in flowsynth/export/exporter.py): a crash at a known point, whatever the
+    machine's speed, where a kill timed by polling could come after the export had finished. Resume keeps the two
+    samples (their files are not written again), makes the rest, and the result equals an uninterrupted export's
+    bytes."""
     ref, out = tmp_path / "ref", tmp_path / "ds"
     assert export(ref, 6) == 0
     cmd = [sys.executable, "-m", "flowsynth.cli", "export", "--out", str(out), "--num", "6", "--no-progress", *OUTS,

@@ -28,7 +28,7 @@ files ``boxes_coco.json`` and ``tapvid.pkl`` of ``native`` are not written (thei
 The tar is deterministic: USTAR headers with mtime 0, uid/gid 0, empty user/group names, mode 0644, and
 members in name order; so a shard's bytes depend only on its samples, whatever the engine or workers.
 
-Crash safety and resume (flowsynth/export.py, flowsynth/io/integrity.py): shard j holds samples
+Crash safety and resume (flowsynth/export/exporter.py, flowsynth/io/integrity.py): shard j holds samples
 [j N, min((j+1) N, num)) and is one unit of work (``Layout.units``). A worker writes the whole shard under
 a staging folder ``DIR/.tmp-*``; the exporter journals the record of each of its samples (all naming the
 shard, with its size and sha256) in one write, then renames the shard into place. A shard is complete

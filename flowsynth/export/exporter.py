@@ -1,7 +1,7 @@
 """Crash-safe, resumable, parallel export of BouncingThings samples to disk, in any registered layout.
 
-The entry point is :func:`export_dataset` (what ``flowsynth export`` runs); ``flowsynth.export.export`` is its
-deprecated old name (a function named like its module).
+The entry point is :func:`export_dataset` (what ``flowsynth export`` runs; exported by the folder,
+``flowsynth.export.export_dataset``, which also keeps its deprecated old name ``flowsynth.export.export``).
 
 What a layout writes is its own business (``flowsynth/io/layouts/``: native, flyingchairs, kitti,
 sintel, ...). This module does the bookkeeping that is the same for every layout::
@@ -14,12 +14,12 @@ sintel, ...). This module does the bookkeeping that is the same for every layout
       .journal.jsonl      records of samples finished since manifest.json was last rewritten
       ...                 the layout's files (paths in the manifest are relative to DIR)
 
-``cameras`` holds each sample's camera (:func:`flowsynth.writer.camera_record`: its provenance's intrinsics
+``cameras`` holds each sample's camera (:func:`flowsynth.export.writer.camera_record`: its provenance's intrinsics
 and lens, ``model`` "pinhole" and ``dist`` [] for a pinhole) in every layout, so that an export in a format
 that stores no camera (kitti, sintel, flyingchairs, flyingthings3d) still tells K and the lens of each sample.
 
 Units of work: a layout splits the export into units (``Layout.units``): one sample each, or for
-``webdataset`` one shard of ``--shard-size`` samples. A worker (:class:`flowsynth.writer.ExportWriter`, the
+``webdataset`` one shard of ``--shard-size`` samples. A worker (:class:`flowsynth.export.writer.ExportWriter`, the
 same object in worker processes and Ray actors) makes a whole unit.
 
 Crash safety: a unit is written by its layout into a hidden staging folder ``DIR/.tmp-NNNNN-*``,
@@ -58,9 +58,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from flowsynth.errors import ConfigError, ExportError, StorageError
-from flowsynth.io import file_records
-from flowsynth.io import layouts
-from flowsynth.writer import ExportWriter, run_job
+from flowsynth.export.writer import ExportWriter, run_job
+from flowsynth.io import file_records, layouts
 
 __all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export_dataset"]
 
@@ -214,18 +213,6 @@ def export_dataset(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outp
                            "finished and kept, temporaries removed; fix the cause (free space?) and re-run the "
                            "same command to resume", e.errno) from e
     return root
-
-
-def __getattr__(name: str):
-    # The function was ``export`` until issue 41 (a function named like its module); the old name still works,
-    # with a DeprecationWarning, and is bound nowhere (``flowsynth.export`` is always this module).
-    if name == "export":
-        import warnings
-
-        warnings.warn("flowsynth.export.export is deprecated; use flowsynth.export.export_dataset (the same "
-                      "function)", DeprecationWarning, stacklevel=2)
-        return export_dataset
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _same(old: dict, identity: dict) -> bool:
