@@ -13,7 +13,7 @@ from flowsynth.plan import Plan, make_plan
 from flowsynth.renderer import render, render_plan
 from flowsynth.scene import Camera, Scene, SceneObject
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "AssetError",
