@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flowsynth.errors import ConfigError
 from flowsynth.appearance.textures import list_textures, load_texture
+from flowsynth.errors import ConfigError
 
 __all__ = [
     "PROCEDURAL_FAMILIES",

@@ -13,11 +13,11 @@ from collections import OrderedDict
 import numpy as np
 import trimesh
 
-from flowsynth.raycast.blas import atlas, corner_normals
 from flowsynth.caches import register
-from flowsynth.raycast.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
+from flowsynth.raycast.blas import atlas, corner_normals
+from flowsynth.raycast.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
 from flowsynth.raycast.tiles import posed_hull, tile_lists
 
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH

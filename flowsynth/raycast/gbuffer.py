@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from flowsynth.raycast.accel import SceneAccel, pinhole
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
+from flowsynth.raycast.accel import SceneAccel, pinhole
 from flowsynth.scene import Scene
 
 __all__ = ["GBuffer", "HostGBuffer", "cast_gbuffer", "scene_arrays", "to_torch"]

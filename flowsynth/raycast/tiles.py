@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from flowsynth.raycast.culling import hull_points
 from flowsynth.kernels import wp_runtime
+from flowsynth.raycast.culling import hull_points
 
 __all__ = ["CLIP_Z", "LENS_TILE_BOUNDS", "TILE", "tile_lists"]
 

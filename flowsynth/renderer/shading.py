@@ -21,14 +21,13 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from flowsynth.raycast import SceneAccel, pinhole
+from flowsynth.appearance import mip_pyramid, resolve_lights, resolve_material, srgb_to_linear
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
-from flowsynth.raycast import to_torch
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_bands
-from flowsynth.appearance import mip_pyramid, resolve_lights, resolve_material, srgb_to_linear
 from flowsynth.plan import TONEMAPS
+from flowsynth.raycast import SceneAccel, pinhole, to_torch
 
 __all__ = ["MAX_TIME_SLICES", "median_hit_distance", "pack_materials", "poses_at", "render_radiance", "render_rgb",
            "shade_radiance", "shutter_times", "srgb_tables", "tonemap_array", "tonemap_frames", "tonemap_srgb"]

@@ -28,9 +28,9 @@ import math
 import numpy as np
 import torch
 
-from flowsynth.scene._checks import as_float64_array
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
+from flowsynth.scene._checks import as_float64_array
 
 __all__ = ["LENS_MODELS", "LENS_UNSUPPORTED", "NEWTON_TOL", "Camera", "check_lens_outputs"]
 

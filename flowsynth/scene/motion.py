@@ -18,11 +18,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.scene.assets import Asset
 from flowsynth.scene.config import BouncingThingsConfig
-from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.scene.physics import (NewtonScene, choose_substeps, memoise_newton_kernel_factories, simulate_physics,
-                               wall_boxes)
+                                     wall_boxes)
 from flowsynth.scene.trajectory import InitialState, Trajectory, pose_matrices, quat_to_rotation, simulate_static
 
 __all__ = [

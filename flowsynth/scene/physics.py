@@ -21,11 +21,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from flowsynth.scene.assets import Asset, unit_hull
 from flowsynth.caches import register
-from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
+from flowsynth.scene.assets import Asset, unit_hull
+from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.scene.trajectory import (InitialState, Trajectory, pose_matrices, quat_to_rotation,
                                         rotation_to_quat_xyzw, simulate_static)
 

@@ -38,12 +38,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from flowsynth.appearance import Light, sample_lights, sample_material
+from flowsynth.errors import ConfigError
 from flowsynth.scene.assets import ROOM_WALLS, Asset, get_asset, resolve_assets, room_walls
 from flowsynth.scene.camera import Camera
 from flowsynth.scene.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
 from flowsynth.scene.config import BouncingThingsConfig
-from flowsynth.errors import ConfigError
-from flowsynth.appearance import Light, sample_lights, sample_material
 from flowsynth.scene.motion import InitialState, Trajectory, quat_to_rotation, simulate
 from flowsynth.scene.scene import Scene
 

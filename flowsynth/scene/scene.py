@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from flowsynth.errors import ConfigError
 from flowsynth.scene._checks import as_float64_array, check_rigid
 from flowsynth.scene.camera import Camera
-from flowsynth.errors import ConfigError
 from flowsynth.scene.meshes import clean_mesh, library_copy
 
 __all__ = ["PROVENANCE_VERSION", "Scene", "SceneObject", "clean_mesh", "provenance_json"]

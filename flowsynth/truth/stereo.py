@@ -28,8 +28,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from flowsynth.truth.flow import reproject_pixels
 from flowsynth.raycast import SceneAccel
+from flowsynth.truth.flow import reproject_pixels
 
 __all__ = ["RIGHT_VIEW_KEYS", "RightView", "right_poses", "right_view", "stereo_outputs"]
 

@@ -32,8 +32,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from flowsynth.truth.flow import reproject, visibility
 from flowsynth.raycast import HostGBuffer
+from flowsynth.truth.flow import reproject, visibility
 
 __all__ = ["EDGE_REL_DEPTH", "track_outputs"]
 
