@@ -465,7 +465,7 @@ def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
         ax[0, 0].set_title(f"{pair}: frame 1")
         ax[0, 1].imshow(flow_to_color(gt[0], max_flow=scale))
         ax[0, 1].set_title(f"ground truth (max {scale:.1f} px)")
-        ax[1, 0].imshow(valid[0, 0].numpy(), cmap="gray")
+        ax[1, 0].imshow(valid[0, 0].numpy(), cmap="gray", vmin=0, vmax=1)
         ax[1, 0].set_title("valid")
         ax[1, 1].axis("off")
         for k, (label, net) in enumerate(loaded.items(), 2):
