@@ -242,12 +242,22 @@ def stereo_pairs(n: int, seed: int):
             a, b, fx = a[:, ::-1], b[:, ::-1], d[:, ::-1]
         y0, x0 = int(rng.integers(0, h - H + 1)), int(rng.integers(0, w - W + 1))
         a, b, fx = (x[y0:y0 + H, x0:x0 + W] for x in (a, b, fx))
-        xs = np.arange(W)[None, :]
-        valid = np.isfinite(fx) & (xs + fx >= 0) & (xs + fx <= W - 1)
-        flow = np.stack([np.where(valid, fx, 0.0), np.zeros((H, W))], -1)
-        for lst, x in zip(out, (a, b, flow, valid[..., None])):
-            lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
+        _append_horizontal(out, a, b, fx)
     return tuple(torch.stack(x) for x in out)
+
+
+def _append_horizontal(out: list, a, b, fx) -> None:
+    """Append to the four lists of ``out`` the pair (a, b) ((h, w, 3) float) with horizontal flow ``fx`` (h, w) [px],
+    as (C, h, w) float32 tensors: valid where ``fx`` is finite and the target lands inside the image (else flow 0)."""
+    import numpy as np
+    import torch
+
+    h, w = fx.shape
+    xs = np.arange(w)[None, :]
+    valid = np.isfinite(fx) & (xs + fx >= 0) & (xs + fx <= w - 1)
+    flow = np.stack([np.where(valid, fx, 0.0), np.zeros((h, w))], -1)
+    for lst, x in zip(out, (a, b, flow, valid[..., None])):
+        lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
 
 
 def motorcycle_full(factor: int = 2) -> tuple:
@@ -265,11 +275,7 @@ def motorcycle_full(factor: int = 2) -> tuple:
     d = disp[factor // 2::factor, factor // 2::factor][:h, :w].astype(np.float64) / factor
     out = [[], [], [], []]
     for x1, x2, fx in ((a, b, -d), (a[:, ::-1], b[:, ::-1], d[:, ::-1])):
-        xs = np.arange(w)[None, :]
-        valid = np.isfinite(fx) & (xs + fx >= 0) & (xs + fx <= w - 1)
-        flow = np.stack([np.where(valid, fx, 0.0), np.zeros((h, w))], -1)
-        for lst, x in zip(out, (x1, x2, flow, valid[..., None])):
-            lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
+        _append_horizontal(out, x1, x2, fx)
     return tuple(torch.stack(x) for x in out)
 
 
