@@ -488,3 +488,87 @@ def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
         plt.close(fig)
         paths.append(out)
     return paths
+
+
+# -- command line ---------------------------------------------------------------------------------------------
+def main(argv: list[str]) -> None:
+    """``benchmarks/learning.py --net raft`` (the default since issue 46): the command line of this judge."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--net", choices=("raft", "ncc-v2"), default="raft")
+    p.add_argument("--quick", action="store_true", help="a smoke run: 12 pairs an arm, 20 steps, tests every 10")
+    p.add_argument("--seeds", default="0")
+    p.add_argument("--arms", default="flowsynth,chairs2d_photos",
+                   help=f"comma-separated, of {', '.join(ARMS)}")
+    p.add_argument("--steps", type=int, default=None, help=f"training steps per net (default {STEPS})")
+    p.add_argument("--every", type=int, default=None, help=f"test every this many steps (default {EVERY})")
+    p.add_argument("--pool", type=int, default=None, help=f"training pairs per arm (default {POOL})")
+    p.add_argument("--workers", type=int, default=2, help="DataLoader workers rendering the flowsynth pairs")
+    p.add_argument("--threads", type=int, default=2, help="torch threads in all (split between --jobs)")
+    p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of its own; 0: one "
+                                                       "after another in this process")
+    p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda)")
+    p.add_argument("--at-once", action="store_true", help="render every seed's pools, then train every net of every "
+                   "seed at once, each in a process of its own (a lent GPU)")
+    p.add_argument("--train-after", default=None, metavar="FILE", help="--at-once: render the pools, then wait until "
+                   "FILE exists before training (so that other benchmarks have the GPU to themselves)")
+    p.add_argument("--middlebury", default=None, metavar="DIR",
+                   help="a folder of Middlebury flow pairs (NAME/frame10.png, frame11.png, flow10.flo)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
+                   help="a lever: the flowsynth arms' config with this field changed (repeatable); use with --tag")
+    p.add_argument("--tag", default="", help="results/learning_raft_TAG.json")
+    p.add_argument("--summarize", action="store_true", help="train nothing: pool the seeds of --files")
+    p.add_argument("--files", default="learning_raft*.json", help="--summarize: results/ files to pool (a glob)")
+    p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm")
+    p.add_argument("--against", default="chairs2d_photos", help="--summarize: the denominator arm")
+    p.add_argument("--figures", default=None, metavar="NAME",
+                   help="train nothing: results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
+    p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
+    p.add_argument("--plot", default=None, metavar="NAME", help="train nothing: results/NAME_JUDGE.png, the learning "
+                   "curves of every arm and seed in the --files results")
+    p.add_argument("--stats", action="store_true", help="train nothing: flow-magnitude and texture statistics of "
+                   "--arms' pools (--pool pairs, default 64) beside the real judges")
+    p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
+                   "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
+                   "[_TAG].json)")
+    args = p.parse_args(argv)
+    if args.summarize:
+        out = summarize(args.files, args.arm, args.against)
+        write_json(f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else ""), out)
+        return
+    if args.plot:
+        from learning import plot_judge_curves
+
+        for path in plot_judge_curves(args.plot, args.files):
+            print(f"wrote {path}")
+        return
+    if args.stats:
+        rows = pool_stats(args.arms.split(","), args.pool or 64, args.workers, {}, args.middlebury)
+        print_table(rows, list(rows[0]))
+        write_json("learning_raft_stats" + (f"_{args.tag}" if args.tag else ""), {"pairs": args.pool or 64,
+                                                                                   "rows": rows})
+        return
+    if args.diagnose:
+        rows = diagnose([n for n in args.nets.split(",") if n], args.middlebury)
+        print_table(rows, list(rows[0]))
+        write_json("learning_raft_diagnose" + (f"_{args.tag}" if args.tag else ""), {"rows": rows})
+        return
+    if args.figures:
+        for path in figures(args.figures, args.middlebury, [n for n in args.nets.split(",") if n]):
+            print(f"wrote {path}")
+        return
+    if args.steps is not None and args.steps < 20:
+        p.error(f"--steps {args.steps}: give at least 20 steps")
+    if args.quick:
+        args.pool, args.steps, args.every = args.pool or 12, args.steps or 20, args.every or 10
+    args.overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key in ("width", "height", "num_frames") or not value:
+            p.error(f"--set {item!r}: give FIELD=JSON for a field other than width, height, num_frames")
+        try:
+            args.overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8]")
+    run(args)
