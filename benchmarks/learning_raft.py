@@ -48,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import RESULTS_DIR, machine_info, print_table, write_json
 from learning_sets import NATURAL_PHOTOS, chairs2d_pairs, middlebury_pairs, motorcycle_full, natural_folder, \
-    photo_folder, photo_sources
+    photo_folder, photo_sources, small_motion_pairs
 
 NET = "raft_small"
 RES = (256, 192)  # (w, h) the training pairs are rendered at [px]
@@ -409,13 +409,16 @@ SMALL = 4.0  # [px] "small" true motion
 
 def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
     """Per saved net and real pair, the EPE over four kinds of valid pixel: smooth (low texture, ``SMOOTH``) or
-    textured, crossed with small (|flow| < ``SMALL``) or large true motion; the share of each kind. Where a net
-    "sees motion everywhere", its error on smooth pixels with small motion stands out."""
+    textured, crossed with small (|flow| < ``SMALL``) or large true motion; the share of each kind; and zero flow's
+    EPE. Where a net "sees motion everywhere", its error on smooth pixels with small motion stands out. The pairs:
+    the real judges and the small-motion diagnostic (``small_motion_pairs``: the judges' photographs moved by at
+    most 0, 1 and 3 px; on a still pair the EPE is the motion the net invents)."""
     import torch
 
     from flowsynth.training import predict
 
     tests = judge_sets(middlebury_dir)
+    tests.update(small_motion_pairs({k: v for k, v in tests.items() if k.startswith("mb_")}))
     rows = []
     for path in nets:
         net = raft_small()
@@ -426,7 +429,8 @@ def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
                                            keepdim=True)
             small = torch.linalg.vector_norm(flow[:1], dim=1, keepdim=True) < SMALL
             v = valid[:1] > 0.5
-            row = {"net": Path(path).stem, "pair": pair, "all": float(err[v].mean())}
+            row = {"net": Path(path).stem, "pair": pair, "all": float(err[v].mean()),
+                   "zero flow": float(torch.linalg.vector_norm(flow[:1], dim=1, keepdim=True)[v].mean())}
             for tname, tmask in (("smooth", texture < SMOOTH), ("textured", texture >= SMOOTH)):
                 for mname, mmask in (("small", small), ("large", ~small)):
                     m = v & tmask & mmask

@@ -323,6 +323,53 @@ def middlebury_pairs(root: str | None) -> dict:
     return out
 
 
+SMALL_MOTION = (0.0, 1.0, 3.0)  # [px] the largest |flow| of the small-motion diagnostic's pairs (0: a still pair)
+
+
+def small_motion_pair(img, seed: int, magnitude: float) -> tuple:
+    """A real photograph ``img`` ((h, w, 3) float in [0, 1]) as frame 1 and the same photograph moved by a small affine
+    motion as frame 2: flow(x) = t + B (x - c) about the centre c, with rotation, zoom and shear in B and the
+    translation t drawn from ``seed`` and scaled so that the largest |flow| over the image is ``magnitude`` [px] (0:
+    frame 2 is frame 1, the flow is 0). Frame 2 at y is frame 1 at the inverse map c + (I + B)^-1 (y - c - t)
+    (bilinear; where that lies outside frame 1, by reflection). Valid: the target x + flow(x) lands inside the
+    image. Returns (img1, img2, flow, valid), each (1, C, h, w) float32: what a net that "sees motion everywhere"
+    gets wrong over the smooth regions of a real image."""
+    import cv2
+    import numpy as np
+    import torch
+
+    h, w = img.shape[:2]
+    rng = np.random.default_rng(seed)
+    a, z, sh = rng.uniform(-1, 1, 3)
+    B = np.array([[z + sh, -a], [a, z - sh]]) / max(w, h)  # a small rotation, zoom and shear per pixel from c
+    t = rng.normal(size=2)
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    d = np.stack([xs - c[0], ys - c[1]], -1)  # (h, w, 2)
+    flow = t + d @ B.T
+    peak = np.linalg.norm(flow, axis=-1).max()
+    k = magnitude / peak if peak > 0 else 0.0
+    B, t, flow = B * k, t * k, flow * k
+    src = c + (d - t) @ np.linalg.inv(np.eye(2) + B).T  # where frame 2's pixel y comes from in frame 1
+    img2 = img if magnitude == 0 else cv2.remap(img.astype(np.float32), src[..., 0].astype(np.float32),
+                                                src[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                                                borderMode=cv2.BORDER_REFLECT)
+    target = np.stack([xs, ys], -1) + flow
+    valid = (target[..., 0] >= 0) & (target[..., 0] <= w - 1) & (target[..., 1] >= 0) & (target[..., 1] <= h - 1)
+    return tuple(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1)[None]
+                 for x in (img, img2, flow, valid[..., None]))
+
+
+def small_motion_pairs(middlebury: dict, seed: int = 0, magnitudes: tuple = SMALL_MOTION) -> dict:
+    """The small-motion diagnostic (issue 46): each real photograph the judges use (Motorcycle's left view at half
+    resolution, frame 1 of each pair in ``middlebury``: middlebury_pairs' dict) moved by ``small_motion_pair`` at
+    each of ``magnitudes``: {"sm_NAME_M": (img1, img2, flow, valid)}. No net trains on these photographs."""
+    photos = {"stereo": motorcycle_full(2)[0][0]}
+    photos.update({k[3:]: v[0][0] for k, v in middlebury.items()})
+    return {f"sm_{name}_{m:g}": small_motion_pair(x.permute(1, 2, 0).numpy(), seed + i, m)
+            for i, (name, x) in enumerate(photos.items()) for m in magnitudes}
+
+
 def test_sets(n: int, seed: int, middlebury: dict | None = None) -> dict:
     """Every test set of TESTS, n pairs each, and the Middlebury pairs of ``middlebury`` (middlebury_pairs)."""
     sets = {kind: stereo_pairs(n, seed) if kind == "stereo" else photo_pairs(n, seed, symmetric=kind == "symmetric")
