@@ -25,6 +25,10 @@ Protocol (the numbers are module constants):
   - ``flowsynth_photos``: the flowsynth config with NATURAL_PHOTOS as every texture (``texture_families=("image",)``).
   - ``flowsynth_natural``: the same with 96 textures made without files, with statistics of photographs instead
     (``learning_sets.natural_folder``: 1/f spectra, dead leaves, sparse edges over smooth regions).
+  - ``flowsynth_final``: the flowsynth config's final pass (``rgb_final``: motion blur, depth of field, sensor
+    noise) as the images, in place of ``rgb``; the flow is the same truth.
+  - ``mixture``: a preset mixture, as FlowNet and RAFT start on chairs: half the ``flowsynth`` pool, half the
+    ``chairs2d`` pool (no files).
   - ``control``: the flowsynth pool again, with another net seed (seed + 100): the judge's own noise.
 - Judges: Motorcycle ("stereo": the whole stereo pair at half resolution, plain and mirrored, ``motorcycle_full``)
   and, with ``--middlebury DIR``, the mean EPE over the Middlebury pairs found there ("middlebury", each pair also
@@ -61,7 +65,8 @@ LR = 4e-4  # RAFT's peak learning rate (AdamW, one-cycle)
 UPDATES, TEST_UPDATES = 8, 12
 POOL = 1200  # training pairs per arm
 SCALE = 512 // RES[0]  # flow_px is given at 512x384
-ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsynth_natural", "control")
+ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsynth_natural", "flowsynth_final",
+        "mixture", "control")
 CONTROL_SEED = 100  # the control's net seed is the run's seed + this
 JUDGES = ("stereo", "middlebury")
 CACHE = Path(__file__).resolve().parent.parent / ".cache" / "learning_raft"
@@ -85,9 +90,10 @@ def _u8(x):
     return (x * 255).round().clamp(0, 255).to(torch.uint8)
 
 
-def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = None):
+def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = None, image: str = "rgb"):
     """n flowsynth pairs at RES: (img1, img2 uint8 (n, 3, h, w), flow (n, 2, h, w), valid (n, 1, h, w) bool), and the
-    config. ``overrides``: config fields of a lever (not the size)."""
+    config. ``overrides``: config fields of a lever (not the size); ``image``: the output the images come from
+    ("rgb", or "rgb_final": the final pass)."""
     import torch
     from torch.utils.data import DataLoader
 
@@ -96,14 +102,14 @@ def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = Non
     base = fs.BouncingThingsConfig.from_dict(overrides or {})
     cfg = dataclasses.replace(base, width=RES[0], height=RES[1], num_frames=2,
                               flow_px=tuple(x / SCALE for x in base.flow_px))
-    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, length=n)
+    ds = fs.datasets.BouncingThings(cfg, outputs=[image, "flow_fw", "valid_fw"], seed=seed, length=n)
     w, h = RES
     img1, img2 = torch.empty(n, 3, h, w, dtype=torch.uint8), torch.empty(n, 3, h, w, dtype=torch.uint8)
     flow, valid = torch.empty(n, 2, h, w), torch.empty(n, 1, h, w, dtype=torch.bool)
     o = 0
     for b in DataLoader(ds, batch_size=16, num_workers=workers):
-        k = len(b["rgb"])
-        img1[o:o + k], img2[o:o + k] = _u8(b["rgb"][:, 0]), _u8(b["rgb"][:, 1])
+        k = len(b[image])
+        img1[o:o + k], img2[o:o + k] = _u8(b[image][:, 0]), _u8(b[image][:, 1])
         flow[o:o + k], valid[o:o + k] = b["flow_fw"][:, 0], b["valid_fw"][:, 0]
         o += k
     return (img1, img2, flow, valid), cfg
@@ -264,7 +270,7 @@ def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = P
     config."""
     import torch
 
-    extra = n // 2 if "chairs2d" in names else 0  # frames for the chairs2d textures, not trained on
+    extra = n // 2 if {"chairs2d", "mixture"} & set(names) else 0  # frames for chairs2d's textures, not trained on
     pool, cfg = flowsynth_pool(n + extra, seed, workers, overrides)
     fs_pool = tuple(x[:n] for x in pool)
     target = mean_flow(fs_pool)
@@ -272,8 +278,12 @@ def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = P
     for name in names:
         if name in ("flowsynth", "control"):
             arms[name] = fs_pool
-        elif name == "chairs2d":
-            arms[name], info["chairs2d_motion_scale"] = baseline_pool(n, seed, pool[0][n:].float() / 255, target)
+        elif name in ("chairs2d", "mixture"):
+            chairs, info["chairs2d_motion_scale"] = baseline_pool(n, seed, pool[0][n:].float() / 255, target)
+            arms[name] = chairs if name == "chairs2d" else tuple(torch.cat([f[:n // 2], c[:n - n // 2]])
+                                                                 for f, c in zip(fs_pool, chairs))
+        elif name == "flowsynth_final":
+            arms[name], _ = flowsynth_pool(n, seed, workers, overrides, image="rgb_final")
         elif name == "chairs2d_photos":
             sources = photo_sources(max(n // 2, 8), seed, RES, NATURAL_PHOTOS)
             arms[name], info["chairs2d_photos_motion_scale"] = baseline_pool(n, seed, sources, target)

@@ -70,3 +70,19 @@ def test_small_motion_pairs_cover_every_photograph_and_magnitude():
     peak = torch.linalg.vector_norm(pairs["sm_Fake_2"][2], dim=1).max()
     assert float(peak) == pytest.approx(2.0, rel=1e-5)
     assert pairs["sm_stereo_0"][0].shape == (1, 3, 250, 370)
+
+
+def test_mixture_and_final_pass_arms(monkeypatch):
+    """``mixture`` is half the flowsynth pool and half the chairs2d pool; ``flowsynth_final`` has the flowsynth pool's
+    truth (the same samples) under other images."""
+    import torch
+
+    import learning_raft
+
+    arms, info, _ = learning_raft.build_arms(["flowsynth", "mixture", "flowsynth_final", "chairs2d"], 0, 0, {}, n=4)
+    fs, mix, fin, chairs = (arms[k] for k in ("flowsynth", "mixture", "flowsynth_final", "chairs2d"))
+    for a, f, c in zip(mix, fs, chairs):
+        assert torch.equal(a[:2], f[:2]) and torch.equal(a[2:], c[:2])
+    assert torch.equal(fin[2], fs[2]) and torch.equal(fin[3], fs[3])
+    assert not torch.equal(fin[0], fs[0])
+    assert set(info["mean_flow"]) == {"flowsynth", "mixture", "flowsynth_final", "chairs2d"}
