@@ -452,8 +452,9 @@ def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
 
 # -- figures --------------------------------------------------------------------------------------------------
 def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
-    """One PNG per real pair (results/NAME_PAIR.png): frame 1, the ground truth and, per saved net (``nets``: paths
-    of .pt files from ``train``), its predicted flow and its end-point error, on one colour scale per pair."""
+    """One PNG per real pair and per still pair of the small-motion diagnostic (results/NAME_PAIR.png): frame 1, the
+    ground truth and, per saved net (``nets``: paths of .pt files from ``train``), its predicted flow and its
+    end-point error, on one colour scale per pair (at least 1 px)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -464,6 +465,8 @@ def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
     from flowsynth.viz import flow_to_color
 
     tests = judge_sets(middlebury_dir)
+    still = small_motion_pairs({k: v for k, v in tests.items() if k.startswith("mb_")}, magnitudes=(0.0,))
+    tests.update(still)  # the still pairs of the small-motion diagnostic: the motion a net invents
     loaded = {}
     for p in nets:
         net = raft_small()
@@ -472,7 +475,7 @@ def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
     paths = []
     for pair, (img1, img2, flow, valid) in tests.items():
         gt = flow[:1]
-        scale = float(torch.linalg.vector_norm(gt, dim=1)[valid[:1, 0] > 0.5].max())
+        scale = max(float(torch.linalg.vector_norm(gt, dim=1)[valid[:1, 0] > 0.5].max()), 1.0)
         cols = 2 + len(loaded)
         fig, ax = plt.subplots(2, cols, figsize=(3.2 * cols, 5.6))
         ax[0, 0].imshow(img1[0].permute(1, 2, 0).numpy())
