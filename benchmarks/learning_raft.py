@@ -384,6 +384,49 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
     return {"arm": arm, "against": against, "pattern": pattern, "judges": out}
 
 
+SCREEN_MB, SCREEN_MOTO = 0.85, 1.10  # rule 4's thresholds on candidate / default (Middlebury mean, Motorcycle)
+
+
+def screen(pattern: str, seed: int = 0) -> list[dict]:
+    """Rule 4 of docs/decisions/0023 for every lever in the results/ files matching ``pattern``: on ``seed``, the
+    score ratio candidate / default per judge beside the control's ratio control / default. The default is the
+    ``flowsynth`` arm of a run with no ``--set``; the control, a ``control`` arm; a candidate, any other flowsynth-made
+    arm (``flowsynth`` with ``--set``, ``flowsynth_natural``, ``flowsynth_photos``, ``flowsynth_final``,
+    ``mixture``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the control's band (the lower of c and
+    1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``; each judge's ratio is also read
+    against the band (better, within the noise, worse)."""
+    default, control, cands = None, None, []
+    for f in sorted(RESULTS_DIR.glob(pattern)):
+        d = json.loads(f.read_text())
+        for r in d.get("runs", []):
+            if r["seed"] != seed:
+                continue
+            for arm, res in r["results"].items():
+                if arm == "flowsynth" and not d.get("overrides"):
+                    default = res["curve"]
+                elif arm == "control":
+                    control = res["curve"]
+                elif not arm.startswith("chairs2d"):
+                    label = arm if arm != "flowsynth" else ",".join(f"{k}={v}" for k, v in d["overrides"].items())
+                    cands.append((f.stem.removeprefix("learning_raft_"), label, res["curve"]))
+    if default is None or control is None:
+        raise SystemExit(f"--screen: results/{pattern} must hold seed {seed}'s default and its control")
+    band = {j: sorted((score(control, j) / score(default, j), score(default, j) / score(control, j))) for j in JUDGES}
+    rows = []
+    for tag, label, curve in cands:
+        ratio = {j: score(curve, j) / score(default, j) for j in JUDGES}
+        reading = {j: "better" if ratio[j] < band[j][0] else "worse" if ratio[j] > band[j][1] else "noise"
+                   for j in JUDGES}
+        promising = (ratio["middlebury"] < SCREEN_MB and reading["middlebury"] == "better"
+                     and ratio["stereo"] <= SCREEN_MOTO)
+        rows.append({"run": tag, "lever": label, "Motorcycle": ratio["stereo"], "vs noise": reading["stereo"],
+                     "Middlebury": ratio["middlebury"], "vs noise ": reading["middlebury"],
+                     "promising (rule 4)": promising})
+    print(f"seed {seed}: candidate / default; control / default: Motorcycle {band['stereo'][0]:.3f}-"
+          f"{band['stereo'][1]:.3f}, Middlebury {band['middlebury'][0]:.3f}-{band['middlebury'][1]:.3f}")
+    return rows
+
+
 def texture_map(img):
     """(B, 1, H, W) mean |grey-level gradient| over each pixel's 9x9 window (images (B, 3, H, W) in [0, 1])."""
     from torch.nn import functional as F
@@ -539,6 +582,8 @@ def main(argv: list[str]) -> None:
     p.add_argument("--files", default="learning_raft*.json", help="--summarize: results/ files to pool (a glob)")
     p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm")
     p.add_argument("--against", default="chairs2d_photos", help="--summarize: the denominator arm")
+    p.add_argument("--screen", action="store_true", help="train nothing: rule 4 for every lever of seed 0 in the "
+                   "--files results, against the default and its control (results/learning_raft_screens.json)")
     p.add_argument("--figures", default=None, metavar="NAME",
                    help="train nothing: results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
     p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
@@ -553,6 +598,11 @@ def main(argv: list[str]) -> None:
     if args.summarize:
         out = summarize(args.files, args.arm, args.against)
         write_json(f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else ""), out)
+        return
+    if args.screen:
+        rows = screen(args.files)
+        print_table(rows, list(rows[0])) if rows else print("--screen: no lever in the files")
+        write_json("learning_raft_screens" + (f"_{args.tag}" if args.tag else ""), {"files": args.files, "rows": rows})
         return
     if args.plot:
         from learning import plot_judge_curves

@@ -86,3 +86,37 @@ def test_mixture_and_final_pass_arms(monkeypatch):
     assert torch.equal(fin[2], fs[2]) and torch.equal(fin[3], fs[3])
     assert not torch.equal(fin[0], fs[0])
     assert set(info["mean_flow"]) == {"flowsynth", "mixture", "flowsynth_final", "chairs2d"}
+
+
+def _result(path, overrides, arms):
+    import json
+
+    curve = {a: [{"step": 0, "stereo": 19.0, "middlebury": 10.0}] + [{"step": s, "stereo": m, "middlebury": b}
+                                                                      for s, (m, b) in zip((2000, 2400), v)]
+             for a, v in arms.items()}
+    path.write_text(json.dumps({"overrides": overrides, "runs": [
+        {"seed": 0, "results": {a: {"curve": c} for a, c in curve.items()}}]}))
+
+
+def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
+    import learning_raft
+
+    monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
+    # scores are the mean of the last two checkpoints: default 3.0 / 2.0, control 3.3 / 2.1 (bands 0.909-1.1,
+    # 0.952-1.05)
+    _result(tmp_path / "learning_raft_s0.json", {}, {"flowsynth": [(2.9, 2.1), (3.1, 1.9)],
+                                                     "chairs2d_photos": [(1.0, 1.0), (1.0, 1.0)]})
+    _result(tmp_path / "learning_raft_s0_control.json", {}, {"control": [(3.3, 2.1), (3.3, 2.1)]})
+    _result(tmp_path / "learning_raft_s0_a.json", {"rest_fraction": 0.3}, {"flowsynth": [(3.0, 1.6), (3.0, 1.6)]})
+    _result(tmp_path / "learning_raft_s0_b.json", {}, {"flowsynth_natural": [(3.0, 1.8), (3.0, 1.8)]})
+    _result(tmp_path / "learning_raft_s0_c.json", {}, {"mixture": [(3.5, 1.6), (3.5, 1.6)]})
+    rows = {r["lever"]: r for r in learning_raft.screen("learning_raft_s0*.json")}
+    assert set(rows) == {"rest_fraction=0.3", "flowsynth_natural", "mixture"}  # not the baseline, default, control
+    a, b, c = rows["rest_fraction=0.3"], rows["flowsynth_natural"], rows["mixture"]
+    assert a["Middlebury"] == pytest.approx(0.8) and a["vs noise "] == "better" and a["vs noise"] == "noise"
+    assert a["promising (rule 4)"]
+    assert b["Middlebury"] == pytest.approx(0.9) and b["vs noise "] == "better" and not b["promising (rule 4)"]
+    assert c["Motorcycle"] == pytest.approx(3.5 / 3.0) and c["vs noise"] == "worse" and not c["promising (rule 4)"]
+    (tmp_path / "learning_raft_s0_control.json").unlink()
+    with pytest.raises(SystemExit):
+        learning_raft.screen("learning_raft_s0*.json")
