@@ -295,29 +295,18 @@ def middlebury_pairs(root: str | None) -> dict:
     flow), wherever the target lands (Middlebury's own convention). Empty, with a message, when ``root`` is None
     or holds none of the pairs. Download: https://vision.middlebury.edu/flow/data/ (other-color-twoframes.zip and
     other-gt-flow.zip; unpack both into one folder)."""
-    import cv2
-    import numpy as np
     import torch
 
-    from flowsynth.io import read_flo
+    from flowsynth.io import read_middlebury
 
     if root is None:
         print("middlebury: no --middlebury DIR given; the Middlebury judge is skipped")
         return {}
-    out = {}
-    for name in MIDDLEBURY:
-        d = Path(root) / name
-        files = [d / f for f in ("frame10.png", "frame11.png", "flow10.flo")]
-        if not all(f.is_file() for f in files):
-            continue
-        img1, img2 = (cv2.cvtColor(cv2.imread(str(f), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
-                      for f in files[:2])
-        flow = read_flo(files[2]).astype(np.float32)  # (2, H, W)
-        known = (np.abs(flow) <= 1e9).all(0)
-        flow = np.where(known[None], flow, 0.0).astype(np.float32)
-        out[f"mb_{name}"] = tuple(torch.from_numpy(np.ascontiguousarray(x))[None] for x in
-                                  (img1.transpose(2, 0, 1), img2.transpose(2, 0, 1), flow,
-                                   known[None].astype(np.float32)))
+    if not Path(root).is_dir():
+        print(f"middlebury: {root} is not a folder; the Middlebury judge is skipped")
+        return {}
+    out = {f"mb_{name}": tuple(torch.from_numpy(x)[None] for x in (img1, img2, flow, known[None].astype("float32")))
+           for name, img1, img2, flow, known in read_middlebury(root, MIDDLEBURY)}
     if not out:
         print(f"middlebury: none of {MIDDLEBURY} (frame10.png, frame11.png, flow10.flo) under {root}; skipped")
     return out

@@ -55,25 +55,13 @@ def stream(cfg, seed: int, batch: int, workers: int, start: int = 0):
         yield b["rgb"][:, 0], b["rgb"][:, 1], b["flow_fw"][:, 0], b["valid_fw"][:, 0]
 
 
-def _rgb(path: Path) -> torch.Tensor:
-    from PIL import Image
-
-    return torch.from_numpy(np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255).permute(2, 0, 1)
-
-
 def middlebury_pairs(root: str) -> list[tuple]:
-    """The pairs under ``root``: every NAME/ holding frame10.png, frame11.png and flow10.flo; flow of magnitude above
-    1e9 (the format's "unknown") is invalid."""
-    from flowsynth.io import read_flo
+    """The pairs under ``root`` in Middlebury's layout (``flowsynth.io.read_middlebury``): (name, img1, img2, flow,
+    valid) tensors; flow of magnitude above 1e9 (the format's "unknown") is invalid."""
+    from flowsynth.io import read_middlebury
 
-    out = []
-    for d in sorted(p for p in Path(root).iterdir() if p.is_dir()):
-        files = [d / f for f in ("frame10.png", "frame11.png", "flow10.flo")]
-        if all(f.is_file() for f in files):
-            flow = torch.from_numpy(read_flo(files[2]).astype(np.float32))
-            valid = (flow.abs() <= 1e9).all(0, keepdim=True)
-            out.append((d.name, _rgb(files[0]), _rgb(files[1]), torch.where(valid, flow, 0.0), valid))
-    return out
+    return [(name, *(torch.from_numpy(x) for x in (img1, img2, flow)), torch.from_numpy(known)[None])
+            for name, img1, img2, flow, known in read_middlebury(root)]
 
 
 def torchvision_pairs(kind: str, root: str, limit: int) -> list[tuple]:

@@ -19,7 +19,7 @@ from PIL import Image
 from flowsynth.errors import ExportError, ShapeError
 from flowsynth.io.atomic import atomic_path, atomic_write_bytes
 from flowsynth.io.exr import CHANNEL_NAMES, COMPRESSIONS, read_exr, read_tensor_exr, write_exr, write_tensor_exr
-from flowsynth.io.flo import read_flo, write_flo
+from flowsynth.io.flo import read_flo, read_middlebury, write_flo
 from flowsynth.io.jsonio import coco_boxes, read_json, write_json
 from flowsynth.io.kitti import KITTI_FLOW_MAX, KITTI_FLOW_MIN, read_kitti_flow, write_kitti_flow
 from flowsynth.io.png import (
@@ -141,6 +141,36 @@ def test_flo_round_trip_and_opencv(tmp_path: Path, rng: np.random.Generator) -> 
     # And the other way: OpenCV writes, we read.
     cv2.writeOpticalFlow(str(tmp_path / "cv.flo"), np.ascontiguousarray(flow.transpose(1, 2, 0)))
     np.testing.assert_array_equal(_bits(read_flo(tmp_path / "cv.flo")), _bits(flow))
+
+
+def test_read_middlebury_layout(tmp_path: Path, rng: np.random.Generator) -> None:
+    # frames written by OpenCV, flow by cv2.writeOpticalFlow: the oracle is the other library's writers
+    pairs = {}
+    for name in ("Venus", "Army"):
+        d = tmp_path / name
+        d.mkdir()
+        f1, f2 = (rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(2))
+        flow = rng.normal(0, 3, (H, W, 2)).astype(np.float32)
+        flow[0, :3] = 1e10  # Middlebury's "unknown"
+        cv2.imwrite(str(d / "frame10.png"), f1[..., ::-1])
+        cv2.imwrite(str(d / "frame11.png"), f2[..., ::-1])
+        cv2.writeOpticalFlow(str(d / "flow10.flo"), flow)
+        pairs[name] = (f1, f2, flow)
+    (tmp_path / "NoFlow").mkdir()
+    (tmp_path / "NoFlow" / "frame10.png").write_bytes((tmp_path / "Venus" / "frame10.png").read_bytes())
+    (tmp_path / "README.md").write_text("not a pair")
+    got = read_middlebury(tmp_path)
+    assert [g[0] for g in got] == ["Army", "Venus"]
+    for name, img1, img2, flow, known in got:
+        f1, f2, truth = pairs[name]
+        np.testing.assert_array_equal(img1, f1.transpose(2, 0, 1).astype(np.float32) / 255)
+        np.testing.assert_array_equal(img2, f2.transpose(2, 0, 1).astype(np.float32) / 255)
+        assert known.dtype == bool and not known[0, :3].any() and known.sum() == H * W - 3
+        np.testing.assert_array_equal(flow[:, known], truth.transpose(2, 0, 1)[:, known])
+        assert not flow[:, ~known].any()
+    assert [g[0] for g in read_middlebury(tmp_path, ("Venus", "Grove2"))] == ["Venus"]
+    with pytest.raises(FileNotFoundError):
+        read_middlebury(tmp_path / "missing")
 
 
 def test_flo_non_contiguous(tmp_path: Path, rng: np.random.Generator) -> None:

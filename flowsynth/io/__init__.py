@@ -5,7 +5,7 @@ flyingchairs, kitti, sintel, flyingthings3d, webdataset). Every writer is atomic
 from flowsynth.io import layouts
 from flowsynth.io.atomic import atomic_path, atomic_write_bytes
 from flowsynth.io.exr import CHANNEL_NAMES, read_exr, read_tensor_exr, write_exr, write_tensor_exr
-from flowsynth.io.flo import read_flo, write_flo
+from flowsynth.io.flo import read_flo, read_middlebury, write_flo
 from flowsynth.io.integrity import VERIFY_MODES, file_records, foreign_files, read_manifest, sample_problem
 from flowsynth.io.jsonio import coco_boxes, read_json, to_jsonable, write_json
 from flowsynth.io.kitti import KITTI_FLOW_SCALE, read_kitti_flow, write_kitti_flow
@@ -42,6 +42,7 @@ __all__ = [
     "read_kitti_flow",
     "read_manifest",
     "read_mask_png",
+    "read_middlebury",
     "read_ppm",
     "read_rgb_png",
     "read_tensor_exr",

@@ -22,7 +22,7 @@ import numpy as np
 from flowsynth.errors import ExportError, ShapeError
 from flowsynth.io.atomic import atomic_write_bytes
 
-__all__ = ["FLO_MAGIC", "read_flo", "write_flo"]
+__all__ = ["FLO_MAGIC", "MIDDLEBURY_FILES", "UNKNOWN_FLOW", "read_flo", "read_middlebury", "write_flo"]
 
 FLO_MAGIC = np.float32(202021.25)
 """Magic number at the start of a ``.flo`` file."""
@@ -85,3 +85,45 @@ def read_flo(path: str | os.PathLike[str]) -> np.ndarray:
         )
     uv = np.frombuffer(data, dtype="<f4", offset=_HEADER_BYTES).reshape(h, w, 2)
     return np.ascontiguousarray(uv.transpose(2, 0, 1), dtype=np.float32)
+
+
+MIDDLEBURY_FILES = ("frame10.png", "frame11.png", "flow10.flo")
+"""A Middlebury flow pair's files inside its folder NAME/ (``other-color-twoframes`` and ``other-gt-flow``)."""
+
+UNKNOWN_FLOW = 1e9
+"""A ``.flo`` component above this magnitude marks unknown flow (Middlebury's convention)."""
+
+
+def read_middlebury(
+    root: str | os.PathLike[str], names: tuple[str, ...] | None = None
+) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Read the flow pairs of a folder in Middlebury's layout: every NAME/ holding ``MIDDLEBURY_FILES`` (frame 1,
+    frame 2 and the ground truth), as its archives unpack; other folders are skipped.
+
+    Args:
+        root: the folder.
+        names: only these pairs (missing ones skipped); None: every pair, sorted by name.
+
+    Returns:
+        [(name, img1, img2, flow, known)]: images (3, H, W) float32 in [0, 1], flow (2, H, W) float32 [px] with 0
+        where unknown, known (H, W) bool (both components at most ``UNKNOWN_FLOW`` in magnitude).
+
+    Raises:
+        FileNotFoundError: ``root`` is not a folder.
+    """
+    from flowsynth.io.png import read_rgb_png
+
+    base = os.fspath(root)
+    if not os.path.isdir(base):
+        raise FileNotFoundError(f"{base}: no such folder (Middlebury layout: NAME/{', '.join(MIDDLEBURY_FILES)})")
+    found = sorted(d for d in os.listdir(base) if os.path.isdir(os.path.join(base, d)))
+    out = []
+    for name in found if names is None else [n for n in names if n in found]:
+        files = [os.path.join(base, name, f) for f in MIDDLEBURY_FILES]
+        if not all(os.path.isfile(f) for f in files):
+            continue
+        flow = read_flo(files[2])
+        known = (np.abs(flow) <= UNKNOWN_FLOW).all(0)
+        out.append((name, read_rgb_png(files[0]), read_rgb_png(files[1]),
+                    np.where(known[None], flow, np.float32(0)).astype(np.float32), known))
+    return out
