@@ -390,27 +390,36 @@ SCREEN_MB, SCREEN_MOTO = 0.85, 1.10  # rule 4's thresholds on candidate / defaul
 def screen(pattern: str, seed: int = 0) -> list[dict]:
     """Rule 4 of docs/decisions/0023 for every lever in the results/ files matching ``pattern``: on ``seed``, the
     score ratio candidate / default per judge beside the control's ratio control / default. The default is the
-    ``flowsynth`` arm of a run with no ``--set``; the control, a ``control`` arm; a candidate, any other flowsynth-made
-    arm (``flowsynth`` with ``--set``, ``flowsynth_natural``, ``flowsynth_photos``, ``flowsynth_final``,
-    ``mixture``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the control's band (the lower of c and
-    1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``; each judge's ratio is also read
-    against the band (better, within the noise, worse)."""
-    default, control, cands = None, None, []
+    ``flowsynth`` arm of a run with no ``--set``; the control, the ``control`` arm of such a run; a candidate, any
+    other flowsynth-made arm (``flowsynth`` with ``--set``, ``flowsynth_natural``, ``flowsynth_photos``,
+    ``flowsynth_final``, ``mixture``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the control's band
+    (the lower of c and 1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``; each judge's
+    ratio is also read against the band (better, within the noise, worse). Only complete runs of this judge count,
+    and all must share the protocol."""
+    ref, cands, protocol = {}, [], {}
     for f in sorted(RESULTS_DIR.glob(pattern)):
         d = json.loads(f.read_text())
+        if not d.get("complete") or d.get("net") != NET:
+            continue  # unfinished runs and other judges are not screened
+        same = {k: d.get(k) for k in ("steps", "pool", "batch", "resolution", "every", "lr", "updates")}
+        if protocol and same != protocol:
+            raise SystemExit(f"--screen: {f.name} ran another protocol ({same}) than the files before it ({protocol})")
+        protocol = same
         for r in d.get("runs", []):
             if r["seed"] != seed:
                 continue
             for arm, res in r["results"].items():
-                if arm == "flowsynth" and not d.get("overrides"):
-                    default = res["curve"]
-                elif arm == "control":
-                    control = res["curve"]
+                if arm in ("flowsynth", "control") and not d.get("overrides"):
+                    if arm in ref:
+                        raise SystemExit(f"--screen: seed {seed}'s {arm} is in {ref[arm][0]} and in {f.name}")
+                    ref[arm] = (f.name, res["curve"])
                 elif not arm.startswith("chairs2d"):
                     label = arm if arm != "flowsynth" else ",".join(f"{k}={v}" for k, v in d["overrides"].items())
                     cands.append((f.stem.removeprefix("learning_raft_"), label, res["curve"]))
-    if default is None or control is None:
-        raise SystemExit(f"--screen: results/{pattern} must hold seed {seed}'s default and its control")
+    if len(ref) < 2:
+        raise SystemExit(f"--screen: results/{pattern} must hold seed {seed}'s default and its control (complete runs "
+                         "with no --set)")
+    default, control = ref["flowsynth"][1], ref["control"][1]
     band = {j: sorted((score(control, j) / score(default, j), score(default, j) / score(control, j))) for j in JUDGES}
     rows = []
     for tag, label, curve in cands:

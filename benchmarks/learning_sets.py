@@ -6,6 +6,7 @@ flow pairs (``middlebury_pairs``). Each returns (img1, img2, flow, valid) float3
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 
 W, H = 128, 96  # the training and homography-test size [px]
@@ -352,11 +353,12 @@ def small_motion_pair(img, seed: int, magnitude: float) -> tuple:
 def small_motion_pairs(middlebury: dict, seed: int = 0, magnitudes: tuple = SMALL_MOTION) -> dict:
     """The small-motion diagnostic (issue 46): each real photograph the judges use (Motorcycle's left view at half
     resolution, frame 1 of each pair in ``middlebury``: middlebury_pairs' dict) moved by ``small_motion_pair`` at
-    each of ``magnitudes``: {"sm_NAME_M": (img1, img2, flow, valid)}. No net trains on these photographs."""
+    each of ``magnitudes``: {"sm_NAME_M": (img1, img2, flow, valid)}, each photograph's motion drawn from ``seed``
+    and its name. No net trains on these photographs."""
     photos = {"stereo": motorcycle_full(2)[0][0]}
     photos.update({k[3:]: v[0][0] for k, v in middlebury.items()})
-    return {f"sm_{name}_{m:g}": small_motion_pair(x.permute(1, 2, 0).numpy(), seed + i, m)
-            for i, (name, x) in enumerate(photos.items()) for m in magnitudes}
+    return {f"sm_{name}_{m:g}": small_motion_pair(x.permute(1, 2, 0).numpy(), seed + zlib.crc32(name.encode()), m)
+            for name, x in photos.items() for m in magnitudes}
 
 
 def test_sets(n: int, seed: int, middlebury: dict | None = None) -> dict:

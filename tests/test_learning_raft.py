@@ -16,11 +16,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from learning_sets import small_motion_pair, small_motion_pairs
 
 
+def _smooth(xs, ys):
+    """A smooth analytic colour image at the points (xs, ys): (..., 3)."""
+    return np.stack([0.5 + 0.25 * np.sin(0.055 * xs + 0.035 * ys + p) + 0.2 * np.cos(0.045 * ys - 0.025 * xs + 2 * p)
+                     for p in (0.0, 1.0, 2.0)], -1)
+
+
 def _smooth_image(w=96, h=72):
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    chans = [0.5 + 0.25 * np.sin(0.055 * xs + 0.035 * ys + p) + 0.2 * np.cos(0.045 * ys - 0.025 * xs + 2 * p)
-             for p in (0.0, 1.0, 2.0)]
-    return np.stack(chans, -1).astype(np.float32)
+    return _smooth(xs, ys).astype(np.float32)
 
 
 def _sample(img, x, y):
@@ -34,7 +38,7 @@ def test_still_pair_is_the_photograph_twice_with_zero_flow():
     assert not flow.any() and bool(valid.all())
 
 
-@pytest.mark.parametrize("magnitude,seed", [(1.0, 0), (3.0, 1), (3.0, 7)])
+@pytest.mark.parametrize("magnitude,seed", [(1.0, 0), (3.0, 1), (3.0, 7), (6.0, 3)])
 def test_moved_pair_obeys_brightness_constancy_along_its_flow(magnitude, seed):
     img = _smooth_image()
     h, w = img.shape[:2]
@@ -57,6 +61,14 @@ def test_moved_pair_obeys_brightness_constancy_along_its_flow(magnitude, seed):
     # two bilinear resamplings (each at most |f''| / 8 per axis, about 4e-4 here) and cv2.remap's 1/32 px grid
     assert along < 1e-3
     assert against > 10 * along  # the check can fail: the reversed flow does not match
+    # frame 2 at y is the image at the exact inverse x = (I + A)^-1 (y - t) of the flow's own affine fit
+    # flow(x) = t + A x (a first-order inverse, x = y - flow(y), misses by up to |A flow| ~ 0.2 px here)
+    design = np.stack([np.ones(h * w), xs.ravel(), ys.ravel()], 1)
+    coef = np.linalg.lstsq(design, f.reshape(2, -1).T, rcond=None)[0]  # (3, 2): t, then A's columns
+    t, A = coef[0], coef[1:].T
+    src = np.linalg.solve(np.eye(2) + A, np.stack([xs.ravel(), ys.ravel()]) - t[:, None]).reshape(2, h, w)
+    inside = (src[0] >= 1) & (src[0] <= w - 2) & (src[1] >= 1) & (src[1] <= h - 2)
+    assert np.abs(frame2[inside] - _smooth(src[0], src[1])[inside]).max() < 1e-3  # one bilinear resampling
 
 
 def test_small_motion_pairs_cover_every_photograph_and_magnitude():
@@ -94,11 +106,13 @@ def _result(path, overrides, arms):
     curve = {a: [{"step": 0, "stereo": 19.0, "middlebury": 10.0}] + [{"step": s, "stereo": m, "middlebury": b}
                                                                       for s, (m, b) in zip((2000, 2400), v)]
              for a, v in arms.items()}
-    path.write_text(json.dumps({"overrides": overrides, "runs": [
+    path.write_text(json.dumps({"overrides": overrides, "complete": True, "net": "raft_small", "steps": 2400, "runs": [
         {"seed": 0, "results": {a: {"curve": c} for a, c in curve.items()}}]}))
 
 
 def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
+    import json
+
     import learning_raft
 
     monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
@@ -117,6 +131,23 @@ def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
     assert a["promising (rule 4)"]
     assert b["Middlebury"] == pytest.approx(0.9) and b["vs noise "] == "better" and not b["promising (rule 4)"]
     assert c["Motorcycle"] == pytest.approx(3.5 / 3.0) and c["vs noise"] == "worse" and not c["promising (rule 4)"]
+    # a noisier control (scores 4.0 / 2.5: bands 0.75-1.33, 0.8-1.25) leaves the 0.8 on Middlebury inside the noise
+    _result(tmp_path / "learning_raft_s0_control.json", {}, {"control": [(4.0, 2.5), (4.0, 2.5)]})
+    rows = {r["lever"]: r for r in learning_raft.screen("learning_raft_s0*.json")}
+    assert rows["rest_fraction=0.3"]["vs noise "] == "noise" and not rows["rest_fraction=0.3"]["promising (rule 4)"]
+    # a second default, an unfinished run and another protocol
+    _result(tmp_path / "learning_raft_s0_again.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)]})
+    with pytest.raises(SystemExit, match="is in"):
+        learning_raft.screen("learning_raft_s0*.json")
+    (tmp_path / "learning_raft_s0_again.json").unlink()
+    _result(tmp_path / "learning_raft_s0_d.json", {}, {"flowsynth_final": [(1.0, 1.0), (1.0, 1.0)]})
+    d = json.loads((tmp_path / "learning_raft_s0_d.json").read_text())
+    (tmp_path / "learning_raft_s0_d.json").write_text(json.dumps({**d, "complete": False}))
+    assert "flowsynth_final" not in {r["lever"] for r in learning_raft.screen("learning_raft_s0*.json")}
+    (tmp_path / "learning_raft_s0_d.json").write_text(json.dumps({**d, "steps": 20}))
+    with pytest.raises(SystemExit, match="another protocol"):
+        learning_raft.screen("learning_raft_s0*.json")
+    (tmp_path / "learning_raft_s0_d.json").unlink()
     (tmp_path / "learning_raft_s0_control.json").unlink()
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit, match="control"):
         learning_raft.screen("learning_raft_s0*.json")
