@@ -599,11 +599,20 @@ def main(argv: list[str]) -> None:
     p.add_argument("--plot", default=None, metavar="NAME", help="train nothing: results/NAME_JUDGE.png, the learning "
                    "curves of every arm and seed in the --files results")
     p.add_argument("--stats", action="store_true", help="train nothing: flow-magnitude and texture statistics of "
-                   "--arms' pools (--pool pairs, default 64) beside the real judges")
+                   "--arms' pools, a lever's with --set (--pool pairs, default 64), beside the real judges")
     p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
                    "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
                    "[_TAG].json)")
     args = p.parse_args(argv)
+    args.overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key in ("width", "height", "num_frames") or not value:
+            p.error(f"--set {item!r}: give FIELD=JSON for a field other than width, height, num_frames")
+        try:
+            args.overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8]")
     if args.summarize:
         out = summarize(args.files, args.arm, args.against)
         write_json(f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else ""), out)
@@ -620,7 +629,7 @@ def main(argv: list[str]) -> None:
             print(f"wrote {path}")
         return
     if args.stats:
-        rows = pool_stats(args.arms.split(","), args.pool or 64, args.workers, {}, args.middlebury)
+        rows = pool_stats(args.arms.split(","), args.pool or 64, args.workers, args.overrides, args.middlebury)
         print_table(rows, list(rows[0]))
         write_json("learning_raft_stats" + (f"_{args.tag}" if args.tag else ""), {"pairs": args.pool or 64,
                                                                                    "rows": rows})
@@ -638,13 +647,4 @@ def main(argv: list[str]) -> None:
         p.error(f"--steps {args.steps}: give at least 20 steps")
     if args.quick:
         args.pool, args.steps, args.every = args.pool or 12, args.steps or 20, args.every or 10
-    args.overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        if key in ("width", "height", "num_frames") or not value:
-            p.error(f"--set {item!r}: give FIELD=JSON for a field other than width, height, num_frames")
-        try:
-            args.overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8]")
     run(args)
