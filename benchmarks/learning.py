@@ -519,7 +519,7 @@ def plot_judge_curves(name: str, pattern: str) -> list:
     files = sorted(RESULTS_DIR.glob(pattern))
     paths = []
     for judge in JUDGES:
-        series = {}
+        series, zero = {}, {}
         for f in files:
             d = json.loads(f.read_text())
             tag = f.stem.removeprefix("learning_")
@@ -528,9 +528,13 @@ def plot_judge_curves(name: str, pattern: str) -> list:
                     pts = [(c["step"], c[judge]) for c in res["curve"] if judge in c]
                     if pts:
                         series[f"{tag} {arm} s{r['seed']}"] = tuple(zip(*pts))
+                        if judge in r.get("zero_flow_epe", {}):
+                            zero[r["zero_flow_epe"][judge]] = max(zero.get(r["zero_flow_epe"][judge], 0), pts[-1][0])
+        for z, last in zero.items():  # zero flow's EPE: a net above this line is worse than predicting nothing
+            series[f"zero flow ({z:.2f})"] = ((0, last), (z, z))
         if series:
             path = plot_curves(f"{name}_{judge}", series, "training step", f"{judge} test EPE [px]", logx=False,
-                               logy=False, title=f"{judge}: the learning curves ({pattern})")
+                               logy=True, title=f"{judge}: the learning curves ({pattern})")
             paths += [path] if path else []
     return paths
 
