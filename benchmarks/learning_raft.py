@@ -429,7 +429,8 @@ def screen(pattern: str, seed: int = 0) -> list[dict]:
         promising = (ratio["middlebury"] < SCREEN_MB and reading["middlebury"] == "better"
                      and ratio["stereo"] <= SCREEN_MOTO)
         rows.append({"run": tag, "lever": label, "Motorcycle": ratio["stereo"],
-                     "Motorcycle vs noise": reading["stereo"], "Middlebury": ratio["middlebury"], "Middlebury vs noise": reading["middlebury"],
+                     "Motorcycle vs noise": reading["stereo"], "Middlebury": ratio["middlebury"],
+                     "Middlebury vs noise": reading["middlebury"],
                      "promising (rule 4)": promising})
     print(f"seed {seed}: candidate / default; control / default: Motorcycle {band['stereo'][0]:.3f}-"
           f"{band['stereo'][1]:.3f}, Middlebury {band['middlebury'][0]:.3f}-{band['middlebury'][1]:.3f}")
