@@ -339,23 +339,44 @@ def run(args) -> None:
 
 
 # -- pooling --------------------------------------------------------------------------------------------------
+def _complete_runs(pattern: str, who: str):
+    """(file, its JSON, one seed's run) for every seed of the complete runs of this judge in the results/ files
+    matching ``pattern``, in name order; unfinished runs and other judges are skipped. All must share the protocol."""
+    protocol = {}
+    for f in sorted(RESULTS_DIR.glob(pattern)):
+        d = json.loads(f.read_text())
+        if not d.get("complete") or d.get("net") != NET:
+            continue
+        same = {k: d.get(k) for k in ("steps", "pool", "batch", "resolution", "every", "lr", "updates")}
+        if protocol and same != protocol:
+            raise SystemExit(f"{who}: {f.name} ran another protocol ({same}) than the files before it ({protocol})")
+        protocol = same
+        for r in d.get("runs", []):
+            yield f, d, r
+
+
 def summarize(pattern: str, arm: str, against: str) -> dict:
-    """Pool the seeds of results/ files matching ``pattern`` that hold both arms: per judge, each seed's score ratio
-    ``arm`` / ``against``, their geometric mean with a 95% interval (t on the log ratios), the seeds in favour, and
-    the rule-1 count (``arm``'s net ends below zero flow and below its untrained start)."""
+    """Pool the seeds on which the complete runs with no ``--set`` in the results/ files matching ``pattern`` hold
+    both arms (a seed's two arms may come from two files; an arm twice on one seed is an error): per judge, each
+    seed's score ratio ``arm`` / ``against``, their geometric mean with a 95% interval (t on the log ratios), the
+    seeds in favour, and the rule-1 count (``arm``'s net ends below zero flow and below its untrained start)."""
     import numpy as np
     from scipy import stats
 
-    runs = {}
-    for f in sorted(RESULTS_DIR.glob(pattern)):
-        d = json.loads(f.read_text())
-        for r in d.get("runs", []):
-            if arm in r["results"] and against in r["results"]:
-                if r["seed"] in runs:
-                    raise SystemExit(f"seed {r['seed']} of {arm}/{against} is in {f.name} and in an earlier file")
-                runs[r["seed"]] = r
+    runs = {}  # seed -> {"results": {arm: result}, "zero_flow_epe": ...}: one seed's arms may lie in several files
+    for f, d, r in _complete_runs(pattern, "--summarize"):
+        if d.get("overrides"):
+            continue  # a --set lever's flowsynth arm is not the default
+        seed = runs.setdefault(r["seed"], {"seed": r["seed"], "results": {}, "zero_flow_epe": r["zero_flow_epe"]})
+        for name in {arm, against} & set(r["results"]):
+            if name in seed["results"]:
+                raise SystemExit(f"--summarize: seed {r['seed']}'s {name} is in {seed['results'][name][0]} and in "
+                                 f"{f.name}")
+            seed["results"][name] = (f.name, r["results"][name])
+    runs = {k: {**v, "results": {a: res for a, (_, res) in v["results"].items()}} for k, v in runs.items()
+            if {arm, against} <= set(v["results"])}
     if not runs:
-        raise SystemExit(f"no results/{pattern} holds both {arm} and {against}")
+        raise SystemExit(f"no complete run of results/{pattern} with no --set holds both {arm} and {against} on a seed")
     out, rows = {}, []
     for j in JUDGES:
         rs = [r for r in runs.values() if j in r["zero_flow_epe"]]
@@ -365,18 +386,20 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
         b = np.array([score(r["results"][against]["curve"], j) for r in rs])
         logs = np.log(a / b)
         n = len(logs)
-        half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n) if n > 1 else float("nan")
+        half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n) if n > 1 else None  # one seed: none
         useful = sum(score(r["results"][arm]["curve"], j) < min(r["zero_flow_epe"][j],
                                                                  r["results"][arm]["curve"][0][j]) for r in rs)
         out[j] = {"seeds": [r["seed"] for r in rs], "ratios": (a / b).tolist(),
                   "geometric_mean": float(np.exp(logs.mean())),
-                  "ci95": [float(np.exp(logs.mean() - half)), float(np.exp(logs.mean() + half))],
+                  "ci95": None if half is None else [float(np.exp(logs.mean() - half)),
+                                                     float(np.exp(logs.mean() + half))],
                   "in_favour": int((logs < 0).sum()), "useful": useful, arm: a.tolist(), against: b.tolist(),
                   "zero_flow": float(np.mean([r["zero_flow_epe"][j] for r in rs])),
                   "untrained": float(np.mean([r["results"][arm]["curve"][0][j] for r in rs]))}
         o = out[j]
         rows.append({"judge": j, "seeds": n, "ratio": o["geometric_mean"],
-                     "95% CI": f"{o['ci95'][0]:.3f}-{o['ci95'][1]:.3f}", "in favour": f"{o['in_favour']} of {n}",
+                     "95% CI": f"{o['ci95'][0]:.3f}-{o['ci95'][1]:.3f}" if o["ci95"] else "n/a (one seed)",
+                     "in favour": f"{o['in_favour']} of {n}",
                      f"{arm} useful": f"{useful} of {n}", arm: float(a.mean()), against: float(b.mean()),
                      "zero flow": o["zero_flow"], "untrained": o["untrained"]})
     print(f"{arm} / {against}, scores (mean of the last {JUDGED} checkpoints), seeds {sorted(runs)}")
@@ -396,26 +419,18 @@ def screen(pattern: str, seed: int = 0) -> list[dict]:
     (the lower of c and 1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``; each judge's
     ratio is also read against the band (better, within the noise, worse). Only complete runs of this judge count,
     and all must share the protocol."""
-    ref, cands, protocol = {}, [], {}
-    for f in sorted(RESULTS_DIR.glob(pattern)):
-        d = json.loads(f.read_text())
-        if not d.get("complete") or d.get("net") != NET:
-            continue  # unfinished runs and other judges are not screened
-        same = {k: d.get(k) for k in ("steps", "pool", "batch", "resolution", "every", "lr", "updates")}
-        if protocol and same != protocol:
-            raise SystemExit(f"--screen: {f.name} ran another protocol ({same}) than the files before it ({protocol})")
-        protocol = same
-        for r in d.get("runs", []):
-            if r["seed"] != seed:
-                continue
-            for arm, res in r["results"].items():
-                if arm in ("flowsynth", "control") and not d.get("overrides"):
-                    if arm in ref:
-                        raise SystemExit(f"--screen: seed {seed}'s {arm} is in {ref[arm][0]} and in {f.name}")
-                    ref[arm] = (f.name, res["curve"])
-                elif not arm.startswith("chairs2d"):
-                    label = arm if arm != "flowsynth" else ",".join(f"{k}={v}" for k, v in d["overrides"].items())
-                    cands.append((f.stem.removeprefix("learning_raft_"), label, res["curve"]))
+    ref, cands = {}, []
+    for f, d, r in _complete_runs(pattern, "--screen"):
+        if r["seed"] != seed:
+            continue
+        for arm, res in r["results"].items():
+            if arm in ("flowsynth", "control") and not d.get("overrides"):
+                if arm in ref:
+                    raise SystemExit(f"--screen: seed {seed}'s {arm} is in {ref[arm][0]} and in {f.name}")
+                ref[arm] = (f.name, res["curve"])
+            elif not arm.startswith("chairs2d"):
+                label = arm if arm != "flowsynth" else ",".join(f"{k}={v}" for k, v in d["overrides"].items())
+                cands.append((f.stem.removeprefix("learning_raft_"), label, res["curve"]))
     if len(ref) < 2:
         raise SystemExit(f"--screen: results/{pattern} must hold seed {seed}'s default and its control (complete runs "
                          "with no --set)")

@@ -71,17 +71,23 @@ def test_moved_pair_obeys_brightness_constancy_along_its_flow(magnitude, seed):
     assert np.abs(frame2[inside] - _smooth(src[0], src[1])[inside]).max() < 1e-3  # one bilinear resampling
 
 
-def test_small_motion_pairs_cover_every_photograph_and_magnitude():
+def test_small_motion_pairs_cover_every_photograph_and_magnitude(monkeypatch):
     img = _smooth_image(160, 128)
     import torch
 
+    import learning_sets
+
     t = torch.from_numpy(img).permute(2, 0, 1)[None]
+    # Motorcycle stands in: the test needs neither scikit-image's data nor the bench extra
+    stereo = torch.from_numpy(_smooth_image(185, 125)).permute(2, 0, 1)[None]
+    monkeypatch.setattr(learning_sets, "motorcycle_full", lambda scale: (stereo, stereo))
     pairs = small_motion_pairs({"mb_Fake": (t, t, torch.zeros(1, 2, 128, 160), torch.ones(1, 1, 128, 160))},
                                magnitudes=(0.0, 2.0))
     assert set(pairs) == {"sm_stereo_0", "sm_stereo_2", "sm_Fake_0", "sm_Fake_2"}
     peak = torch.linalg.vector_norm(pairs["sm_Fake_2"][2], dim=1).max()
     assert float(peak) == pytest.approx(2.0, rel=1e-5)
-    assert pairs["sm_stereo_0"][0].shape == (1, 3, 250, 370)
+    assert pairs["sm_stereo_0"][0].shape == (1, 3, 125, 185)
+    assert torch.equal(pairs["sm_stereo_0"][0], stereo)
 
 
 def test_mixture_and_final_pass_arms(monkeypatch):
@@ -100,14 +106,44 @@ def test_mixture_and_final_pass_arms(monkeypatch):
     assert set(info["mean_flow"]) == {"flowsynth", "mixture", "flowsynth_final", "chairs2d"}
 
 
-def _result(path, overrides, arms):
+def _result(path, overrides, arms, seed=0):
     import json
 
     curve = {a: [{"step": 0, "stereo": 19.0, "middlebury": 10.0}] + [{"step": s, "stereo": m, "middlebury": b}
                                                                       for s, (m, b) in zip((2000, 2400), v)]
              for a, v in arms.items()}
     path.write_text(json.dumps({"overrides": overrides, "complete": True, "net": "raft_small", "steps": 2400, "runs": [
-        {"seed": 0, "results": {a: {"curve": c} for a, c in curve.items()}}]}))
+        {"seed": seed, "zero_flow_epe": {"stereo": 17.0, "middlebury": 4.0},
+         "results": {a: {"curve": c} for a, c in curve.items()}}]}))
+
+
+def test_summarize_pairs_one_seeds_arms_across_files(tmp_path, monkeypatch):
+    """A seed's default and lever may come from two runs; the ratios, their geometric mean and its t interval are
+    checked by hand; a --set run's flowsynth arm is not the default, and an arm twice on one seed is an error."""
+    import learning_raft
+
+    monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
+    # scores (mean of the last two checkpoints): default 3.0 / 2.0 on seeds 0 and 1; the lever 1.5 / 1.0 on seed 0
+    # (ratios 0.5) and 3.0 / 4.0 on seed 1 (ratios 1.0 / 2.0)
+    _result(tmp_path / "learning_raft_s0.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)]})
+    _result(tmp_path / "learning_raft_s0_lever.json", {}, {"flowsynth_photos": [(1.5, 1.0), (1.5, 1.0)]})
+    _result(tmp_path / "learning_raft_s0_set.json", {"rest_fraction": 0.3}, {"flowsynth": [(9.0, 9.0), (9.0, 9.0)]})
+    out = learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+    mb = out["judges"]["middlebury"]
+    assert mb["seeds"] == [0] and mb["ratios"] == [pytest.approx(0.5)] and mb["ci95"] is None
+    assert mb["useful"] == 1  # 1.0 is below zero flow's 4.0 and the untrained 10.0
+    _result(tmp_path / "learning_raft_s1.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)],
+                                                     "flowsynth_photos": [(3.0, 4.0), (3.0, 4.0)]}, seed=1)
+    mb = learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")["judges"]["middlebury"]
+    assert sorted(mb["seeds"]) == [0, 1] and sorted(mb["ratios"]) == [pytest.approx(0.5), pytest.approx(2.0)]
+    assert mb["geometric_mean"] == pytest.approx(1.0) and mb["in_favour"] == 1
+    half = 12.706205 * np.log(4.0) / np.sqrt(2) / np.sqrt(2)  # t(0.975, 1) * sd of (log 0.5, log 2) / sqrt(2)
+    assert mb["ci95"] == [pytest.approx(np.exp(-half)), pytest.approx(np.exp(half))]
+    _result(tmp_path / "learning_raft_s1_again.json", {}, {"flowsynth_photos": [(1.0, 1.0), (1.0, 1.0)]}, seed=1)
+    with pytest.raises(SystemExit, match="is in"):
+        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+    with pytest.raises(SystemExit, match="holds both"):
+        learning_raft.summarize("learning_raft_s0*.json", "control", "flowsynth")
 
 
 def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
