@@ -367,16 +367,29 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
     for f, d, r in _complete_runs(pattern, "--summarize"):
         if d.get("overrides"):
             continue  # a --set lever's flowsynth arm is not the default
-        seed = runs.setdefault(r["seed"], {"seed": r["seed"], "results": {}, "zero_flow_epe": r["zero_flow_epe"]})
-        for name in {arm, against} & set(r["results"]):
+        names = {arm, against} & set(r["results"])
+        if not names:
+            continue
+        seed = runs.setdefault(r["seed"], {"seed": r["seed"], "results": {}, "zero_flow_epe": r["zero_flow_epe"],
+                                           "config": d.get("flowsynth_config"), "file": f.name})
+        zero, config = seed["zero_flow_epe"], seed["config"]
+        same = {"zero_flow_epe": set(zero) == set(r["zero_flow_epe"]) and all(  # float32 sums differ in the 7th digit
+                    abs(zero[k] - r["zero_flow_epe"][k]) <= 1e-5 * abs(zero[k]) for k in zero),
+                "config": d.get("flowsynth_config") == config}
+        for key in same:
+            if not same[key]:  # other judges (another --middlebury) or another default: not one comparison
+                raise SystemExit(f"--summarize: seed {r['seed']}'s runs in {seed['file']} and {f.name} differ in "
+                                 f"{'their judges (zero flow EPE)' if key == 'zero_flow_epe' else 'flowsynth_config'}")
+        for name in names:
             if name in seed["results"]:
                 raise SystemExit(f"--summarize: seed {r['seed']}'s {name} is in {seed['results'][name][0]} and in "
                                  f"{f.name}")
             seed["results"][name] = (f.name, r["results"][name])
-    runs = {k: {**v, "results": {a: res for a, (_, res) in v["results"].items()}} for k, v in runs.items()
+    runs = {k: {**v, "results": {a: res for a, (_, res) in v["results"].items()}} for k, v in sorted(runs.items())
             if {arm, against} <= set(v["results"])}
     if not runs:
-        raise SystemExit(f"no complete run of results/{pattern} with no --set holds both {arm} and {against} on a seed")
+        raise SystemExit(f"--summarize: no complete run of results/{pattern} with no --set holds both {arm} and "
+                         f"{against} on a seed")
     out, rows = {}, []
     for j in JUDGES:
         rs = [r for r in runs.values() if j in r["zero_flow_epe"]]
@@ -385,6 +398,9 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
         a = np.array([score(r["results"][arm]["curve"], j) for r in rs])
         b = np.array([score(r["results"][against]["curve"], j) for r in rs])
         logs = np.log(a / b)
+        if not np.isfinite(logs).all():  # a diverged net (NaN EPE) or a zero score: no ratio to pool
+            bad = [r["seed"] for r, x in zip(rs, logs) if not np.isfinite(x)]
+            raise SystemExit(f"--summarize: {arm} / {against} on {j} is not finite on seeds {bad}")
         n = len(logs)
         half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n) if n > 1 else None  # one seed: none
         useful = sum(score(r["results"][arm]["curve"], j) < min(r["zero_flow_epe"][j],

@@ -20,7 +20,9 @@ export TMPDIR="$RUN/tmp" HOME="$RUN/home" RAY_TMPDIR="$RAY_RUN"
 export XDG_CACHE_HOME="$ROOT/.cache/xdg" WARP_CACHE_PATH="$ROOT/.cache/warp" MPLCONFIGDIR="$ROOT/.cache/mpl"
 export FLOWSYNTH_HERMETIC=1
 # --as-ci first: the bench extra's modules cannot be imported (a folder of stand-ins that raise ModuleNotFoundError,
-# first on PYTHONPATH), so a .venv set up with --bench runs the suite as CI's (set up with --ray only) does.
+# first on PYTHONPATH), so a .venv set up with --bench runs the suite as CI's (set up with --ray only) does. Limits:
+# importlib.util.find_spec and importlib.metadata still see the real packages, and a child process given a PYTHONPATH
+# of its own (not prepended to this one) imports them.
 if [ "${1:-}" = "--as-ci" ]; then
   shift
   for m in embreex matplotlib mitsuba pybullet skimage; do

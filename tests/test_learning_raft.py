@@ -80,7 +80,12 @@ def test_small_motion_pairs_cover_every_photograph_and_magnitude(monkeypatch):
     t = torch.from_numpy(img).permute(2, 0, 1)[None]
     # Motorcycle stands in: the test needs neither scikit-image's data nor the bench extra
     stereo = torch.from_numpy(_smooth_image(185, 125)).permute(2, 0, 1)[None]
-    monkeypatch.setattr(learning_sets, "motorcycle_full", lambda scale: (stereo, stereo))
+
+    def motorcycle(factor):
+        assert factor == 2  # the diagnostic moves Motorcycle at half resolution, as the judge reads it
+        return stereo, stereo
+
+    monkeypatch.setattr(learning_sets, "motorcycle_full", motorcycle)
     pairs = small_motion_pairs({"mb_Fake": (t, t, torch.zeros(1, 2, 128, 160), torch.ones(1, 1, 128, 160))},
                                magnitudes=(0.0, 2.0))
     assert set(pairs) == {"sm_stereo_0", "sm_stereo_2", "sm_Fake_0", "sm_Fake_2"}
@@ -120,6 +125,8 @@ def _result(path, overrides, arms, seed=0):
 def test_summarize_pairs_one_seeds_arms_across_files(tmp_path, monkeypatch):
     """A seed's default and lever may come from two runs; the ratios, their geometric mean and its t interval are
     checked by hand; a --set run's flowsynth arm is not the default, and an arm twice on one seed is an error."""
+    import json
+
     import learning_raft
 
     monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
@@ -130,17 +137,34 @@ def test_summarize_pairs_one_seeds_arms_across_files(tmp_path, monkeypatch):
     _result(tmp_path / "learning_raft_s0_set.json", {"rest_fraction": 0.3}, {"flowsynth": [(9.0, 9.0), (9.0, 9.0)]})
     out = learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
     mb = out["judges"]["middlebury"]
+    assert out["judges"]["stereo"]["ratios"] == [pytest.approx(0.5)]
     assert mb["seeds"] == [0] and mb["ratios"] == [pytest.approx(0.5)] and mb["ci95"] is None
     assert mb["useful"] == 1  # 1.0 is below zero flow's 4.0 and the untrained 10.0
     _result(tmp_path / "learning_raft_s1.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)],
                                                      "flowsynth_photos": [(3.0, 4.0), (3.0, 4.0)]}, seed=1)
     mb = learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")["judges"]["middlebury"]
-    assert sorted(mb["seeds"]) == [0, 1] and sorted(mb["ratios"]) == [pytest.approx(0.5), pytest.approx(2.0)]
+    assert dict(zip(mb["seeds"], mb["ratios"])) == {0: pytest.approx(0.5), 1: pytest.approx(2.0)}
     assert mb["geometric_mean"] == pytest.approx(1.0) and mb["in_favour"] == 1
     half = 12.706205 * np.log(4.0) / np.sqrt(2) / np.sqrt(2)  # t(0.975, 1) * sd of (log 0.5, log 2) / sqrt(2)
     assert mb["ci95"] == [pytest.approx(np.exp(-half)), pytest.approx(np.exp(half))]
     _result(tmp_path / "learning_raft_s1_again.json", {}, {"flowsynth_photos": [(1.0, 1.0), (1.0, 1.0)]}, seed=1)
     with pytest.raises(SystemExit, match="is in"):
+        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+    (tmp_path / "learning_raft_s1_again.json").unlink()
+    # a lever judged on other pairs (another --middlebury: zero flow differs) does not pair with the default
+    lever = tmp_path / "learning_raft_s0_lever.json"
+    d = json.loads(lever.read_text())
+    d["runs"][0]["zero_flow_epe"]["middlebury"] = 3.0
+    lever.write_text(json.dumps(d))
+    with pytest.raises(SystemExit, match="judges"):
+        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+    d["runs"][0]["zero_flow_epe"]["middlebury"] = 4.0 * (1 + 1e-7)  # float32 sums in another order: the same judge
+    d["runs"][0]["results"]["flowsynth_photos"]["curve"][-1]["middlebury"] = float("nan")  # a diverged net
+    lever.write_text(json.dumps(d))
+    with pytest.raises(SystemExit, match=r"not finite on seeds \[0\]"):
+        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+    lever.write_text(json.dumps({**d, "flowsynth_config": {"num_objects": [1, 2]}}))  # another library's default
+    with pytest.raises(SystemExit, match="flowsynth_config"):
         learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
     with pytest.raises(SystemExit, match="holds both"):
         learning_raft.summarize("learning_raft_s0*.json", "control", "flowsynth")
