@@ -29,6 +29,8 @@ Protocol (the numbers are module constants):
     noise) as the images, in place of ``rgb``; the flow is the same truth.
   - ``mixture``: a preset mixture, as FlowNet and RAFT start on chairs: half the ``flowsynth`` pool, half the
     ``chairs2d`` pool (no files).
+  - ``curriculum``: chairs first, as FlowNet and RAFT train: the ``chairs2d`` pool for the first half of the steps,
+    then the ``flowsynth`` pool (no files; both pools whole, so the arm holds 2 x POOL pairs).
   - ``control``: the flowsynth pool again, with another net seed (seed + 100): the judge's own noise.
 - Judges: Motorcycle ("stereo": the whole stereo pair at half resolution, plain and mirrored, ``motorcycle_full``)
   and, with ``--middlebury DIR``, the mean EPE over the Middlebury pairs found there ("middlebury", each pair also
@@ -66,7 +68,8 @@ UPDATES, TEST_UPDATES = 8, 12
 POOL = 1200  # training pairs per arm
 SCALE = 512 // RES[0]  # flow_px is given at 512x384
 ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsynth_natural", "flowsynth_final",
-        "mixture", "control")
+        "mixture", "curriculum", "control")
+STAGES = {"curriculum": 2}  # arms trained in stages: the pool's k-th of n equal blocks feeds the k-th n-th of steps
 CONTROL_SEED = 100  # the control's net seed is the run's seed + this
 JUDGES = ("stereo", "middlebury")
 CACHE = Path(__file__).resolve().parent.parent / ".cache" / "learning_raft"
@@ -169,10 +172,12 @@ def evaluate(net, tests: dict, device: str) -> dict:
 
 
 def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, threads: int = 0,
-          device: str = "cpu", save: str | None = None, progress: str | None = None) -> dict:
+          device: str = "cpu", save: str | None = None, progress: str | None = None, stages: int = 1) -> dict:
     """Train RAFT-small (initialised from ``net_seed``) on ``data`` (a pool) for ``steps`` steps of RAFT's recipe;
     batches drawn from ``seed``. Tests at step 0, every ``every`` steps and at the end. ``save``: a path for the final
-    weights; ``progress``: a JSON path rewritten with the curve after every test (a run cut short keeps its curve)."""
+    weights; ``progress``: a JSON path rewritten with the curve after every test (a run cut short keeps its curve).
+    ``stages``: the pool is that many equal blocks, block k feeding steps k * steps / stages + 1 to (k + 1) * steps /
+    stages (a curriculum); with 1 the batches are what they were before stages existed."""
     import torch
 
     from flowsynth.training import augment, one_cycle, train_step
@@ -184,11 +189,13 @@ def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, t
     opt, sched = one_cycle(net.parameters(), LR, steps)
     g = torch.Generator().manual_seed(seed)
     img1, img2, flow, valid = data
+    block = len(img1) // stages
     t = time.perf_counter()
     curve = [{"step": 0, "train_loss": None, **evaluate(net, tests, device)}]
     losses = []
     for step in range(1, steps + 1):
-        idx = torch.randint(len(img1), (BATCH,), generator=g)
+        stage = min((step - 1) * stages // steps, stages - 1)
+        idx = torch.randint(block if stages > 1 else len(img1), (BATCH,), generator=g) + stage * block
         batch = augment(img1[idx], img2[idx], flow[idx], valid[idx], CROP, g)
         losses.append(train_step(net, tuple(x.to(device) for x in batch), opt, sched, UPDATES))
         if step % every == 0 or step == steps:
@@ -217,7 +224,7 @@ def _train_args(arms: dict, name: str, tests: dict, steps: int, seed: int, every
     net_seed = seed + CONTROL_SEED if name == "control" else seed
     stem = f"{tag or 'default'}_{name}_s{seed}"
     return (arms[name], tests, steps, seed, net_seed, every, threads, device, str(CACHE / f"{stem}.pt"),
-            str(RESULTS_DIR / "learning_raft_progress" / f"{stem}.json"))
+            str(RESULTS_DIR / "learning_raft_progress" / f"{stem}.json"), STAGES.get(name, 1))
 
 
 def train_all(arms: dict, tests: dict, steps: int, seed: int, every: int, jobs: int, threads: int, device: str,
@@ -270,7 +277,8 @@ def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = P
     config."""
     import torch
 
-    extra = n // 2 if {"chairs2d", "mixture"} & set(names) else 0  # frames for chairs2d's textures, not trained on
+    # frames for chairs2d's textures, not trained on
+    extra = n // 2 if {"chairs2d", "mixture", "curriculum"} & set(names) else 0
     pool, cfg = flowsynth_pool(n + extra, seed, workers, overrides)
     fs_pool = tuple(x[:n] for x in pool)
     target = mean_flow(fs_pool)
@@ -278,10 +286,14 @@ def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = P
     for name in names:
         if name in ("flowsynth", "control"):
             arms[name] = fs_pool
-        elif name in ("chairs2d", "mixture"):
+        elif name in ("chairs2d", "mixture", "curriculum"):
             chairs, info["chairs2d_motion_scale"] = baseline_pool(n, seed, pool[0][n:].float() / 255, target)
-            arms[name] = chairs if name == "chairs2d" else tuple(torch.cat([f[:n // 2], c[:n - n // 2]])
-                                                                 for f, c in zip(fs_pool, chairs))
+            if name == "chairs2d":
+                arms[name] = chairs
+            elif name == "mixture":
+                arms[name] = tuple(torch.cat([f[:n // 2], c[:n - n // 2]]) for f, c in zip(fs_pool, chairs))
+            else:  # the curriculum's two blocks, in order: STAGES
+                arms[name] = tuple(torch.cat([c, f]) for c, f in zip(chairs, fs_pool))
         elif name == "flowsynth_final":
             arms[name], _ = flowsynth_pool(n, seed, workers, overrides, image="rgb_final")
         elif name == "chairs2d_photos":
@@ -431,7 +443,7 @@ def screen(pattern: str, seed: int = 0) -> list[dict]:
     score ratio candidate / default per judge beside the control's ratio control / default. The default is the
     ``flowsynth`` arm of a run with no ``--set``; the control, the ``control`` arm of such a run; a candidate, any
     other flowsynth-made arm (``flowsynth`` with ``--set``, ``flowsynth_natural``, ``flowsynth_photos``,
-    ``flowsynth_final``, ``mixture``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the control's band
+    ``flowsynth_final``, ``mixture``, ``curriculum``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the control's band
     (the lower of c and 1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``; each judge's
     ratio is also read against the band (better, within the noise, worse). Only complete runs of this judge count,
     and all must share the protocol."""

@@ -111,6 +111,38 @@ def test_mixture_and_final_pass_arms(monkeypatch):
     assert set(info["mean_flow"]) == {"flowsynth", "mixture", "flowsynth_final", "chairs2d"}
 
 
+def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
+    """``stages``: block k of the pool feeds the k-th share of the steps; with one stage the batches are the
+    generator's plain draws over the whole pool, as before stages existed. The pool's images carry their index."""
+    import torch
+
+    import flowsynth.training
+    import learning_raft
+
+    seen = []
+
+    def augment(i1, i2, f, v, crop, g):
+        seen.append(i1[:, 0, 0, 0].tolist())
+        return i1, i2, f, v
+
+    monkeypatch.setattr(learning_raft, "evaluate", lambda net, tests, device: {})
+    monkeypatch.setattr(flowsynth.training, "augment", augment)
+    monkeypatch.setattr(flowsynth.training, "train_step", lambda net, batch, opt, sched, updates: 0.0)
+    pool = (torch.arange(8, dtype=torch.uint8)[:, None, None, None].expand(8, 3, 4, 4), torch.zeros(8, 3, 4, 4),
+            torch.zeros(8, 2, 4, 4), torch.ones(8, 1, 4, 4, dtype=torch.bool))
+    learning_raft.train(pool, {}, 10, 3, 3, 5, stages=2)
+    assert all(0 <= i < 4 for b in seen[:5] for i in b) and all(4 <= i < 8 for b in seen[5:] for i in b)
+    assert len(seen) == 10 and len({i for b in seen for i in b}) > 4
+    seen.clear()
+    learning_raft.train(pool, {}, 10, 3, 3, 5)
+    g = torch.Generator().manual_seed(3)
+    assert seen == [torch.randint(8, (learning_raft.BATCH,), generator=g).tolist() for _ in range(10)]
+    arms, _, _ = learning_raft.build_arms(["curriculum", "chairs2d", "flowsynth"], 0, 0, {}, n=4)
+    assert learning_raft.STAGES["curriculum"] == 2
+    assert all(torch.equal(c, torch.cat([a, f])) for c, a, f in zip(arms["curriculum"], arms["chairs2d"],
+                                                                      arms["flowsynth"]))
+
+
 def _result(path, overrides, arms, seed=0):
     import json
 
