@@ -435,6 +435,47 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
     return {"arm": arm, "against": against, "pattern": pattern, "judges": out}
 
 
+def plot_summary(out: dict, name: str):
+    """``summarize``'s result as a picture (results/NAME.png): per judge, each seed's ratio arm / against as a dot
+    labelled by its seed, the geometric mean as a bar with its 95% interval, and 1 (no difference) as a line; a log
+    axis, so 0.5 and 2 lie as far from 1. Returns the path (None without matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    judges = list(out["judges"])
+    fig, ax = plt.subplots(figsize=(5, 4), dpi=110)
+    for x, j in enumerate(judges):
+        o = out["judges"][j]
+        ax.plot([x] * len(o["ratios"]), o["ratios"], "o", color="C0", alpha=0.7)
+        for seed, r in zip(o["seeds"], o["ratios"]):
+            ax.annotate(f"s{seed}", (x, r), textcoords="offset points", xytext=(6, -3), fontsize=7)
+        lo, hi = o["ci95"] or (o["geometric_mean"],) * 2
+        ax.errorbar([x + 0.25], [o["geometric_mean"]], yerr=[[o["geometric_mean"] - lo], [hi - o["geometric_mean"]]],
+                    fmt="s", color="C3", capsize=4)
+    ax.axhline(1.0, color="grey", lw=1)
+    ax.set_yscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%.2g"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%.2g"))
+    ax.set_xticks(range(len(judges)), [{"stereo": "Motorcycle", "middlebury": "Middlebury mean"}.get(j, j)
+                                       for j in judges])
+    ax.set_xlim(-0.5, len(judges) - 0.3)
+    ax.set_ylabel(f"score ratio {out['arm']} / {out['against']}")
+    ax.set_title("seeds (dots), geometric mean and 95% interval (squares)", fontsize=9)
+    ax.grid(True, which="both", axis="y", alpha=0.3)
+    fig.tight_layout()
+    path = RESULTS_DIR / f"{name}.png"
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 SCREEN_MB, SCREEN_MOTO = 0.85, 1.10  # rule 4's thresholds on candidate / default (Middlebury mean, Motorcycle)
 
 
@@ -443,10 +484,10 @@ def screen(pattern: str, seed: int = 0) -> list[dict]:
     score ratio candidate / default per judge beside the control's ratio control / default. The default is the
     ``flowsynth`` arm of a run with no ``--set``; the control, the ``control`` arm of such a run; a candidate, any
     other flowsynth-made arm (``flowsynth`` with ``--set``, ``flowsynth_natural``, ``flowsynth_photos``,
-    ``flowsynth_final``, ``mixture``, ``curriculum``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the control's band
-    (the lower of c and 1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``; each judge's
-    ratio is also read against the band (better, within the noise, worse). Only complete runs of this judge count,
-    and all must share the protocol."""
+    ``flowsynth_final``, ``mixture``, ``curriculum``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the
+    control's band (the lower of c and 1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``;
+    each judge's ratio is also read against the band (better, within the noise, worse). Only complete runs of this
+    judge count, and all must share the protocol."""
     ref, cands = {}, []
     for f, d, r in _complete_runs(pattern, "--screen"):
         if r["seed"] != seed:
@@ -659,7 +700,9 @@ def main(argv: list[str]) -> None:
             p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8]")
     if args.summarize:
         out = summarize(args.files, args.arm, args.against)
-        write_json(f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else ""), out)
+        name = f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else "")
+        write_json(name, out)
+        print(f"plot: {plot_summary(out, name) or 'none (matplotlib is in the bench extra)'}")
         return
     if args.screen:
         rows = screen(args.files)

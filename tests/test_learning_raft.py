@@ -247,3 +247,21 @@ def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
     (tmp_path / "learning_raft_s0_control.json").unlink()
     with pytest.raises(SystemExit, match="control"):
         learning_raft.screen("learning_raft_s0*.json")
+
+
+def test_plot_summary_draws_seeds_and_interval(tmp_path, monkeypatch):
+    """``--summarize``'s picture: a PNG with matplotlib (the bench extra), None without it; one seed (no interval)
+    draws too."""
+    import learning_raft
+
+    monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
+    judge = {"seeds": [0, 1], "ratios": [0.5, 2.0], "geometric_mean": 1.0, "ci95": [0.0002, 6000.0]}
+    out = {"arm": "a", "against": "b", "judges": {"stereo": judge, "middlebury": {**judge, "seeds": [0],
+                                                                                 "ratios": [0.7], "ci95": None}}}
+    try:
+        import matplotlib  # noqa: F401
+    except ModuleNotFoundError:
+        assert learning_raft.plot_summary(out, "summary") is None
+        return
+    path = learning_raft.plot_summary(out, "summary")
+    assert path == tmp_path / "summary.png" and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
