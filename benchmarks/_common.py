@@ -274,9 +274,8 @@ def _json_default(obj):
     raise TypeError(f"cannot write {type(obj).__name__} to JSON")
 
 
-def save_plot(name: str, labels: Sequence[str], values: Sequence[float], ylabel: str,
-              title: str = "") -> Path | None:
-    """Bar chart to ``benchmarks/results/<name>.png``; returns None (and does nothing) without matplotlib."""
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files only), or None without matplotlib (the bench extra)."""
     try:
         import matplotlib
 
@@ -284,28 +283,40 @@ def save_plot(name: str, labels: Sequence[str], values: Sequence[float], ylabel:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
+    return plt
+
+
+def save_figure(fig, name: str, dpi: float | None = None) -> Path:
+    """Write ``fig`` to ``benchmarks/results/<name>.png`` (the folder made if missing), close it, return the path."""
+    import matplotlib.pyplot as plt
+
+    path = RESULTS_DIR / f"{name}.png"
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, **({"dpi": dpi} if dpi else {}))
+    plt.close(fig)
+    return path
+
+
+def save_plot(name: str, labels: Sequence[str], values: Sequence[float], ylabel: str,
+              title: str = "") -> Path | None:
+    """Bar chart to ``benchmarks/results/<name>.png``; returns None (and does nothing) without matplotlib."""
+    plt = pyplot()
+    if plt is None:
+        return None
     fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(labels), 3.2))
     ax.bar(range(len(labels)), values)
     ax.set_xticks(range(len(labels)), labels, rotation=20, ha="right")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     fig.tight_layout()
-    path = RESULTS_DIR / f"{name}.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, name, dpi=120)
 
 
 def plot_curves(name: str, series: dict, xlabel: str, ylabel: str, *, logx: bool = True, logy: bool = True,
                 title: str = "") -> Path | None:
     """Line plot of ``series`` {label: (xs, ys)} to ``benchmarks/results/<name>.png`` (None without matplotlib)."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         return None
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     for label, (xs, ys) in series.items():
@@ -318,11 +329,7 @@ def plot_curves(name: str, series: dict, xlabel: str, ylabel: str, *, logx: bool
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    path = RESULTS_DIR / f"{name}.png"
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, name)
 
 
 def fit_exponent(xs, ys) -> float:

@@ -52,7 +52,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import RESULTS_DIR, machine_info, print_table, write_json
+from _common import RESULTS_DIR, machine_info, print_table, pyplot, save_figure, write_json
 from learning_sets import NATURAL_PHOTOS, chairs2d_pairs, middlebury_pairs, motorcycle_full, natural_folder, \
     photo_folder, photo_sources, small_motion_pairs
 
@@ -439,12 +439,8 @@ def plot_summary(out: dict, name: str):
     """``summarize``'s result as a picture (results/NAME.png): per judge, each seed's ratio arm / against as a dot
     labelled by its seed, the geometric mean as a bar with its 95% interval, and 1 (no difference) as a line; a log
     axis, so 0.5 and 2 lie as far from 1. Returns the path (None without matplotlib)."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         return None
     judges = list(out["judges"])
     fig, ax = plt.subplots(figsize=(5, 4), dpi=110)
@@ -469,11 +465,7 @@ def plot_summary(out: dict, name: str):
     ax.set_title("seeds (dots), geometric mean and 95% interval (squares)", fontsize=9)
     ax.grid(True, which="both", axis="y", alpha=0.3)
     fig.tight_layout()
-    path = RESULTS_DIR / f"{name}.png"
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, name)
 
 
 SCREEN_MB, SCREEN_MOTO = 0.85, 1.10  # rule 4's thresholds on candidate / default (Middlebury mean, Motorcycle)

@@ -252,9 +252,10 @@ def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
 def test_plot_summary_draws_seeds_and_interval(tmp_path, monkeypatch):
     """``--summarize``'s picture: a PNG with matplotlib (the bench extra), None without it; one seed (no interval)
     draws too."""
+    import _common
     import learning_raft
 
-    monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
+    monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)  # where write_json and the figures go
     judge = {"seeds": [0, 1], "ratios": [0.5, 2.0], "geometric_mean": 1.0, "ci95": [0.0002, 6000.0]}
     out = {"arm": "a", "against": "b", "judges": {"stereo": judge, "middlebury": {**judge, "seeds": [0],
                                                                                  "ratios": [0.7], "ci95": None}}}
