@@ -175,7 +175,8 @@ def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, t
           device: str = "cpu", save: str | None = None, progress: str | None = None, stages: int = 1) -> dict:
     """Train RAFT-small (initialised from ``net_seed``) on ``data`` (a pool) for ``steps`` steps of RAFT's recipe;
     batches drawn from ``seed``. Tests at step 0, every ``every`` steps and at the end. ``save``: a path for the final
-    weights; ``progress``: a JSON path rewritten with the curve after every test (a run cut short keeps its curve).
+    weights (each tested checkpoint's beside it, ``checkpoint_path``); ``progress``: a JSON path rewritten with the
+    curve after every test (a run cut short keeps its curve).
     ``stages``: the pool is that many equal blocks, block k feeding steps k * steps / stages + 1 to (k + 1) * steps /
     stages (a curriculum); with 1 the batches are what they were before stages existed."""
     import torch
@@ -201,6 +202,9 @@ def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, t
         if step % every == 0 or step == steps:
             curve.append({"step": step, "train_loss": sum(losses[-every:]) / len(losses[-every:]),
                           **evaluate(net, tests, device)})
+            if save:  # every checkpoint's weights, for the small-motion diagnostic at each (issue 53, item 5)
+                Path(save).parent.mkdir(parents=True, exist_ok=True)
+                torch.save(net.state_dict(), checkpoint_path(save, step))
             if progress:
                 Path(progress).parent.mkdir(parents=True, exist_ok=True)
                 Path(progress + ".tmp").write_text(json.dumps({"curve": curve, "s": time.perf_counter() - t}))
@@ -210,6 +214,11 @@ def train(data, tests: dict, steps: int, seed: int, net_seed: int, every: int, t
         torch.save(net.state_dict(), save)
     return {"curve": curve, "train_s": time.perf_counter() - t, "net_seed": net_seed,
             "parameters": sum(p.numel() for p in net.parameters())}
+
+
+def checkpoint_path(save: str, step: int) -> str:
+    """Where ``train`` keeps the weights of its checkpoint at ``step`` beside the final ones at ``save``."""
+    return str(Path(save).with_name(f"{Path(save).stem}_step{step}.pt"))
 
 
 def score(curve: list, judge: str) -> float:

@@ -143,6 +143,34 @@ def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
                                                                       arms["flowsynth"]))
 
 
+def test_train_keeps_every_checkpoints_weights(tmp_path, monkeypatch):
+    """``save``: each tested checkpoint's weights go beside the final ones, as they were at that step (a stand-in
+    step adds 1 to one weight, so checkpoint s holds the initial weight + s)."""
+    import torch
+
+    import flowsynth.training
+    import learning_raft
+
+    def step(net, batch, opt, sched, updates):
+        next(net.parameters()).data.add_(1.0)
+        return 0.0
+
+    monkeypatch.setattr(learning_raft, "evaluate", lambda net, tests, device: {})
+    monkeypatch.setattr(flowsynth.training, "augment", lambda i1, i2, f, v, crop, g: (i1, i2, f, v))
+    monkeypatch.setattr(flowsynth.training, "train_step", step)
+    pool = tuple(torch.zeros(4, c, 4, 4) for c in (3, 3, 2, 1))
+    torch.manual_seed(7)
+    first = next(learning_raft.raft_small().parameters()).detach().clone()
+    save = str(tmp_path / "net.pt")
+    learning_raft.train(pool, {}, 10, 3, 7, 4, save=save)
+    name = next(iter(torch.load(save)))
+    for s in (4, 8, 10):
+        weights = torch.load(learning_raft.checkpoint_path(save, s))
+        assert torch.allclose(weights[name], first + s, rtol=0, atol=1e-5)
+    assert torch.equal(torch.load(save)[name], weights[name])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["net.pt", "net_step10.pt", "net_step4.pt", "net_step8.pt"]
+
+
 def _result(path, overrides, arms, seed=0):
     import json
 
