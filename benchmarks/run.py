@@ -3,12 +3,13 @@
     python benchmarks/run.py [--quick] [--only raycast,scaling]
     python benchmarks/run.py --summary-only          # rebuild SUMMARY.md from the recorded outputs, run nothing
 
-Each benchmark is a script in this folder that prints its tables and writes results/<name>.json (and PNG
-plots for curves). This runner calls them one after the other (each in its own process, so kernel
-caches and memory don't leak between them), keeps each one's printed tables in results/<name>.txt and how it
-ran (command, exit status, seconds, date) in results/<name>.run.json, and then builds SUMMARY.md from those
-files alone: the machine, versions, load average and date, a status table, and every benchmark's last recorded
-output. ``--quick`` is passed on to every script (all of them within ~10 min on 2 cores).
+Each benchmark is a script in a folder of this one, by concern (``GROUPS``: speed/, accuracy/, learning/, peers/,
+device/), that prints its tables and writes results/<name>.json (and PNG plots for curves). This runner calls them
+one after the other (each in its own process, so kernel caches and memory don't leak between them), keeps each one's
+printed tables in results/<name>.txt and how it ran (command, exit status, seconds, date) in results/<name>.run.json,
+and then builds SUMMARY.md from those files alone: the machine, versions, load average and date, a status table, and
+every benchmark's last recorded output. ``--quick`` is passed on to every script (all of them within ~10 min on 2
+cores).
 
 What this runner owns: exactly the files under ``RESULTS_DIR`` named by ``OWNED``. Everything it writes goes
 through ``_write``, which refuses any other path. SUMMARY.md holds no hand-written text: the readings of a run
@@ -31,6 +32,7 @@ sys.path.insert(0, str(HERE))
 
 from _common import RESULTS_DIR, machine_info
 
+GROUPS = ("speed", "accuracy", "learning", "peers", "device")  # the folders of benchmarks/, by concern
 BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "ray_export",
               "scaling", "physics_graph", "png_level", "tiles", "outputs_cost", "datastats", "learning",
               "texture", "shading_cost", "cycles"]
@@ -57,16 +59,26 @@ def _write(results: Path, path: Path, text: str) -> None:
     path.write_text(text)
 
 
+def script(name: str) -> Path:
+    """The file of benchmark ``name``: ``benchmarks/<group>/<name>.py`` for the one group of ``GROUPS`` holding it."""
+    found = [HERE / g / f"{name}.py" for g in GROUPS if (HERE / g / f"{name}.py").is_file()]
+    if len(found) != 1:
+        raise FileNotFoundError(f"benchmark {name!r}: {len(found)} files named {name}.py in {GROUPS}")
+    return found[0]
+
+
 def run_one(name: str, quick: bool, results: Path = RESULTS_DIR) -> dict:
-    """Run ``benchmarks/<name>.py`` in a fresh process; record its output and status. Returns the status dict."""
-    cmd = [sys.executable, str(HERE / f"{name}.py")] + (["--quick"] if quick else [])
+    """Run ``benchmarks/<group>/<name>.py`` in a fresh process; record its output and status. Returns the status
+    dict."""
+    path = script(name)
+    cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
     print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
     t = time.time()
     r = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent)
     text = "\n".join(line for line in r.stdout.splitlines() if "CUDA" not in line)
     print(text, flush=True)
-    status = {"command": f"python benchmarks/{name}.py" + (" --quick" if quick else ""), "returncode": r.returncode,
-              "seconds": round(time.time() - t, 1),
+    status = {"command": f"python {path.relative_to(HERE.parent)}" + (" --quick" if quick else ""),
+              "returncode": r.returncode, "seconds": round(time.time() - t, 1),
               "skipped": r.returncode == 0 and any(line.startswith(SKIP_MARK) for line in r.stdout.splitlines()),
               "date": datetime.datetime.now().isoformat(timespec="seconds"), "stderr_tail": r.stderr[-2000:]}
     _write(results, results / f"{name}.txt", text + ("" if r.returncode == 0 else "\n" + r.stderr[-4000:]))

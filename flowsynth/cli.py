@@ -124,7 +124,8 @@ def _parser() -> argparse.ArgumentParser:
                          f"writes and a resume rewrites [int, default {DEFAULT_SHARD_SIZE}]")
     ex.add_argument("--outputs", default=None, help="comma-separated output keys [default: the layout's set]")
     ex.add_argument("--exr-compression", choices=layouts.EXR_COMPRESSIONS, default="zip",
-                    help="lossless compression of EXR files (sizes and times: benchmarks/export.py) [default zip]")
+                    help="lossless compression of EXR files (sizes and times: benchmarks/speed/export.py) "
+                         "[default zip]")
     ex.add_argument("--dry-run", action="store_true",
                     help="print the bytes each output costs per sample and in total; write nothing [flag, default off]")
     ex.add_argument("--occlusion", choices=OCCLUSION_METHODS, default="exact",

@@ -145,7 +145,7 @@ def export_results(jobs: list, writer, *, actors: int | None = None, address: st
     yields its return values in completion order. Each actor opens its copy of the writer once.
 
     Plain actors, not Ray Data (whose map operator would add a stats actor, a Ray Data import in every
-    actor and a polling executor in the driver: start-up measured in benchmarks/ray_export.py). They are
+    actor and a polling executor in the driver: start-up measured in benchmarks/speed/ray_export.py). They are
     created with ``max_restarts=-1, max_task_retries=-1``, so an actor that dies is restarted and its
     queued and running jobs run again on it; jobs are pure functions of (config, seed, index), so a
     retry writes the same bytes. An attempt cut short by a dying actor leaves a staging folder

@@ -57,7 +57,7 @@ ALIASES = {"tracks": TRACK_KEYS}
 # Rectified right camera at ``stereo_baseline`` metres along the left camera's +x (flowsynth/truth/stereo.py).
 STEREO_KEYS = ("rgb_right", "depth_right", "disparity", "disparity_right", "disparity_change", "disparity_occ",
                "disparity_occ_right")
-# The outputs before scene flow, tracks and stereo (benchmarks/throughput.py keeps timing this set).
+# The outputs before scene flow, tracks and stereo (benchmarks/speed/throughput.py keeps timing this set).
 CORE_OUTPUTS = ("rgb",) + GBUFFER_KEYS + FLOW_KEYS + TABLE_KEYS + CAMERA_KEYS
 # The "final" pass beside the clean ``rgb``: motion blur, depth of field, fog, exposure / white balance, sensor noise
 # (flowsynth/renderer/finalpass.py, docs/rendering.md "Final pass"); ground truth stays that of the clean pinhole

@@ -7,9 +7,9 @@
 # Steps, in order, each under its own `timeout` (its cap, or what is left of the budget) and each run whatever the
 # step before it returned:
 #   env          nvidia-smi; Python, torch, warp (and its devices), numpy versions
-#   gpu          python benchmarks/gpu.py (CPU against GPU samples/s at 512x384, T=2; profile); then it touches
+#   gpu          python benchmarks/device/gpu.py (CPU against GPU samples/s at 512x384, T=2; profile); then it touches
 #                $GPU_DONE_MARKER (default /tmp/gpu_steps_done): the hook may use the GPU from then on
-#   agreement    python benchmarks/device_agreement.py (CPU against cuda, every main output, issue 47's tolerances)
+#   agreement    python benchmarks/device/device_agreement.py (CPU against cuda, every main output, issue 47's tolerances)
 #   tests        python -m pytest -q -x tests/test_device.py (placement of every stage, parametrised on "cuda")
 #   tests_more   the other tests that touch CUDA: tests/test_device_agreement.py (a small scene on every CUDA
 #                device against the CPU) and tests/test_datasets.py::test_cpu_run_never_initialises_cuda
@@ -120,10 +120,10 @@ print(\"warp\", wp.__version__, \"cuda devices\", wp.get_cuda_device_count(), [s
 "' "$PY"
 # the timings first, with the GPU to themselves (the hook only renders on the CPU, at nice 19, until the marker)
 # shellcheck disable=SC2086  # the extra arguments split on spaces on purpose
-step gpu 300 "$PY" benchmarks/gpu.py ${GPU_ARGS:-}
+step gpu 300 "$PY" benchmarks/device/gpu.py ${GPU_ARGS:-}
 touch "${GPU_DONE_MARKER:-/tmp/gpu_steps_done}"  # the hook's GPU work may start now
 # shellcheck disable=SC2086
-step agreement 180 "$PY" benchmarks/device_agreement.py ${AGREEMENT_ARGS:-}
+step agreement 180 "$PY" benchmarks/device/device_agreement.py ${AGREEMENT_ARGS:-}
 step tests 240 "$PY" -m pytest -q -x -rfEs --durations=8 -p no:cacheprovider tests/test_device.py
 step tests_more 150 "$PY" -m pytest -q -rfEs --durations=5 -p no:cacheprovider tests/test_device_agreement.py
 # alone: tests/test_datasets.py imports torchdata, which the device's image lacks (2026-11-26, H200); a collection

@@ -4,7 +4,7 @@
 #   bash scripts/setup.sh            flowsynth + test extras
 #   bash scripts/setup.sh --ray      also the Ray engine (flowsynth[ray]: Ray Data and Ray Train)
 #   bash scripts/setup.sh --bench    also the benchmark peers and plots (flowsynth[bench])
-# benchmarks/cycles.py also needs Blender on PATH, which this script does not install (Debian: apt-get install
+# benchmarks/peers/cycles.py also needs Blender on PATH, which this script does not install (Debian: apt-get install
 # blender); without it that benchmark prints a "not installed" row and exits 0.
 set -euo pipefail
 cd "$(dirname "$0")/.."

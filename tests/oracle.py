@@ -1,5 +1,5 @@
-"""Independent float64 numpy oracles for the ground-truth tests, ``benchmarks/accuracy.py`` and
-``benchmarks/peers_physics.py``.
+"""Independent float64 numpy oracles for the ground-truth tests, ``benchmarks/accuracy/accuracy.py`` and
+``benchmarks/peers/peers_physics.py``.
 
 Nothing here calls flowsynth's ray caster, flow or annotation code. Conventions (docs/conventions.md):
 OpenCV camera axes (x right, y down, z forward), ``a_T_b`` maps b-frame points into frame a, the centre of

@@ -33,7 +33,7 @@ def test_no_script_configures_the_full_sample_by_hand():
     """The full sample's signature (20 objects at 512x384, direct) appears only in _common.py; learning.py is an
     experiment with its own configs."""
     offenders = []
-    for path in sorted(BENCH.glob("*.py")):
+    for path in sorted(BENCH.rglob("*.py")):
         if path.name in ("_common.py", "learning.py"):
             continue
         text = path.read_text()
@@ -57,8 +57,8 @@ def test_importing_raycast_does_not_pin_the_importer():
     code = ("import os, sys; sys.path[:0] = [sys.argv[1]]; before = sorted(os.sched_getaffinity(0)); "
             "import raycast; print(before == sorted(os.sched_getaffinity(0)), raycast.PINNING, "
             "os.environ.get('OMP_NUM_THREADS'))")
-    out = subprocess.run([sys.executable, "-c", code, str(BENCH)], capture_output=True, text=True, timeout=300,
-                         env={k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}, check=True)
+    out = subprocess.run([sys.executable, "-c", code, str(BENCH / "peers")], capture_output=True, text=True,
+                         timeout=300, env={k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}, check=True)
     assert out.stdout.split()[-3:] == ["True", "None", "None"], out.stdout + out.stderr[-2000:]
 
 

@@ -1,4 +1,4 @@
-"""benchmarks/learning.py's network starts as a working block matcher (issue 12's protocol): untrained, it
+"""benchmarks/learning/learning.py's network starts as a working block matcher (issue 12's protocol): untrained, it
 recovers a known translation of a random texture. The oracle is the translation itself."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "learning"))
 
 import learning
 
@@ -55,7 +55,7 @@ def test_batches_stream_each_pair_once_and_pool_draws_with_replacement():
 def test_too_few_steps_is_a_usage_error():
     import subprocess
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "learning.py"
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "learning" / "learning.py"
     r = subprocess.run([sys.executable, str(script), "--steps", "10"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "at least 20 steps" in r.stderr
 

@@ -1,6 +1,7 @@
 """Benchmarks stay runnable when code moves (issue 48: two of them failed silently for a round): every module of
 benchmarks/ imports, every script answers ``--help``, and every flowsynth name a benchmark imports exists, lazy imports
-(inside functions) included.
+(inside functions) included. benchmarks/ stays grouped by concern (issue 53): its folders of ``GROUPS``, the shared
+``_common.py``, the runner ``run.py`` and ``results/``, nothing else.
 
 Hermetic and quick: one child process runs the scripts one after the other with ``--help`` (argparse prints the usage
 and exits before any work), from a temporary folder, with the results folder sent there too
@@ -19,6 +20,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 BENCH = REPO / "benchmarks"
+# What benchmarks/ holds: a folder per concern (benchmarks/run.py's GROUPS), the shared helpers, the runner, the
+# results.
+GROUPS = ("speed", "accuracy", "learning", "peers", "device")
+TOP = {"_common.py", "run.py", "results"}
 # Files of benchmarks/ that this interpreter cannot import, and why.
 NOT_HERE = {"_cycles_scene.py": "Blender's own Python runs it (bpy); it imports nothing of flowsynth"}
 # Modules of the optional extras (pyproject.toml: bench, ray) a benchmark may need at import; without them it is
@@ -48,7 +53,7 @@ print(json.dumps(results))
 
 
 def benchmark_files() -> list[Path]:
-    return [p for p in sorted(BENCH.glob("*.py")) if p.name not in NOT_HERE]
+    return [p for p in sorted(BENCH.rglob("*.py")) if p.name not in NOT_HERE and "results" not in p.parts]
 
 
 def is_script(source: str) -> bool:
@@ -62,10 +67,28 @@ def is_script(source: str) -> bool:
 
 
 def test_benchmark_files_are_found():
-    names = {p.name for p in benchmark_files()}
-    assert {"run.py", "hashes.py", "physics.py", "_common.py", "learning_raft.py"} <= names
+    names = {str(p.relative_to(BENCH)) for p in benchmark_files()}
+    assert {"run.py", "speed/hashes.py", "accuracy/physics.py", "_common.py", "learning/learning_raft.py"} <= names
     assert is_script((BENCH / "run.py").read_text()) and not is_script((BENCH / "_common.py").read_text())
-    assert all((BENCH / n).is_file() for n in NOT_HERE)
+    assert all(len(list(BENCH.rglob(n))) == 1 for n in NOT_HERE)
+
+
+def _listing(folder: Path) -> set[str]:
+    """Names in ``folder`` that git would track (no caches: __pycache__, .pyc)."""
+    return {p.name for p in folder.iterdir() if p.name != "__pycache__" and p.suffix != ".pyc"}
+
+
+def test_benchmarks_stay_grouped_by_concern():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("benchmarks_run", BENCH / "run.py")
+    run = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run)
+    assert run.GROUPS == GROUPS
+    assert _listing(BENCH) == set(GROUPS) | TOP, "benchmarks/ holds its groups, _common.py, run.py and results/ only"
+    for group in GROUPS:
+        assert {Path(n).suffix for n in _listing(BENCH / group)} == {".py"}, f"benchmarks/{group}/: scripts only"
+    assert all(run.script(name).parent.name in GROUPS for name in run.BENCHMARKS)
 
 
 def test_every_benchmark_imports_and_answers_help(tmp_path):
@@ -86,8 +109,7 @@ def test_every_benchmark_imports_and_answers_help(tmp_path):
               if status != "ok" and Path(f).name not in skipped}
     assert not failed, "benchmarks that do not import or answer --help:\n" + "\n\n".join(
         f"{k}: {v}" for k, v in failed.items())
-    helped = [Path(f).name for f, s in files if s]
-    assert all("usage:" in results[str(BENCH / n)][1] for n in helped if n not in skipped)
+    assert all("usage:" in results[f][1] for f, s in files if s and Path(f).name not in skipped)
     assert sorted((p.name, p.stat().st_mtime_ns) for p in (BENCH / "results").iterdir()) == before
 
 
@@ -126,7 +148,7 @@ def test_checker_sees_lazy_imports_and_missing_names():
 
 
 def test_every_flowsynth_name_a_benchmark_imports_exists():
-    missing = [f"benchmarks/{p.name} line {line}: {m}" for p in benchmark_files()
+    missing = [f"{p.relative_to(REPO)} line {line}: {m}" for p in benchmark_files()
                for line, module, names in flowsynth_imports(p.read_text()) for m in _missing(module, names)]
     assert not missing, "benchmarks import flowsynth names that do not exist:\n" + "\n".join(missing)
 

@@ -1,5 +1,6 @@
-"""Every device Warp finds renders what the CPU renders, within issue 47's tolerances (benchmarks/device_agreement.py):
-ids and occlusion identical, flow within 1e-3 px, depth within 1e-4 relative, rgb within 0.02.
+"""Every device Warp finds renders what the CPU renders, within issue 47's tolerances
+(benchmarks/device/device_agreement.py): ids and occlusion identical, flow within 1e-3 px, depth within 1e-4
+relative, rgb within 0.02.
 
 The comparison itself is checked on made-up outputs first (each tolerance fails just beyond its bound), then a
 small scene is rendered on the CPU and on each CUDA device and compared; here, without CUDA, the CPU against itself.
@@ -17,7 +18,7 @@ import flowsynth as fs
 from flowsynth.kernels import wp_runtime
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "benchmarks" / "device"))
 
 import device_agreement as da  # noqa: E402
 

@@ -92,7 +92,7 @@ def test_rendering_doc_names_where_render_modes_are_defined():
 
 
 def test_versions_benchmark_docstring_counts_its_settings():
-    src = _read("benchmarks/versions.py")
+    src = _read("benchmarks/speed/versions.py")
     modes = ast.literal_eval(re.search(r"(?m)^MODES = (\(.*\))$", src).group(1))
     words = {2: "Two", 3: "Three", 4: "Four"}
     assert f"{words[len(modes)]} settings per revision" in src

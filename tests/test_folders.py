@@ -87,7 +87,7 @@ def _checked_files() -> list[tuple[Path, str | None]]:
     """(file, its folder or None) of every Python file the rule covers."""
     files = [(p, p.relative_to(REPO / PACKAGE).parts[0] if len(p.relative_to(REPO / PACKAGE).parts) > 1 else None)
              for p in sorted((REPO / PACKAGE).rglob("*.py"))]
-    return files + [(p, None) for d in CHECKED for p in sorted((REPO / d).glob("*.py"))]
+    return files + [(p, None) for d in CHECKED for p in sorted((REPO / d).rglob("*.py"))]
 
 
 def test_code_outside_a_folder_imports_its_exports():

@@ -3,7 +3,7 @@
 ``physics.memoise_newton_kernel_factories`` (a context manager, open while flowsynth builds a Newton scene) wraps
 Newton's narrow-phase kernel factories (``newton._src.geometry.narrow_phase``) in ``functools.cache`` so every
 CollisionPipeline flowsynth builds shares one set of kernels, and ``newton._src.sim.builder._convex_hull_adjacency``
-so each hull's edge adjacency is computed once per process (benchmarks/physics.py, "memoisation"); outside it
+so each hull's edge adjacency is computed once per process (benchmarks/accuracy/physics.py, "memoisation"); outside it
 Newton's own functions are back (tests/test_newton_scope.py). That only works while
 (a) those functions exist under those names and (b) Newton looks them up in those modules when called.
 Either can change in any Newton release (pinned < 1.9).
@@ -16,7 +16,7 @@ from flowsynth.scene.sampling import sample_layout
 CAUSE = ("Newton's private narrow-phase module changed: flowsynth.scene.physics.memoise_newton_kernel_factories "
          "(which memoises {names} in newton._src.geometry.narrow_phase) no longer applies, so every scene "
          "would recompile Newton's collision kernels. Update the patch for this Newton version, or drop it "
-         "and re-measure benchmarks/physics.py.")
+         "and re-measure benchmarks/accuracy/physics.py.")
 
 
 def test_narrow_phase_factories_exist():

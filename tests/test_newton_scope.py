@@ -4,7 +4,7 @@
 narrow-phase kernel factories and hull adjacency are memoised; after the last one closes, Newton's module attributes
 are Newton's own function objects again (identity, the oracle here: the objects read before flowsynth touched
 Newton). The memoisation itself still holds across scenes (tests/test_newton_internals.py), and the results are
-unchanged (benchmarks/hashes.py; a physics clip here equals one simulated with the patch disabled)."""
+unchanged (benchmarks/speed/hashes.py; a physics clip here equals one simulated with the patch disabled)."""
 
 from __future__ import annotations
 

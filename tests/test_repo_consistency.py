@@ -16,7 +16,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-SOURCES = [p for pattern in ("flowsynth/**/*.py", "benchmarks/*.py", "tests/*.py", "examples/*.py", "scripts/*",
+SOURCES = [p for pattern in ("flowsynth/**/*.py", "benchmarks/**/*.py", "tests/*.py", "examples/*.py", "scripts/*",
                              "docs/*.md", "README.md", "pyproject.toml", ".ci/*")
            for p in sorted(ROOT.glob(pattern)) if p.is_file() and p != Path(__file__).resolve()]
 # [text](target) and ![alt](target); the target ends at whitespace or ")"
@@ -48,7 +48,7 @@ def test_file_references_exist():
     for src in SOURCES:
         text = src.read_text(errors="replace")
         for ref in PATH.findall(text):
-            if src.parent.name == "benchmarks" and ref.startswith("benchmarks/results/"):
+            if src.relative_to(ROOT).parts[0] == "benchmarks" and ref.startswith("benchmarks/results/"):
                 continue  # a benchmark naming the results it writes (which a run creates)
             if not (ROOT / ref.rstrip(".")).exists():
                 missing.append(f"{src.relative_to(ROOT)}: {ref}")

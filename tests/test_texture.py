@@ -185,7 +185,7 @@ def test_expose_lights_sets_the_median_radiance():
 
 
 def test_default_samples_carry_texture_in_every_render_mode():
-    # The measured 512x384 figures are in benchmarks/texture.py; this small run guards the mechanism.
+    # The measured 512x384 figures are in benchmarks/accuracy/texture.py; this small run guards the mechanism.
     for mode in ("flat", "direct"):
         cfg = BouncingThingsConfig(width=128, height=96, num_frames=1, render_mode=mode, motion="static")
         ds = fs.datasets.BouncingThings(cfg, outputs=["rgb"], seed=0)
@@ -290,7 +290,7 @@ def test_dead_leaves_match_a_brute_force_reference():
 
 def test_leaves_is_drawn_only_when_named():
     """"leaves" is a texture family a config may name; the families drawn by default are unchanged (so every
-    default sample keeps its bits: benchmarks/hashes.py)."""
+    default sample keeps its bits: benchmarks/speed/hashes.py)."""
     from flowsynth.appearance.materials import PROCEDURAL_FAMILIES, TEXTURE_FAMILIES, sample_material
 
     assert "leaves" in TEXTURE_FAMILIES and "leaves" not in PROCEDURAL_FAMILIES

@@ -425,7 +425,7 @@ def estimate(cfg, num: int, *, seed: int = 0, outputs=None, layout: str = "nativ
     (``flowsynth export --dry-run``).
 
     Sample 0 is generated and written in a temporary folder that is removed afterwards; other
-    samples differ from it by what their content compresses to (a few per cent, benchmarks/export.py).
+    samples differ from it by what their content compresses to (a few per cent, benchmarks/speed/export.py).
     Raises ConfigError for invalid arguments, as :func:`export_dataset` does.
     """
     from flowsynth.datasets import BouncingThings

@@ -60,7 +60,7 @@ COMPRESSIONS: dict[str, Any] = {
     "piz": OpenEXR.PIZ_COMPRESSION,
 }
 """Lossless compressions by name (float32 channels round-trip bit-exactly with each). ZIP is the default:
-on a default sample's depth and flow (benchmarks/export.py) PIZ is 1.5 % smaller but takes 3.7x the
+on a default sample's depth and flow (benchmarks/speed/export.py) PIZ is 1.5 % smaller but takes 3.7x the
 write time, ZIPS and RLE are larger. Flow barely compresses with any of them (0.99x raw): its float32
 mantissas are noise (docs/decisions/0011-exr-zip-default.md)."""
 

@@ -43,7 +43,7 @@ __all__ = [
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # PNG colour type -> samples per pixel (no palette)
 _U16_MAX = 65535
-# zlib level of encode_png16. benchmarks/png_level.py, a 1242x375 KITTI flow map of a flowsynth sample:
+# zlib level of encode_png16. benchmarks/speed/png_level.py, a 1242x375 KITTI flow map of a flowsynth sample:
 # level 1 13 ms / 212 kB, level 3 19 ms / 174 kB, level 6 54 ms / 125 kB, level 9 0.37 s / 111 kB
 # (docs/decisions/0010-png16-zlib-level-3.md).
 ZLIB_LEVEL = 3

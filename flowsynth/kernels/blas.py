@@ -4,10 +4,10 @@
 ``face_vertices`` / ``eval_position`` replace ``wp.mesh_get`` / ``wp.mesh_eval_position``): the same
 watertight ray-triangle test (Woop, Benthin and Wald 2013, as Warp's ``intersect_ray_tri_woop``, with the
 ray's shear computed once per ray instead of once per triangle), the same hits (t in [0, max_t)), the same
-(u, v) convention (hit point u a + v b + (1 - u - v) c of the face's vertices a, b, c). What is faster
-(benchmarks/bvh.py, docs/decisions/0001-per-asset-bvh4.md): a node's four child boxes are tested at once as ``vec4``
-slabs, the near and far planes are picked once per ray from the direction's signs, children are visited near first,
-and each stack entry keeps its entry distance so entries beyond the best hit are dropped on pop.
+(u, v) convention (hit point u a + v b + (1 - u - v) c of the face's vertices a, b, c). What is
+faster (benchmarks/speed/bvh.py, docs/decisions/0001-per-asset-bvh4.md): a node's four child boxes are tested at once
+as ``vec4`` slabs, the near and far planes are picked once per ray from the direction's signs, children are visited
+near first, and each stack entry keeps its entry distance so entries beyond the best hit are dropped on pop.
 """
 
 from __future__ import annotations

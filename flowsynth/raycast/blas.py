@@ -4,7 +4,8 @@
 Why not ``wp.Mesh``: on one CPU core its ``mesh_query_ray`` is a binary-tree walk that tests child boxes one
 at a time; this 4-wide tree tests a node's four child boxes as ``vec4`` slabs (SSE), keeps each stack entry's
 entry distance (entries beyond the best hit are dropped on pop) and stores the triangles in leaf order.
-benchmarks/bvh.py measures the two side by side on the same rays (same hits; docs/decisions/0001-per-asset-bvh4.md).
+benchmarks/speed/bvh.py measures the two side by side on the same rays (same hits;
+docs/decisions/0001-per-asset-bvh4.md).
 
 Build: binned SAH (``BINS`` bins, leaves of at most ``LEAF`` triangles) one tree level at a time (one numpy
 call per level, not per node), then the binary tree is collapsed to 4 wide by opening the child of largest

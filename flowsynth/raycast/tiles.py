@@ -15,7 +15,7 @@ from flowsynth.raycast.culling import hull_points
 
 __all__ = ["CLIP_Z", "LENS_TILE_BOUNDS", "TILE", "tile_lists"]
 
-# Primary rays take their candidate list from their TILE x TILE pixel screen tile (benchmarks/tiles.py:
+# Primary rays take their candidate list from their TILE x TILE pixel screen tile (benchmarks/speed/tiles.py:
 # 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits; docs/decisions/0002-screen-tiles-16px.md).
 TILE = 16  # a power of two: the kernels find a pixel's tile by a shift
 

@@ -35,8 +35,9 @@ def render(scene: Scene, outputs: list[str] | tuple[str, ...] = ("depth",), *, o
         device: Warp device of every stage ("cpu", the default; "cuda", "cuda:1", ... where Warp finds one, else
             a ConfigError naming the device and what Warp found). Written for any Warp device; tested on the CPU
             only (docs/architecture.md, Devices). Results are CPU tensors.
-        occlusion: "exact" (visibility rays) or "depth" (cheaper depth-buffer comparison; benchmarks/accuracy.py
-            measures what each costs and how often each is wrong: docs/decisions/0003-exact-occlusion.md).
+        occlusion: "exact" (visibility rays) or "depth" (cheaper depth-buffer comparison;
+            benchmarks/accuracy/accuracy.py measures what each costs and how often each is wrong:
+            docs/decisions/0003-exact-occlusion.md).
         options: the render options (``fs.RenderOptions``: spp, edge_spp, render_mode, ..., final_*; None = the
             defaults, docs/rendering.md, Options), e.g. a config's ``cfg.render_options``.
         kwargs: render options by name (``spp=4``), applied on top of ``options``; and ``seed`` (None = the scene's

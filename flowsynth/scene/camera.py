@@ -309,7 +309,7 @@ def distort(model: str, dist: tuple, ab: np.ndarray, K: np.ndarray) -> np.ndarra
     """Normalised points ab (P, 2) -> pixels (P, 2) through the lens model (module docstring), numpy float64:
     the equations of kornia's ``distort_points`` (Brown-Conrady) and ``distort_points_kannala_brandt``, which
     tests/test_lens.py checks this against (and against OpenCV). Not kornia's calls themselves: they were ~87% of
-    a lens sample's profile (the amodal boxes project every mesh edge's sample points; benchmarks/throughput.py
+    a lens sample's profile (the amodal boxes project every mesh edge's sample points; benchmarks/speed/throughput.py
     --lens), and this form computes the same values."""
     ab = np.asarray(ab, np.float64)
     a, b = ab[:, 0], ab[:, 1]

@@ -39,7 +39,7 @@ __all__ = [
 
 SUBSTEP_FRACTION = 0.05
 """Largest approach of two object surfaces within one substep, as a fraction of the smallest object size.
-benchmarks/physics.py: the first mesh penetration above 1% of a size appears at 0.17, none at <= 0.05
+benchmarks/accuracy/physics.py: the first mesh penetration above 1% of a size appears at 0.17, none at <= 0.05
 (docs/decisions/0005-physics-substep-rule.md)."""
 MIN_SUBSTEPS = 2
 """Fewest physics substeps per frame [count]."""
@@ -105,8 +105,8 @@ FREE_FLIGHT_ODDS = 0.2
 """Free flight is tried while the running share of clips it kept (this process's tries with the same frame and
 object counts, a moving average over about ten) is at least this [ratio]; below it, every ``FREE_FLIGHT_PROBE``-th
 clip still tries, so the share follows the stream. Long clips rarely stay clear of contact, and a failed try costs
-its reset and replays; a kept one saves the full model's build (benchmarks/scene_setup.py --free-flight). Only time
-depends on this: either path gives the same trajectory."""
+its reset and replays; a kept one saves the full model's build (benchmarks/speed/scene_setup.py --free-flight). Only
+time depends on this: either path gives the same trajectory."""
 FREE_FLIGHT_PROBE = 16
 FREE_FLIGHT_COUNTS = {"tried": 0, "kept": 0}
 """This process's physics clips that free flight ran (passed the guess and the gate), and those it kept [count]
@@ -503,7 +503,7 @@ class NewtonScene:
 
     def advance_frame(self, track: list | None = None) -> None:
         """Advance one frame. One substep is captured once into a Warp CPU graph and replayed ``substeps``
-        times: replay skips Python launch overhead (~30 launches per substep; benchmarks/physics_graph.py
+        times: replay skips Python launch overhead (~30 launches per substep; benchmarks/speed/physics_graph.py
         measures plain against replayed stepping); one substep instead of two halves the capture, a fixed
         cost per scene (~0.02 s, a third of a 2-frame clip's physics; docs/decisions/0006-newton-graph-replay.md)."""
         import warp as wp
@@ -600,13 +600,13 @@ def _clamp_kernel():
 
 # Newton's narrow phase builds fresh Warp kernels from factory functions for every CollisionPipeline;
 # Warp then re-generates and re-hashes their code on first launch (0.3-3 s per scene, measured in
-# benchmarks/physics.py; docs/decisions/0007-newton-memoisation.md), although every scene asks for the same few
+# benchmarks/accuracy/physics.py; docs/decisions/0007-newton-memoisation.md), although every scene asks for the same few
 # variants. These factories are pure functions of their (hashable) arguments, so one kernel per argument tuple
 # serves all pipelines.
 _NEWTON_KERNEL_FACTORIES = ("create_narrow_phase_primitive_kernel", "create_narrow_phase_kernel_gjk_mpr")
 # ModelBuilder.finalize recomputes the edge adjacency of every convex hull for every model (numpy, ~10-30 ms
 # a hull), a pure function of the hull; the hulls are the per-process newton.Mesh objects of
-# _newton_unit_hull, so one result per hull serves every model (benchmarks/physics.py, "memoisation").
+# _newton_unit_hull, so one result per hull serves every model (benchmarks/accuracy/physics.py, "memoisation").
 _NEWTON_BUILDER_FUNCTIONS = ("_convex_hull_adjacency",)
 # (module name, function name) -> the memoised wrapper of Newton's function (it holds the kernels / adjacencies);
 # kept across the windows of memoise_newton_kernel_factories, so that every scene of the process shares them

@@ -2,7 +2,7 @@
 
 The image is a KITTI-format flow map (u*64 + 2^15, v*64 + 2^15, valid) of one rendered BouncingThings sample
 at KITTI's 1242x375, so the numbers reflect flowsynth's own flow. ``flowsynth.io.png.ZLIB_LEVEL`` is chosen
-from this table. Run ``python benchmarks/png_level.py [--quick]``; prints a table and writes
+from this table. Run ``python benchmarks/speed/png_level.py [--quick]``; prints a table and writes
 ``benchmarks/results/png_level.json``.
 """
 
@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import machine_info, pin_single_core, print_table, timeit, write_json
 
 PINNING = pin_single_core()

@@ -1,6 +1,6 @@
 """How large the motion is: |flow| distributions of flowsynth configs, the 2D baseline and real ground truth.
 
-    python benchmarks/magnitudes.py [--num 12] [--middlebury DIR] [--set FIELD=JSON ...] [--quick]
+    python benchmarks/learning/magnitudes.py [--num 12] [--middlebury DIR] [--set FIELD=JSON ...] [--quick]
 
 Issue 38, item 4: real video holds still and slow regions beside fast ones. This script puts side by side, as
 histograms of |flow| on log-spaced bins and as shares of Sintel's s0-10 / s10-40 / s40+ partition (the bands the
@@ -9,8 +9,8 @@ are measured, never quoted):
 
 - "default": the default config at 512x384 (the size issue 12 measures at), frame pairs, over valid pixels;
 - "candidate": the default with ``--set`` fields changed (and ``--flow-px``), when given;
-- "chairs2d": the learning benchmark's 2D baseline (benchmarks/learning.py ``chairs2d_pairs``) at its 128x96 with
-  its motion scaled to the flowsynth arm's mean as that benchmark does, flow multiplied by 4 (the 512x384 scale);
+- "chairs2d": the learning benchmark's 2D baseline (benchmarks/learning/learning.py ``chairs2d_pairs``) at its 128x96
+  with its motion scaled to the flowsynth arm's mean as that benchmark does, flow multiplied by 4 (the 512x384 scale);
 - "middlebury": the ground truth of the pairs under ``--middlebury`` at their own size (420x380 to 640x480,
   about the 512x384 scale), known pixels.
 
@@ -26,7 +26,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]  # siblings, _common
 
 from _common import RESULTS_DIR, machine_info, print_table, write_json
 

@@ -1,7 +1,7 @@
 """Texture at pixel scale: textureless 8x8 patches and mean grey of default samples in every render mode,
 beside real photographs (scikit-image's chelsea, coffee, astronaut resized to the same size).
 
-    python benchmarks/texture.py [--quick] [--samples N]
+    python benchmarks/accuracy/texture.py [--quick] [--samples N]
 
 A patch is textureless when its grey intensity (mean of the sRGB channels, 0..1) has standard deviation
 below 0.02: ``flowsynth.stats.textureless_fraction``. Full run: 16 default samples (seed 0, indices 0-15)
@@ -17,7 +17,7 @@ import os
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import Timer, machine_info, print_table, write_json
 

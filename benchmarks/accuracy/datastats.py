@@ -1,6 +1,6 @@
 """What each preset produces: flowsynth.stats (with the OpenCV DIS check) on N samples per preset.
 
-    python benchmarks/datastats.py [--quick] [--num 16]
+    python benchmarks/accuracy/datastats.py [--quick] [--num 16]
 
 The default config is measured at 512x384 (the issue-12 targets), chairs at its own 512x384 and things at
 its own 960x540; all as frame pairs (num_frames=2) so every preset costs the same number of renders.
@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import machine_info, print_table, write_json
 

@@ -1,6 +1,6 @@
 """Does a flow network learn from flowsynth? Same net, same budget, two training sets, real photos as the test.
 
-    python benchmarks/learning.py [--quick] [--seeds 0,1,2] [--steps 1200] [--jobs 2] [--middlebury DIR]
+    python benchmarks/learning/learning.py [--quick] [--seeds 0,1,2] [--steps 1200] [--jobs 2] [--middlebury DIR]
                                   [--photo-arms]
 
 The judges (issue 38; protocol and rules pre-registered in docs/decisions/0019-learning-judge-real-flow.md) are
@@ -37,7 +37,7 @@ random learned features at strides 16, 8 and 4, 0.37 M parameters; untrained it 
 flow, so training mostly repaired the initialisation; its results are in docs/decisions/notebook-2026-11.md.) Trained
 with Adam on a multi-scale EPE loss over valid pixels.
 
-Test sets (made in benchmarks/learning_sets.py, with the 2D baseline; every net is tested on all three; images
+Test sets (made in benchmarks/learning/learning_sets.py, with the 2D baseline; every net is tested on all three; images
 that ship with scikit-image, none of them a texture of
 either training set), EPE over pixels whose flow lands inside the image:
 - "resampled", "symmetric" (``photo_pairs``): photographs (``skimage.data``), random 128x96 crops warped by
@@ -76,7 +76,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]  # siblings, _common
 
 from _common import machine_info, print_table, write_json
 from learning_sets import (PHOTOS, TESTS, H, W, chairs2d_pairs, middlebury_pairs,
@@ -409,7 +409,7 @@ PROTOCOL_BEFORE = {"net": "random-v1", "render_pass": "clean", "mixture": None}
 def same_protocol(a: dict, b: dict) -> bool:
     """Two runs' PROTOCOL fields are equal; in the flowsynth config, a field that only one of them has (a field added
     to the library between the runs) counts as equal when it holds the field's default, which leaves the samples
-    unchanged (benchmarks/hashes.py checks that for each new field)."""
+    unchanged (benchmarks/speed/hashes.py checks that for each new field)."""
     import flowsynth as fs
 
     defaults = fs.BouncingThingsConfig().to_dict()

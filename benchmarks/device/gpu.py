@@ -1,6 +1,6 @@
 """CPU against GPU in one run: samples/s of the default scene at 512x384, 2 frames (issue 47, item 2).
 
-    python benchmarks/gpu.py [--quick] [--cpu-samples N] [--gpu-samples M] [--workers K]
+    python benchmarks/device/gpu.py [--quick] [--cpu-samples N] [--gpu-samples M] [--workers K]
 
 Two workloads, each a ``fs.datasets.BouncingThings(cfg, outputs, seed=0, device=...)`` timed through ``.sample(i)``
 on the CPU ("cpu", every core the process may use) and on Warp's "cuda" where Warp finds one (else that column says
@@ -42,7 +42,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import machine_info, print_table, write_json
 

@@ -1,6 +1,6 @@
 """What shading costs, on one pinned core: texture lookups, texture families, and the shading kernel's camera rays.
 
-    python benchmarks/shading_cost.py [--quick]
+    python benchmarks/speed/shading_cost.py [--quick]
 
 Shading is most of a default sample (flat mode, 320x240, 24 frames: the radiance kernel is about half of its
 CPU time), and in flat mode most of the shading is texture lookups. Three tables:
@@ -37,7 +37,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import Timer, full_sample_config, machine_info, pin_single_core, print_table, time_round_robin, write_json
 
 PINNING = pin_single_core()

@@ -9,7 +9,7 @@ differ per sample), always where every sample has the same shapes.
 For each config the script alternates rounds of ``--block`` consecutive indices, fresh (reuse off) and reused (the
 cache kept warm across rounds, as in a stream), on the same indices, and reports process CPU [ms] per sample (median
 over rounds), the ratio fresh / reused, and the share of clips that found a scene to reuse. Run
-``taskset -c 0 python benchmarks/scene_setup.py [--quick]``. Prints a table and writes
+``taskset -c 0 python benchmarks/speed/scene_setup.py [--quick]``. Prints a table and writes
 ``benchmarks/results/scene_setup.json``.
 
 ``--free-flight`` compares instead the scene stage of the default config (2, 4 and 8 frames) and of the full
@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import full_sample_config, machine_info, pin_single_core, print_table, write_json
 
 PINNING = pin_single_core()

@@ -1,6 +1,6 @@
 """CPU against CUDA: every main output of a few default samples, held to issue 47's tolerances.
 
-    python benchmarks/device_agreement.py [--quick] [--samples N] [--device cuda]
+    python benchmarks/device/device_agreement.py [--quick] [--samples N] [--device cuda]
 
 Renders samples 0..N-1 of ``fs.datasets.BouncingThings(BouncingThingsConfig(), outputs=MAIN_OUTPUTS, seed=0)`` (the
 default config: 320x240, 24 frames, flat shading) and sample 0 of the same config with ``render_mode="direct"``
@@ -31,7 +31,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import machine_info, print_table, write_json
 

@@ -1,4 +1,4 @@
-"""The learning benchmark's pairs that flowsynth does not render (benchmarks/learning.py): the 2D baseline
+"""The learning benchmark's pairs that flowsynth does not render (benchmarks/learning/learning.py): the 2D baseline
 (``chairs2d_pairs``), its photographs (``train_photos``, ``photo_sources``, ``photo_folder``) and every test set:
 homography-warped photographs (``photo_pairs``), the Motorcycle stereo pair (``stereo_pairs``) and the Middlebury
 flow pairs (``middlebury_pairs``). Each returns (img1, img2, flow, valid) float32 tensors (n, C, H, W).
@@ -119,7 +119,7 @@ def photo_folder(names: tuple = TRAIN_PHOTOS) -> Path:
     import numpy as np
 
     tag = "" if names == TRAIN_PHOTOS else f"_{len(names)}"
-    root = Path(__file__).resolve().parent.parent / ".cache" / f"learning_photos{tag}"
+    root = Path(__file__).resolve().parents[2] / ".cache" / f"learning_photos{tag}"
     root.mkdir(parents=True, exist_ok=True)
     for name, im in zip(names, train_photos(names)):
         f = root / f"{name}.png"
@@ -137,7 +137,7 @@ def natural_folder(kinds: tuple = ("pink", "leaves", "edges"), per_kind: int = 3
 
     from flowsynth.appearance import natural_image
 
-    root = Path(__file__).resolve().parent.parent / ".cache" / f"learning_natural_{'_'.join(kinds)}_{per_kind}"
+    root = Path(__file__).resolve().parents[2] / ".cache" / f"learning_natural_{'_'.join(kinds)}_{per_kind}"
     root.mkdir(parents=True, exist_ok=True)
     for kind in kinds:
         for seed in range(per_kind):

@@ -1,10 +1,10 @@
-"""Blender side of benchmarks/cycles.py: build an exported flowsynth scene in Blender and render it with Cycles.
+"""Blender side of benchmarks/peers/cycles.py: build an exported flowsynth scene in Blender and render it with Cycles.
 
-    blender -b --factory-startup -noaudio -P benchmarks/_cycles_scene.py -- SCENE.json OUT_DIR CONFIG [REPEAT]
+    blender -b --factory-startup -noaudio -P benchmarks/peers/_cycles_scene.py -- SCENE.json OUT_DIR CONFIG [REPEAT]
 
 Runs inside Blender's own Python (``bpy``, standard library only: a distribution's Blender may run on a
 system Python without numpy), never imported by flowsynth. ``SCENE.json`` is written by
-``benchmarks/cycles.py`` (``export_scene``): per object the object-frame mesh, the (T, 4, 4) world_T_obj
+``benchmarks/peers/cycles.py`` (``export_scene``): per object the object-frame mesh, the (T, 4, 4) world_T_obj
 poses, the instance id and a base colour; the camera K, size and (T, 4, 4) world_T_cam (OpenCV axes); the
 lights. CONFIG is "direct" (light paths max_bounces = 0: camera ray, then
 one shadow ray per light sample, like flowsynth's "direct" mode) or "path" (Cycles' default light paths).

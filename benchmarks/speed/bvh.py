@@ -12,7 +12,7 @@ Scenes, 640x480 pixels, 60 deg horizontal fov, camera at the origin looking down
 
 - ``single``: one icosphere (radius 1 m, random rotation) 1.5 m in front of the camera, filling the view
   (every ray hits);
-- ``30 spheres``: the scene of benchmarks/raycast.py (``raycast_scene``: 30 icospheres 4-12 m away); each ray
+- ``30 spheres``: the scene of benchmarks/peers/raycast.py (``raycast_scene``: 30 icospheres 4-12 m away); each ray
   walks the instances near to far (sorted by the distance to their boxes) and stops at the first box beyond
   its best hit, as flowsynth's camera rays do (``flowsynth.kernels.raycast.closest_from_camera``).
 
@@ -23,7 +23,7 @@ per shape: ``flowsynth.raycast.blas.topology``); bvh4's per-mesh part (``atlas``
 of a shape costs).
 
 Times are medians of process CPU time over round-robin rounds on one pinned core. Run
-``python benchmarks/bvh.py [--quick]``: prints a table, writes ``benchmarks/results/bvh.json`` and
+``python benchmarks/speed/bvh.py [--quick]``: prints a table, writes ``benchmarks/results/bvh.json`` and
 ``bvh_cast.png`` (Mrays/s against faces).
 """
 
@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import (
     RAYCAST_FOV_DEG,
     RAYCAST_HEIGHT,
@@ -139,7 +139,7 @@ def single_scene_poses(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def raycast_scene_poses() -> tuple[np.ndarray, np.ndarray]:
-    """(cam_T_world (1, 4, 4), world_T_obj (1, 30, 4, 4)) of benchmarks/raycast.py's scene."""
+    """(cam_T_world (1, 4, 4), world_T_obj (1, 30, 4, 4)) of benchmarks/peers/raycast.py's scene."""
     scene = raycast_scene()
     return scene.cam_T_world, np.stack([o.poses for o in scene.objects], 1)
 

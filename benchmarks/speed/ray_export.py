@@ -1,6 +1,6 @@
 """Export on the same CPUs: local worker processes against Ray actors, end to end, and what one node pays.
 
-    python benchmarks/ray_export.py [--quick] [--lengths 16,48] [--rounds 2] [--cold]
+    python benchmarks/speed/ray_export.py [--quick] [--lengths 16,48] [--rounds 2] [--cold]
 
 What a user runs, each in a fresh Python process, timed from its start to its exit: ``export_dataset(workers=2)``
 (fork, one thread each) and ``ray.init(num_cpus=2)`` + ``export_dataset(engine="ray", workers=2)`` (2 actors),
@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent))  # benchmarks/: _common
 
 from _common import EXPORT_OUTPUTS, EXPORT_SAMPLE, Timer, machine_info, print_table, write_json
 
@@ -70,7 +70,7 @@ CPUS = 2
 
 def _env(cache: Path) -> dict:
     """This checkout first on the path, for the driver and (through the raylet it starts) every actor."""
-    return dict(os.environ, WARP_CACHE_PATH=str(cache), PYTHONPATH=str(HERE.parent))
+    return dict(os.environ, WARP_CACHE_PATH=str(cache), PYTHONPATH=str(HERE.parents[1]))
 
 
 def _done_times(root: Path) -> list[float]:
@@ -127,7 +127,7 @@ def main() -> None:
     try:
         import ray  # noqa: F401
     except ImportError:
-        print("skipped: benchmarks/ray_export.py needs Ray (bash scripts/setup.sh --ray)")
+        print("skipped: benchmarks/speed/ray_export.py needs Ray (bash scripts/setup.sh --ray)")
         return
 
     W, H = (256, 192) if args.quick else (512, 384)
@@ -137,7 +137,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="fs-ray-bench-"))
     # a private copy of the kernel cache: what these runs compile is then theirs, not another process's
     cache = tmp / "warp-cache"
-    shared = Path(os.environ.get("WARP_CACHE_PATH", HERE.parent / ".cache" / "warp"))
+    shared = Path(os.environ.get("WARP_CACHE_PATH", HERE.parents[1] / ".cache" / "warp"))
     try:
         if shared.is_dir():
             shutil.copytree(shared, cache, ignore=shutil.ignore_patterns("*_p[0-9]*_t[0-9]*"))

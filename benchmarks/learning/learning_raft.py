@@ -1,12 +1,12 @@
 """The learning judge of issue 46: torchvision's RAFT-small, trained from scratch on each arm's pairs, tested on real
-flow. ``benchmarks/learning.py`` runs it (its default ``--net raft``); the protocol and the rules are pre-registered
-in docs/decisions/0023-raft-judge.md.
+flow. ``benchmarks/learning/learning.py`` runs it (its default ``--net raft``); the protocol and the rules are
+pre-registered in docs/decisions/0023-raft-judge.md.
 
-    python benchmarks/learning.py [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400]
+    python benchmarks/learning/learning.py [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400]
                                   [--middlebury DIR] [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2]
-    python benchmarks/learning.py --summarize [--files 'learning_raft*.json'] [--arm flowsynth]
+    python benchmarks/learning/learning.py --summarize [--files 'learning_raft*.json'] [--arm flowsynth]
                                   [--against chairs2d_photos]
-    python benchmarks/learning.py --figures NAME [--middlebury DIR]   # predicted flow of the saved nets
+    python benchmarks/learning/learning.py --figures NAME [--middlebury DIR]   # predicted flow of the saved nets
 
 Protocol (the numbers are module constants):
 
@@ -50,7 +50,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]  # siblings, _common
 
 from _common import RESULTS_DIR, machine_info, print_table, pyplot, save_figure, write_json
 from learning_sets import NATURAL_PHOTOS, chairs2d_pairs, middlebury_pairs, motorcycle_full, natural_folder, \
@@ -72,12 +72,12 @@ ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsyn
 STAGES = {"curriculum": 2}  # arms trained in stages: the pool's k-th of n equal blocks feeds the k-th n-th of steps
 CONTROL_SEED = 100  # the control's net seed is the run's seed + this
 JUDGES = ("stereo", "middlebury")
-CACHE = Path(__file__).resolve().parent.parent / ".cache" / "learning_raft"
+CACHE = Path(__file__).resolve().parents[2] / ".cache" / "learning_raft"
 
 
 def raft_small():
     """torchvision's RAFT-small with random weights (tests/tvision.py's shim for this CPU torch)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
     import tvision
 
     tvision.datasets()  # registers the shim module before torchvision's models import
@@ -648,7 +648,7 @@ def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
 
 # -- command line ---------------------------------------------------------------------------------------------
 def main(argv: list[str]) -> None:
-    """``benchmarks/learning.py --net raft`` (the default since issue 46): the command line of this judge."""
+    """``benchmarks/learning/learning.py --net raft`` (the default since issue 46): the command line of this judge."""
     import argparse
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -16,8 +16,8 @@ triangle, visibility rays cast the same way); it shares no code with flowsynth.
 3. Cost each output adds to a frame: ``fs.render`` time per frame of a T-frame clip for cumulative
    output sets (depth; +normals; +flow_fw; +occ_fw exact; +motion; +boxes).
 
-Single core, as in ``benchmarks/raycast.py``: thread variables and CPU affinity pinned before numpy
-loads, ``torch.set_num_threads(1)``. Run ``python benchmarks/accuracy.py [--quick]``. Prints tables;
+Single core, as in ``benchmarks/peers/raycast.py``: thread variables and CPU affinity pinned before numpy
+loads, ``torch.set_num_threads(1)``. Run ``python benchmarks/accuracy/accuracy.py [--quick]``. Prints tables;
 writes ``benchmarks/results/accuracy.json`` (and ``accuracy_epe.png`` when matplotlib is importable).
 """
 
@@ -30,7 +30,7 @@ from functools import partial
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent), str(HERE.parent / "tests")]  # _common, flowsynth, oracle
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1]), str(HERE.parents[1] / "tests")]  # _common, flowsynth, oracle
 from _common import RESULTS_DIR, Timer, machine_info, pin_single_core, print_table, write_json
 
 PINNING = pin_single_core()

@@ -1,12 +1,12 @@
 """Samples/s on one core and on all cores: thread scaling, and throughput against resolution, objects,
 triangles per object and frames per clip.
 
-    python benchmarks/scaling.py [--quick]
+    python benchmarks/speed/scaling.py [--quick]
 
 Part 1, threads (``fs.render(..., threads=k)``, flowsynth/parallel.py), for k = 1, 2, ... up to the CPUs
 this process may use:
 
-- the primary G-buffer cast alone (``cast_gbuffer``, depth + instance + normals) of benchmarks/raycast.py's
+- the primary G-buffer cast alone (``cast_gbuffer``, depth + instance + normals) of benchmarks/peers/raycast.py's
   scene (30 icospheres x 5120 faces, 640x480): Mrays/s;
 - the issue-13 full sample (``_common.full_sample_config``: ``BouncingThings`` 512x384, T=2, 20 objects, physics,
   direct RGB, a static camera, with ``_common.FULL_SAMPLE_OUTPUTS``: depth, normals, instance, flow, validity and
@@ -43,7 +43,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
     os.environ[_var] = "1"
 

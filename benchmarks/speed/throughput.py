@@ -1,9 +1,9 @@
 """Streaming throughput: samples/s per output set and worker count, what each plan skip saves, memory.
 
-    python benchmarks/throughput.py [--quick]
-    python benchmarks/throughput.py --ratio [--samples 12]
-    python benchmarks/throughput.py --edge [--samples 8]
-    python benchmarks/throughput.py --lens [--quick] [--samples 8]
+    python benchmarks/speed/throughput.py [--quick]
+    python benchmarks/speed/throughput.py --ratio [--samples 12]
+    python benchmarks/speed/throughput.py --edge [--samples 8]
+    python benchmarks/speed/throughput.py --lens [--quick] [--samples 8]
 
 Writes benchmarks/results/throughput.json. Times are wall-clock on this machine (see "machine").
 
@@ -36,7 +36,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import machine_info, pin_single_core, print_table, write_json
 

@@ -10,8 +10,8 @@ against the same mode at the reference spp (the anti-aliasing / Monte Carlo erro
 difference in light transport between modes). A second table sets spp 1 with ``edge_spp`` 4 (extra samples at
 silhouettes only, BouncingThingsConfig's default) beside spp 1 and spp 4.
 
-    python benchmarks/rgb.py            # timing 512x384, errors 128x96 vs path 2x256 spp  (~7 min)
-    python benchmarks/rgb.py --quick    # timing 256x192, errors 96x72 vs path 2x128 spp   (< 2 min)
+    python benchmarks/accuracy/rgb.py            # timing 512x384, errors 128x96 vs path 2x256 spp  (~7 min)
+    python benchmarks/accuracy/rgb.py --quick    # timing 256x192, errors 96x72 vs path 2x128 spp   (< 2 min)
 
 ``rmse_corrected`` removes the reference noise n in quadrature: sqrt(max(rmse^2 - n^2, 0)).
 """
@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]  # _common, and flowsynth from this checkout when not installed
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]  # _common, and flowsynth from this checkout when not installed
 from _common import RESULTS_DIR, Timer, machine_info, pin_single_core, print_table, write_json
 
 MODES = ("flat", "direct", "path")

@@ -29,7 +29,7 @@ Per scene and engine: setup [ms] (model building; Newton's includes graph captur
 (stepping plus reading every pose and velocity back), penetration (the deepest overlap of two visual
 meshes over all frames, from python-fcl contact depths through trimesh's CollisionManager, relative to
 the smaller object's size -- the measure of tests/test_motion.py), wall (farthest vertex outside the
-room / that object's size, 0 = inside). Run ``python benchmarks/peers_physics.py [--quick]``: prints a
+room / that object's size, 0 = inside). Run ``python benchmarks/peers/peers_physics.py [--quick]``: prints a
 table, writes ``benchmarks/results/peers_physics.json`` and ``peers_physics.png`` (ms/frame vs objects).
 """
 
@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent), str(HERE.parent / "tests")]  # _common, flowsynth, oracle
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1]), str(HERE.parents[1] / "tests")]  # _common, flowsynth, oracle
 from _common import Timer, machine_info, pin_single_core, plot_curves, print_table, write_json
 
 PINNING = pin_single_core()
@@ -62,7 +62,7 @@ BAND_TOL = 1e-3  # relative slack on the speed band when counting speeds outside
 
 
 def make_cfg(n: int, assets: tuple[str, ...], num_frames: int) -> BouncingThingsConfig:
-    """The scenes of benchmarks/physics.py: dense enough that 80 objects collide often."""
+    """The scenes of benchmarks/accuracy/physics.py: dense enough that 80 objects collide often."""
     return BouncingThingsConfig(
         room_size=(6.0, 5.0, 4.0), camera_clearance=1.0, num_objects=(n, n), max_objects=max(32, n),
         object_size=(0.3, 0.6), min_speed=1.0, max_speed=4.0, angular_speed=(0.0, 3.0),

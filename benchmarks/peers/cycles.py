@@ -1,6 +1,6 @@
 """A full flowsynth sample beside Blender Cycles' 1-spp render passes of the same scene, on one CPU core.
 
-    taskset -c 0 python benchmarks/cycles.py [--quick] [--repeat N] [--blender PATH]
+    taskset -c 0 python benchmarks/peers/cycles.py [--quick] [--repeat N] [--blender PATH]
 
 Issue 13 (whole samples): "the full sample is depth, normals, ids, forward and backward flow, occlusion and
 direct RGB, 2 frames, 512x384, 20 objects. Goal: at least 5x faster than Cycles on one core."
@@ -18,7 +18,7 @@ a static camera; a moving one before issue 41). Its sampling (layout + physics) 
   for world_T_obj), camera (K -> focal length, principal point -> shift; OpenCV axes -> Blender's) and
   lights (point -> hard point light of power 4 pi^2 I, directional -> sun of strength pi I, ambient ->
   world colour; materials -> Principled BSDF of the mean base colour, roughness and specular: RGB is an
-  approximation, textures are left out), built by ``benchmarks/_cycles_scene.py`` in ``blender -b
+  approximation, textures are left out), built by ``benchmarks/peers/_cycles_scene.py`` in ``blender -b
   --factory-startup``. Cycles on the CPU, 1 sample, FIXED 1 thread (and the same pinned CPU, inherited),
   passes Combined, Z, Normal, Vector, IndexOB; two light-path settings: "direct" (max_bounces 0: direct
   light with shadows, like flowsynth's mode) and "path" (Cycles' defaults, 12 bounces). Render time is
@@ -50,7 +50,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import (
     FULL_SAMPLE,
     FULL_SAMPLE_OUTPUTS,

@@ -6,7 +6,7 @@ per frame against ``advance_frame``), from the same initial state, and reports p
 [ms] (medians over frames, the first frame excluded: it compiles or captures) and the largest difference
 of the body poses after all frames (0 = identical). docs/scenes.md ("Cost") quotes this table.
 
-Run ``taskset -c 0 python benchmarks/physics_graph.py [--quick]``. Prints a table and writes
+Run ``taskset -c 0 python benchmarks/speed/physics_graph.py [--quick]``. Prints a table and writes
 ``benchmarks/results/physics_graph.json``.
 """
 
@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import Timer, machine_info, pin_single_core, print_table, write_json
 
 PINNING = pin_single_core()

@@ -14,7 +14,7 @@ Warp CPU launch (one thread), the ratio of every round reported, not only the me
    its scalars; "fields": ``tile_list`` itself. Each thread computes the list of every pixel of its row for 8
    frames and sums ``start[list]`` (the same sums, checked).
 
-Run: ``nice .venv/bin/python benchmarks/struct_args.py [--rounds 7]``. Writes results/struct_args.json. The
+Run: ``nice .venv/bin/python benchmarks/speed/struct_args.py [--rounds 7]``. Writes results/struct_args.json. The
 reading and the choice: docs/decisions/0021-instances-struct-convention.md.
 """
 
@@ -22,9 +22,14 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
+from pathlib import Path
 
 import numpy as np
 import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
+
 from _common import machine_info, pin_single_core, print_table, raycast_scene, time_round_robin, write_json
 
 from flowsynth.raycast import SceneAccel, pinhole

@@ -1,6 +1,6 @@
 """Per-sample cost of two git revisions side by side: did a change make samples slower?
 
-    python benchmarks/versions.py --base 135a7ea [--head HEAD] [--num 8] [--rounds 3]
+    python benchmarks/speed/versions.py --base 135a7ea [--head HEAD] [--num 8] [--rounds 3]
 
 Each revision is checked out into a temporary git worktree and imported from there (``PYTHONPATH``), in its
 own process, one thread (``torch.set_num_threads(1)``, ``threads=1`` where the revision has that setting).
@@ -30,11 +30,11 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import FULL_SAMPLE, FULL_SAMPLE_OUTPUTS, machine_info, print_table, write_json
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 MODES = ("fixed", "default", "stream")
 
 CHILD = r"""

@@ -16,7 +16,7 @@ reports
 
 It also times scene sampling (``sample_layout``) and kinematic against physics motion per frame, and
 runs a "fast" set (speeds 6-12 m/s: one frame's motion exceeds the smallest object) at the automatic
-substep count. Run ``taskset -c 0 python benchmarks/physics.py [--quick]``. Prints tables, writes
+substep count. Run ``taskset -c 0 python benchmarks/accuracy/physics.py [--quick]``. Prints tables, writes
 ``benchmarks/results/physics.json`` and, with matplotlib, ``benchmarks/results/physics.png``.
 """
 
@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import RESULTS_DIR, Timer, machine_info, pin_single_core, print_table, timeit, write_json
 
 PINNING = pin_single_core()
@@ -119,7 +119,7 @@ def memo_saving() -> list[dict]:
     rows = []
     for name, off in (("memoised (flowsynth)", False), ("Newton as shipped", True)):
         out = subprocess.run([sys.executable, "-c", _MEMO_PROBE.format(here=str(HERE), off=off)], capture_output=True,
-                             text=True, check=True, env={**os.environ, "PYTHONPATH": str(HERE.parent)})
+                             text=True, check=True, env={**os.environ, "PYTHONPATH": str(HERE.parents[1])})
         times = json.loads(out.stdout.strip().splitlines()[-1])
         rows.append({"newton kernels": name, "first_scene_s": times[0], "next_scenes_s": float(np.median(times[1:]))})
     return rows

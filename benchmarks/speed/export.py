@@ -1,6 +1,6 @@
 """Export throughput (samples/s) with 1 and 2 workers, bytes per sample per format, and the EXR compressions.
 
-    python benchmarks/export.py [--quick]
+    python benchmarks/speed/export.py [--quick]
 
 The EXR table writes the float32 EXR files of one sample of the default config (320x240, native layout's
 default outputs: depth, flow_fw, flow_bw) with every lossless compression that ``--exr-compression``
@@ -20,7 +20,7 @@ import tempfile
 from collections import defaultdict
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import EXPORT_OUTPUTS, EXPORT_SAMPLE, Timer, machine_info, print_table, time_round_robin, write_json
 

@@ -1,6 +1,6 @@
 """What each issue-17 output adds to a sample's time: stereo, scene flow, extra frame gaps, point tracks.
 
-    python benchmarks/outputs_cost.py [--quick]
+    python benchmarks/speed/outputs_cost.py [--quick]
 
 A "sample" is one BouncingThings sample at 512x384 (``--quick``: 256x192), T = 2 and T = 24, in one
 process with every core (the default ``threads``): the scene is sampled (physics) and rendered. The base
@@ -27,7 +27,7 @@ import os
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 from _common import machine_info, print_table, time_round_robin, write_json
 

@@ -2,11 +2,11 @@
 
 Below ``ORDERED_MAX`` instances a primary ray walks a near-to-far candidate list instead of the top-level
 BVH; the list is per TILE x TILE screen tile (the instances whose clipped hull projects onto the tile). A tile as
-large as the image is one list per frame, which is the baseline here. Scene: benchmarks/raycast.py's 30
+large as the image is one list per frame, which is the baseline here. Scene: benchmarks/peers/raycast.py's 30
 icospheres x 5120 faces at 640x480, one core, one thread, kernel cast with normals (``cast_gbuffer``),
 round-robin medians of process CPU time. Hit maps must agree exactly across tile sizes.
 
-Run ``python benchmarks/tiles.py [--quick]``; prints a table and writes ``benchmarks/results/tiles.json``.
+Run ``python benchmarks/speed/tiles.py [--quick]``; prints a table and writes ``benchmarks/results/tiles.json``.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
 from _common import machine_info, pin_single_core, print_table, raycast_scene, time_round_robin, write_json
 
 PINNING = pin_single_core()  # one core and one thread per library, before numpy and Warp load

@@ -22,7 +22,7 @@ against the same triangles and returns ray distance (or depth), the hit object a
 Single core: the script sets OMP/MKL/OpenBLAS/numexpr thread counts to 1 and its CPU affinity to one core
 before importing numpy (Embree's TBB pool sizes itself from the affinity mask), and calls
 ``torch.set_num_threads(1)``; Warp's CPU kernels run on the calling thread. Run it as
-``taskset -c 0 python benchmarks/raycast.py [--quick] [--cold-cache]``. Prints a table; writes
+``taskset -c 0 python benchmarks/peers/raycast.py [--quick] [--cold-cache]``. Prints a table; writes
 ``benchmarks/results/raycast.json``.
 
 Timing: all engines are set up first (``first_s``: first call, including kernel compilation or cache load
@@ -43,7 +43,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent)]  # _common, and flowsynth from this checkout when not installed
+sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]  # _common, and flowsynth from this checkout when not installed
 from _common import (
     RAYCAST_FOV_DEG,
     RAYCAST_HEIGHT,

@@ -1,7 +1,7 @@
 """Hashes of every output of a fixed set of samples: the before/after check of a change that must keep the bytes.
 
-    python benchmarks/hashes.py --out /tmp/before.json            # at the old commit
-    python benchmarks/hashes.py --check /tmp/before.json          # at the new one: exit 1 on any difference
+    python benchmarks/speed/hashes.py --out /tmp/before.json            # at the old commit
+    python benchmarks/speed/hashes.py --check /tmp/before.json          # at the new one: exit 1 on any difference
 
 The set covers each stage: the default stream (every core output, scene flow, tracks, stereo) in flat and direct
 render modes, a 3-frame clip with flow gaps, and a hand-built scene. Each output tensor is hashed (sha256 of its
@@ -19,7 +19,7 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
 
 
 def _digest(value) -> str:
