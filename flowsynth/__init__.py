@@ -7,7 +7,7 @@ no function shares its name with a module: ``fs.render`` comes from the folder `
 """
 
 from flowsynth.caches import clear_caches
-from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ShapeError, StorageError
+from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ForkError, ShapeError, StorageError
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
 from flowsynth.renderer import render, render_plan
@@ -22,6 +22,7 @@ __all__ = [
     "ConfigError",
     "ExportError",
     "FlowsynthError",
+    "ForkError",
     "Plan",
     "RenderOptions",
     "Scene",

@@ -1,6 +1,6 @@
 """Exception hierarchy. Every error the library raises on purpose derives from FlowsynthError."""
 
-__all__ = ["AssetError", "ConfigError", "ExportError", "FlowsynthError", "ShapeError", "StorageError"]
+__all__ = ["AssetError", "ConfigError", "ExportError", "FlowsynthError", "ForkError", "ShapeError", "StorageError"]
 
 
 class FlowsynthError(Exception):
@@ -9,6 +9,11 @@ class FlowsynthError(Exception):
 
 class ConfigError(FlowsynthError, ValueError):
     """A configuration value or API argument is invalid; the message says which and how to fix it."""
+
+
+class ForkError(FlowsynthError, RuntimeError):
+    """This process was forked from one that had initialised CUDA, where Warp cannot run (CUDA does not survive
+    ``fork()``); the message says how to start workers instead (``fs.datasets.loader``, forkserver or spawn)."""
 
 
 class AssetError(FlowsynthError, ValueError):

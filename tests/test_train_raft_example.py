@@ -79,3 +79,36 @@ def test_train_raft_runs_checkpoints_resumes_and_evaluates(example, tmp_path):
 def test_no_pairs_is_exit_code_3(example, tmp_path):
     (tmp_path / "empty").mkdir()
     assert example.main(["--steps", "1", "--eval", str(tmp_path / "empty")]) == example.EXIT_NO_PAIRS
+
+
+@pytest.mark.parametrize("args", [["--steps", "-5"], ["--steps", "0"], ["--batch", "0"], ["--workers", "-1"],
+                                  ["--lr", "0"], ["--lr", "nan"], ["--save-every", "0"], ["--width", "64"],
+                                  ["--seed", "-1"], ["--eval-limit", "0"], ["--crop", "64", "64"]])
+def test_bad_arguments_exit_2_before_any_work(example, args, capsys):
+    """As in the CLI: a bad argument is exit status 2 with a message naming it, before a net is built."""
+    with pytest.raises(SystemExit) as e:
+        example.main(args)
+    assert e.value.code == 2
+    assert args[0] in capsys.readouterr().err
+
+
+def test_stream_workers_start_without_fork(example, monkeypatch):
+    """The example's stream takes its workers from fs.datasets.loader (forkserver: the net may already be on a
+    GPU); the batches are the stream's samples, whatever the start method."""
+    import flowsynth as fs
+
+    seen = {}
+    real = fs.datasets.loader
+
+    def spy(ds, **kw):
+        seen["loader"] = real(ds, **kw)
+        return seen["loader"]
+
+    monkeypatch.setattr(fs.datasets, "loader", spy)
+    cfg = example.stream_config(64, 48)
+    img1, img2, flow, valid = next(example.stream(cfg, 0, 2, 1))
+    assert seen["loader"].multiprocessing_context.get_start_method() in ("forkserver", "spawn")
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=0)
+    first = [ds.sample(i) for i in (0, 1)]
+    assert torch.equal(img1, torch.stack([s["rgb"][0] for s in first]))
+    assert torch.equal(flow, torch.stack([s["flow_fw"][0] for s in first]))

@@ -1,11 +1,13 @@
 """Datasets: ``BouncingThings`` streams generated samples, ``FlowPairs`` as torchvision's optical-flow tuples and
 ``Mixture`` from several configs by weights or a curriculum; ``Exported`` reads a folder ``flowsynth export`` wrote,
-``Shards`` streams the shards of a ``webdataset`` export (shuffled, split by worker and rank)."""
+``Shards`` streams the shards of a ``webdataset`` export (shuffled, split by worker and rank). ``loader`` is a
+DataLoader whose workers survive CUDA (forkserver, not fork)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.flowpairs import FlowPairs
+from flowsynth.datasets.loader import loader
 
-__all__ = ["BouncingThings", "Exported", "FlowPairs", "Mixture", "Shards", "sample_seed"]
+__all__ = ["BouncingThings", "Exported", "FlowPairs", "Mixture", "Shards", "loader", "sample_seed"]
 
 
 def __getattr__(name: str):

@@ -26,6 +26,7 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
+from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.plan import make_plan
 from flowsynth.scene import Scene, provenance_json, sample_seed
 
@@ -102,6 +103,7 @@ class BouncingThings(IterableDataset):
         """The simulated scene behind sample ``i``."""
         from flowsynth.scene import sample_scene
 
+        check_not_forked_from_cuda()
         return sample_scene(self.cfg, self.seed, int(i))
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
@@ -111,6 +113,7 @@ class BouncingThings(IterableDataset):
 
         if not isinstance(i, (int, np.integer)) or i < 0:
             raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
+        check_not_forked_from_cuda()  # a worker forked after CUDA: a ForkError at once, not CUDA errors and 10x slow
         resolve_device(self.device)  # before the physics: a device Warp does not find fails first
         scene = self.scene(i)
         out = render_plan(scene, self.plan, device=self.device)

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import multiprocessing as mp
 import os
 import shutil
 import sys
@@ -60,6 +59,7 @@ from tqdm import tqdm
 from flowsynth.errors import ConfigError, ExportError, StorageError
 from flowsynth.export.writer import ExportWriter, run_job
 from flowsynth.io import file_records, layouts
+from flowsynth.parallel import worker_context
 
 __all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export_dataset"]
 
@@ -388,9 +388,10 @@ def _run(todo: list[range], root, writer: ExportWriter, workers, progress, ident
 
 
 def _mp_context():
-    """fork where the platform has it (like DataLoader's default: workers inherit the loaded Warp modules
-    instead of importing them again), spawn elsewhere."""
-    return mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+    """fork where the platform has it and this process has not initialised CUDA (workers inherit the loaded Warp
+    modules instead of importing them again), else forkserver or spawn: CUDA does not survive fork()
+    (``flowsynth.parallel.worker_context``)."""
+    return worker_context()
 
 
 def _clear(root: Path, old_layout: str | None) -> None:

@@ -24,6 +24,7 @@ import numpy as np
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
+from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.scene.assets import Asset, unit_hull
 from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.scene.trajectory import (InitialState, Trajectory, pose_matrices, quat_to_rotation,
@@ -367,6 +368,7 @@ class NewtonScene:
 
     def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
                  substeps: int, contact_max: int | None = None, device: str = "cpu", colliders: bool = True) -> None:
+        check_not_forked_from_cuda()  # Warp cannot run in a child forked after CUDA: a ForkError says what to do
         wp_runtime()  # quiet Warp initialisation before Newton's import initialises it loudly
         import newton
         import warp as wp
