@@ -12,7 +12,11 @@ from it. With ``--eval DIR`` (NAME/frame10.png, frame11.png, flow10.flo for each
 ``--sintel ROOT`` or ``--kitti ROOT`` (read by torchvision's dataset classes), the end-point error (EPE) on those
 real pairs is printed before and after training.
 
-Exit codes: 0 done; 2 bad arguments (argparse); 3 an evaluation folder holds no pairs.
+The workers come from ``fs.datasets.loader``, a DataLoader whose workers start with forkserver: the net is on the GPU
+before they start, and CUDA does not survive fork() (a forked worker would raise ``fs.ForkError``).
+
+Exit codes: 0 done; 2 bad arguments (argparse: a step count, batch, worker count, size or rate out of range); 3 an
+evaluation folder holds no pairs.
 """
 
 from __future__ import annotations
@@ -25,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
 
 import flowsynth as fs
 from flowsynth.training import augment, epe, one_cycle, predict, train_step
@@ -51,7 +54,7 @@ def stream_config(width: int, height: int) -> fs.BouncingThingsConfig:
 def stream(cfg, seed: int, batch: int, workers: int, start: int = 0):
     """Endless batches (img1, img2 (B, 3, H, W) in [0, 1], flow (B, 2, H, W) [px], valid (B, 1, H, W) bool)."""
     ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, start=start)
-    for b in DataLoader(ds, batch_size=batch, num_workers=workers, persistent_workers=workers > 0):
+    for b in fs.datasets.loader(ds, batch_size=batch, num_workers=workers):
         yield b["rgb"][:, 0], b["rgb"][:, 1], b["flow_fw"][:, 0], b["valid_fw"][:, 0]
 
 
@@ -159,6 +162,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--kitti", default=None, metavar="ROOT", help="a KITTI 2015 root (torchvision.datasets.KittiFlow)")
     p.add_argument("--eval-limit", type=int, default=20, help="Sintel / KITTI pairs to evaluate on")
     a = p.parse_args(argv)
+    for name, lo in (("steps", 1), ("batch", 1), ("workers", 0), ("save_every", 1), ("eval_limit", 1),
+                     ("width", 128), ("height", 128), ("seed", 0)):
+        if getattr(a, name) < lo:
+            p.error(f"--{name.replace('_', '-')} {getattr(a, name)}: must be at least {lo}")
+    if not a.lr > 0:
+        p.error(f"--lr {a.lr}: must be above 0")
     if min(a.crop) < 128 or a.crop[0] > a.height or a.crop[1] > a.width:
         p.error(f"--crop {a.crop}: at least 128 px a side and within --height x --width")
     pairs = []
