@@ -60,10 +60,12 @@ def _write(results: Path, path: Path, text: str) -> None:
 
 
 def script(name: str) -> Path:
-    """The file of benchmark ``name``: ``benchmarks/<group>/<name>.py`` for the one group of ``GROUPS`` holding it."""
+    """What runs benchmark ``name``: ``benchmarks/<group>/<name>.py`` for the one group of ``GROUPS`` holding it, or the
+    group ``benchmarks/<name>`` itself where it is a package run as a whole (its ``__main__.py``: learning)."""
     found = [HERE / g / f"{name}.py" for g in GROUPS if (HERE / g / f"{name}.py").is_file()]
+    found += [HERE / name] if name in GROUPS and (HERE / name / "__main__.py").is_file() else []
     if len(found) != 1:
-        raise FileNotFoundError(f"benchmark {name!r}: {len(found)} files named {name}.py in {GROUPS}")
+        raise FileNotFoundError(f"benchmark {name!r}: {len(found)} scripts of that name in {GROUPS}")
     return found[0]
 
 

@@ -15,7 +15,7 @@ pack() {  # the results, progress curves and seed 0's nets (for the figures), on
     tar czf "$OUT/learning.tgz.tmp" -C "$L" . && mv -f "$OUT/learning.tgz.tmp" "$OUT/learning.tgz"
 }
 # shellcheck disable=SC2086  # LEARN_ARGS splits on spaces on purpose (a smoke test on the CPU sets it)
-FLOWSYNTH_BENCH_RESULTS=$L nice -n 19 "${PYTHON:-python3}" benchmarks/learning/learning.py --at-once \
+FLOWSYNTH_BENCH_RESULTS=$L nice -n 19 "${PYTHON:-python3}" benchmarks/learning --at-once \
     --arms flowsynth,chairs2d_photos --middlebury "$MB" --tag gpu --train-after "${GPU_DONE_MARKER:-/tmp/gpu_steps_done}" \
     ${LEARN_ARGS:---device cuda --seeds 0,1,2,3,4 --workers 12} &
 PID=$!

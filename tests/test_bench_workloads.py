@@ -30,11 +30,10 @@ def test_full_sample_is_issue_13s_fixed_settings():
 
 
 def test_no_script_configures_the_full_sample_by_hand():
-    """The full sample's signature (20 objects at 512x384, direct) appears only in _common.py; learning.py is an
-    experiment with its own configs."""
+    """The full sample's signature (20 objects at 512x384, direct) appears only in _common.py."""
     offenders = []
     for path in sorted(BENCH.rglob("*.py")):
-        if path.name in ("_common.py", "learning.py"):
+        if path.name == "_common.py":
             continue
         text = path.read_text()
         if re.search(r"num_objects=\(20, 20\)", text) or re.search(r"\bmake_scene\b.*from raycast|from raycast", text):

@@ -31,16 +31,19 @@ NOT_HERE = {"_cycles_scene.py": "Blender's own Python runs it (bpy); it imports 
 OPTIONAL = {"embreex", "matplotlib", "mitsuba", "pybullet", "skimage", "ray"}
 
 CHILD = r"""
-import contextlib, io, json, runpy, sys, traceback
+import contextlib, importlib, io, json, runpy, sys, traceback
 from pathlib import Path
 
 results = {}
-for path, script in json.loads(sys.argv[1]):
+for path, script, module in json.loads(sys.argv[1]):
     sys.argv = [path, "--help"]
     out = io.StringIO()
     try:
         with contextlib.redirect_stdout(out):
-            runpy.run_path(path, run_name="__main__" if script else Path(path).stem)
+            if module and not script:  # a module of a package (relative imports): imported, as its users do
+                importlib.import_module(module)
+            else:
+                runpy.run_path(path, run_name="__main__" if script else Path(path).stem)
         results[path] = ["no exit" if script else "ok", out.getvalue()[:500]]
     except SystemExit as e:
         results[path] = ["ok" if e.code in (0, None) else f"exit {e.code}", out.getvalue()[:500]]
@@ -56,6 +59,15 @@ def benchmark_files() -> list[Path]:
     return [p for p in sorted(BENCH.rglob("*.py")) if p.name not in NOT_HERE and "results" not in p.parts]
 
 
+def module_name(path: Path) -> str | None:
+    """The dotted name of a module of a package under benchmarks/ (``learning.raft``, ``learning`` for its
+    ``__init__.py``), with benchmarks/ on the path; None for a script outside a package."""
+    if not (path.parent / "__init__.py").is_file():
+        return None
+    parts = path.relative_to(BENCH).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
 def is_script(source: str) -> bool:
     """Whether the module runs something under ``if __name__ == "__main__":`` (at its top level)."""
     for node in ast.parse(source).body:
@@ -68,7 +80,7 @@ def is_script(source: str) -> bool:
 
 def test_benchmark_files_are_found():
     names = {str(p.relative_to(BENCH)) for p in benchmark_files()}
-    assert {"run.py", "speed/hashes.py", "accuracy/physics.py", "_common.py", "learning/learning_raft.py"} <= names
+    assert {"run.py", "speed/hashes.py", "accuracy/physics.py", "_common.py", "learning/raft.py"} <= names
     assert is_script((BENCH / "run.py").read_text()) and not is_script((BENCH / "_common.py").read_text())
     assert all(len(list(BENCH.rglob(n))) == 1 for n in NOT_HERE)
 
@@ -88,19 +100,20 @@ def test_benchmarks_stay_grouped_by_concern():
     assert _listing(BENCH) == set(GROUPS) | TOP, "benchmarks/ holds its groups, _common.py, run.py and results/ only"
     for group in GROUPS:
         assert {Path(n).suffix for n in _listing(BENCH / group)} == {".py"}, f"benchmarks/{group}/: scripts only"
-    assert all(run.script(name).parent.name in GROUPS for name in run.BENCHMARKS)
+    assert all(run.script(name).relative_to(BENCH).parts[0] in GROUPS for name in run.BENCHMARKS)
+    assert run.script("learning") == BENCH / "learning"  # the learning benchmark is its package, run whole
 
 
 def test_every_benchmark_imports_and_answers_help(tmp_path):
-    files = [[str(p), is_script(p.read_text())] for p in benchmark_files()]
+    files = [[str(p), is_script(p.read_text()), module_name(p)] for p in benchmark_files()]
     before = sorted((p.name, p.stat().st_mtime_ns) for p in (BENCH / "results").iterdir())
     env = dict(os.environ, FLOWSYNTH_BENCH_RESULTS=str(tmp_path / "results"),
-               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+               PYTHONPATH=os.pathsep.join([str(REPO), str(BENCH), os.environ.get("PYTHONPATH", "")]))
     r = subprocess.run([sys.executable, "-c", CHILD, json.dumps(files)], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=600, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
     results = json.loads(r.stdout.strip().splitlines()[-1])
-    assert sorted(results) == sorted(f for f, _ in files)
+    assert sorted(results) == sorted(f for f, _, _ in files)
     skipped = {Path(f).name: why for f, (status, why) in results.items()
                if status == "missing" and why.split(".")[0] in OPTIONAL}
     for name, module in skipped.items():
@@ -109,7 +122,7 @@ def test_every_benchmark_imports_and_answers_help(tmp_path):
               if status != "ok" and Path(f).name not in skipped}
     assert not failed, "benchmarks that do not import or answer --help:\n" + "\n\n".join(
         f"{k}: {v}" for k, v in failed.items())
-    assert all("usage:" in results[f][1] for f, s in files if s and Path(f).name not in skipped)
+    assert all("usage:" in results[f][1] for f, s, _ in files if s and Path(f).name not in skipped)
     assert sorted((p.name, p.stat().st_mtime_ns) for p in (BENCH / "results").iterdir()) == before
 
 
@@ -175,3 +188,50 @@ def test_as_ci_hides_every_bench_only_module(tmp_path):
     child = subprocess.run([sys.executable, "-c", "import skimage"], capture_output=True, text=True,
                            env={**os.environ, "PYTHONPATH": str(tmp_path)})
     assert child.returncode != 0 and "ModuleNotFoundError" in child.stderr and "--as-ci" in child.stderr
+
+
+# The learning package's import order (issue 53: before it, learning.py and learning_raft.py imported each other): a
+# module imports only modules before it, so there is no circle; the scripts come last.
+LEARNING_ORDER = ("sets", "raft", "summary", "diagnose", "cli", "__main__", "magnitudes")
+
+
+def package_imports(source: str, package: str) -> set[str]:
+    """Modules of ``package`` that ``source`` imports, lazy imports included: ``from .x import``, ``from . import x``,
+    ``from package.x import``, ``from package import x`` and ``import package.x``."""
+    found = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found |= {a.name.split(".")[1] for a in node.names if a.name.startswith(f"{package}.")}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level == 1 or node.module == package or (node.module or "").startswith(f"{package}."):
+                mod = node.module or ""
+                if node.level == 0:
+                    mod = mod.removeprefix(package).removeprefix(".")
+                found |= {mod.split(".")[0]} if mod else {a.name for a in node.names}
+    return found
+
+
+def test_checker_sees_every_form_of_a_package_import():
+    src = ("from .sets import a\nfrom . import raft\nimport learning.cli\n"
+           "def f():\n    from learning.summary import b\n    from learning import diagnose\nimport os\n")
+    assert package_imports(src, "learning") == {"sets", "raft", "cli", "summary", "diagnose"}
+
+
+def test_learning_package_imports_run_one_way():
+    folder = BENCH / "learning"
+    files = {p.stem: p for p in folder.glob("*.py") if p.name != "__init__.py"}
+    assert set(files) == set(LEARNING_ORDER), "place every module of benchmarks/learning/ in LEARNING_ORDER"
+    assert package_imports((folder / "__init__.py").read_text(), "learning") == set()
+    climbing = [f"{name} imports {dep}" for k, name in enumerate(LEARNING_ORDER)
+                for dep in package_imports(files[name].read_text(), "learning") if dep not in LEARNING_ORDER[:k]]
+    assert not climbing, "imports against benchmarks/learning's order (LEARNING_ORDER):\n" + "\n".join(climbing)
+
+
+def test_each_learning_module_imports_first_in_a_fresh_process():
+    """A circle shows when its modules are imported in another order than usual: each module is imported first, alone,
+    in a process of its own."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(BENCH), str(REPO), os.environ.get("PYTHONPATH", "")]))
+    for name in LEARNING_ORDER[:5]:
+        r = subprocess.run([sys.executable, "-c", f"import learning.{name}"], env=env, capture_output=True, text=True,
+                           timeout=120, check=False)
+        assert r.returncode == 0, f"learning.{name}: {r.stderr[-2000:]}"

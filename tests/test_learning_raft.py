@@ -1,6 +1,6 @@
-"""The RAFT judge's small-motion diagnostic (benchmarks/learning_sets.small_motion_pair): exact affine flow between a
-photograph and its moved copy, checked against brightness constancy on a smooth analytic image and against the
-affine field's own algebra."""
+"""The RAFT judge (benchmarks/learning/raft.py) and its readings (summary.py). Its small-motion diagnostic
+(``learning.sets.small_motion_pair``): exact affine flow between a photograph and its moved copy, checked against
+brightness constancy on a smooth analytic image and against the affine field's own algebra."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "learning"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from learning_sets import small_motion_pair, small_motion_pairs
+from learning import raft, sets, summary
+from learning.sets import small_motion_pair, small_motion_pairs
 
 
 def _smooth(xs, ys):
@@ -75,8 +76,6 @@ def test_small_motion_pairs_cover_every_photograph_and_magnitude(monkeypatch):
     img = _smooth_image(160, 128)
     import torch
 
-    import learning_sets
-
     t = torch.from_numpy(img).permute(2, 0, 1)[None]
     # Motorcycle stands in: the test needs neither scikit-image's data nor the bench extra
     stereo = torch.from_numpy(_smooth_image(185, 125)).permute(2, 0, 1)[None]
@@ -85,7 +84,7 @@ def test_small_motion_pairs_cover_every_photograph_and_magnitude(monkeypatch):
         assert factor == 2  # the diagnostic moves Motorcycle at half resolution, as the judge reads it
         return stereo, stereo
 
-    monkeypatch.setattr(learning_sets, "motorcycle_full", motorcycle)
+    monkeypatch.setattr(sets, "motorcycle_full", motorcycle)
     pairs = small_motion_pairs({"mb_Fake": (t, t, torch.zeros(1, 2, 128, 160), torch.ones(1, 1, 128, 160))},
                                magnitudes=(0.0, 2.0))
     assert set(pairs) == {"sm_stereo_0", "sm_stereo_2", "sm_Fake_0", "sm_Fake_2"}
@@ -100,9 +99,8 @@ def test_mixture_and_final_pass_arms(monkeypatch):
     truth (the same samples) under other images."""
     import torch
 
-    import learning_raft
 
-    arms, info, _ = learning_raft.build_arms(["flowsynth", "mixture", "flowsynth_final", "chairs2d"], 0, 0, {}, n=4)
+    arms, info, _ = raft.build_arms(["flowsynth", "mixture", "flowsynth_final", "chairs2d"], 0, 0, {}, n=4)
     fs, mix, fin, chairs = (arms[k] for k in ("flowsynth", "mixture", "flowsynth_final", "chairs2d"))
     for a, f, c in zip(mix, fs, chairs):
         assert torch.equal(a[:2], f[:2]) and torch.equal(a[2:], c[:2])
@@ -117,7 +115,6 @@ def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
     import torch
 
     import flowsynth.training
-    import learning_raft
 
     seen = []
 
@@ -125,20 +122,20 @@ def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
         seen.append(i1[:, 0, 0, 0].tolist())
         return i1, i2, f, v
 
-    monkeypatch.setattr(learning_raft, "evaluate", lambda net, tests, device: {})
+    monkeypatch.setattr(raft, "evaluate", lambda net, tests, device: {})
     monkeypatch.setattr(flowsynth.training, "augment", augment)
     monkeypatch.setattr(flowsynth.training, "train_step", lambda net, batch, opt, sched, updates: 0.0)
     pool = (torch.arange(8, dtype=torch.uint8)[:, None, None, None].expand(8, 3, 4, 4), torch.zeros(8, 3, 4, 4),
             torch.zeros(8, 2, 4, 4), torch.ones(8, 1, 4, 4, dtype=torch.bool))
-    learning_raft.train(pool, {}, 10, 3, 3, 5, stages=2)
+    raft.train(pool, {}, 10, 3, 3, 5, stages=2)
     assert all(0 <= i < 4 for b in seen[:5] for i in b) and all(4 <= i < 8 for b in seen[5:] for i in b)
     assert len(seen) == 10 and len({i for b in seen for i in b}) > 4
     seen.clear()
-    learning_raft.train(pool, {}, 10, 3, 3, 5)
+    raft.train(pool, {}, 10, 3, 3, 5)
     g = torch.Generator().manual_seed(3)
-    assert seen == [torch.randint(8, (learning_raft.BATCH,), generator=g).tolist() for _ in range(10)]
-    arms, _, _ = learning_raft.build_arms(["curriculum", "chairs2d", "flowsynth"], 0, 0, {}, n=4)
-    assert learning_raft.STAGES["curriculum"] == 2
+    assert seen == [torch.randint(8, (raft.BATCH,), generator=g).tolist() for _ in range(10)]
+    arms, _, _ = raft.build_arms(["curriculum", "chairs2d", "flowsynth"], 0, 0, {}, n=4)
+    assert raft.STAGES["curriculum"] == 2
     assert all(torch.equal(c, torch.cat([a, f])) for c, a, f in zip(arms["curriculum"], arms["chairs2d"],
                                                                       arms["flowsynth"]))
 
@@ -149,23 +146,22 @@ def test_train_keeps_every_checkpoints_weights(tmp_path, monkeypatch):
     import torch
 
     import flowsynth.training
-    import learning_raft
 
     def step(net, batch, opt, sched, updates):
         next(net.parameters()).data.add_(1.0)
         return 0.0
 
-    monkeypatch.setattr(learning_raft, "evaluate", lambda net, tests, device: {})
+    monkeypatch.setattr(raft, "evaluate", lambda net, tests, device: {})
     monkeypatch.setattr(flowsynth.training, "augment", lambda i1, i2, f, v, crop, g: (i1, i2, f, v))
     monkeypatch.setattr(flowsynth.training, "train_step", step)
     pool = tuple(torch.zeros(4, c, 4, 4) for c in (3, 3, 2, 1))
     torch.manual_seed(7)
-    first = next(learning_raft.raft_small().parameters()).detach().clone()
+    first = next(raft.raft_small().parameters()).detach().clone()
     save = str(tmp_path / "net.pt")
-    learning_raft.train(pool, {}, 10, 3, 7, 4, save=save)
+    raft.train(pool, {}, 10, 3, 7, 4, save=save)
     name = next(iter(torch.load(save)))
     for s in (4, 8, 10):
-        weights = torch.load(learning_raft.checkpoint_path(save, s))
+        weights = torch.load(raft.checkpoint_path(save, s))
         assert torch.allclose(weights[name], first + s, rtol=0, atol=1e-5)
     assert torch.equal(torch.load(save)[name], weights[name])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["net.pt", "net_step10.pt", "net_step4.pt", "net_step8.pt"]
@@ -187,29 +183,28 @@ def test_summarize_pairs_one_seeds_arms_across_files(tmp_path, monkeypatch):
     checked by hand; a --set run's flowsynth arm is not the default, and an arm twice on one seed is an error."""
     import json
 
-    import learning_raft
 
-    monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
+    monkeypatch.setattr(summary, "RESULTS_DIR", tmp_path)
     # scores (mean of the last two checkpoints): default 3.0 / 2.0 on seeds 0 and 1; the lever 1.5 / 1.0 on seed 0
     # (ratios 0.5) and 3.0 / 4.0 on seed 1 (ratios 1.0 / 2.0)
     _result(tmp_path / "learning_raft_s0.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)]})
     _result(tmp_path / "learning_raft_s0_lever.json", {}, {"flowsynth_photos": [(1.5, 1.0), (1.5, 1.0)]})
     _result(tmp_path / "learning_raft_s0_set.json", {"rest_fraction": 0.3}, {"flowsynth": [(9.0, 9.0), (9.0, 9.0)]})
-    out = learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+    out = summary.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
     mb = out["judges"]["middlebury"]
     assert out["judges"]["stereo"]["ratios"] == [pytest.approx(0.5)]
     assert mb["seeds"] == [0] and mb["ratios"] == [pytest.approx(0.5)] and mb["ci95"] is None
     assert mb["useful"] == 1  # 1.0 is below zero flow's 4.0 and the untrained 10.0
     _result(tmp_path / "learning_raft_s1.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)],
                                                      "flowsynth_photos": [(3.0, 4.0), (3.0, 4.0)]}, seed=1)
-    mb = learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")["judges"]["middlebury"]
+    mb = summary.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")["judges"]["middlebury"]
     assert dict(zip(mb["seeds"], mb["ratios"])) == {0: pytest.approx(0.5), 1: pytest.approx(2.0)}
     assert mb["geometric_mean"] == pytest.approx(1.0) and mb["in_favour"] == 1
     half = 12.706205 * np.log(4.0) / np.sqrt(2) / np.sqrt(2)  # t(0.975, 1) * sd of (log 0.5, log 2) / sqrt(2)
     assert mb["ci95"] == [pytest.approx(np.exp(-half)), pytest.approx(np.exp(half))]
     _result(tmp_path / "learning_raft_s1_again.json", {}, {"flowsynth_photos": [(1.0, 1.0), (1.0, 1.0)]}, seed=1)
     with pytest.raises(SystemExit, match="is in"):
-        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+        summary.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
     (tmp_path / "learning_raft_s1_again.json").unlink()
     # a lever judged on other pairs (another --middlebury: zero flow differs) does not pair with the default
     lever = tmp_path / "learning_raft_s0_lever.json"
@@ -217,25 +212,24 @@ def test_summarize_pairs_one_seeds_arms_across_files(tmp_path, monkeypatch):
     d["runs"][0]["zero_flow_epe"]["middlebury"] = 3.0
     lever.write_text(json.dumps(d))
     with pytest.raises(SystemExit, match="judges"):
-        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+        summary.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
     d["runs"][0]["zero_flow_epe"]["middlebury"] = 4.0 * (1 + 1e-7)  # float32 sums in another order: the same judge
     d["runs"][0]["results"]["flowsynth_photos"]["curve"][-1]["middlebury"] = float("nan")  # a diverged net
     lever.write_text(json.dumps(d))
     with pytest.raises(SystemExit, match=r"not finite on seeds \[0\]"):
-        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+        summary.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
     lever.write_text(json.dumps({**d, "flowsynth_config": {"num_objects": [1, 2]}}))  # another library's default
     with pytest.raises(SystemExit, match="flowsynth_config"):
-        learning_raft.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
+        summary.summarize("learning_raft_s*.json", "flowsynth_photos", "flowsynth")
     with pytest.raises(SystemExit, match="holds both"):
-        learning_raft.summarize("learning_raft_s0*.json", "control", "flowsynth")
+        summary.summarize("learning_raft_s0*.json", "control", "flowsynth")
 
 
 def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
     import json
 
-    import learning_raft
 
-    monkeypatch.setattr(learning_raft, "RESULTS_DIR", tmp_path)
+    monkeypatch.setattr(summary, "RESULTS_DIR", tmp_path)
     # scores are the mean of the last two checkpoints: default 3.0 / 2.0, control 3.3 / 2.1 (bands 0.909-1.1,
     # 0.952-1.05)
     _result(tmp_path / "learning_raft_s0.json", {}, {"flowsynth": [(2.9, 2.1), (3.1, 1.9)],
@@ -244,7 +238,7 @@ def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
     _result(tmp_path / "learning_raft_s0_a.json", {"rest_fraction": 0.3}, {"flowsynth": [(3.0, 1.6), (3.0, 1.6)]})
     _result(tmp_path / "learning_raft_s0_b.json", {}, {"flowsynth_natural": [(3.0, 1.8), (3.0, 1.8)]})
     _result(tmp_path / "learning_raft_s0_c.json", {}, {"mixture": [(3.5, 1.6), (3.5, 1.6)]})
-    rows = {r["lever"]: r for r in learning_raft.screen("learning_raft_s0*.json")}
+    rows = {r["lever"]: r for r in summary.screen("learning_raft_s0*.json")}
     assert set(rows) == {"rest_fraction=0.3", "flowsynth_natural", "mixture"}  # not the baseline, default, control
     a, b, c = rows["rest_fraction=0.3"], rows["flowsynth_natural"], rows["mixture"]
     assert a["Middlebury"] == pytest.approx(0.8) and a["Middlebury vs noise"] == "better"
@@ -256,32 +250,31 @@ def test_screen_applies_rule_4_against_the_control(tmp_path, monkeypatch):
     assert not c["promising (rule 4)"]
     # a noisier control (scores 4.0 / 2.5: bands 0.75-1.33, 0.8-1.25) leaves the 0.8 on Middlebury inside the noise
     _result(tmp_path / "learning_raft_s0_control.json", {}, {"control": [(4.0, 2.5), (4.0, 2.5)]})
-    rows = {r["lever"]: r for r in learning_raft.screen("learning_raft_s0*.json")}
+    rows = {r["lever"]: r for r in summary.screen("learning_raft_s0*.json")}
     a = rows["rest_fraction=0.3"]
     assert a["Middlebury vs noise"] == "noise" and not a["promising (rule 4)"]
     # a second default, an unfinished run and another protocol
     _result(tmp_path / "learning_raft_s0_again.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)]})
     with pytest.raises(SystemExit, match="is in"):
-        learning_raft.screen("learning_raft_s0*.json")
+        summary.screen("learning_raft_s0*.json")
     (tmp_path / "learning_raft_s0_again.json").unlink()
     _result(tmp_path / "learning_raft_s0_d.json", {}, {"flowsynth_final": [(1.0, 1.0), (1.0, 1.0)]})
     d = json.loads((tmp_path / "learning_raft_s0_d.json").read_text())
     (tmp_path / "learning_raft_s0_d.json").write_text(json.dumps({**d, "complete": False}))
-    assert "flowsynth_final" not in {r["lever"] for r in learning_raft.screen("learning_raft_s0*.json")}
+    assert "flowsynth_final" not in {r["lever"] for r in summary.screen("learning_raft_s0*.json")}
     (tmp_path / "learning_raft_s0_d.json").write_text(json.dumps({**d, "steps": 20}))
     with pytest.raises(SystemExit, match="another protocol"):
-        learning_raft.screen("learning_raft_s0*.json")
+        summary.screen("learning_raft_s0*.json")
     (tmp_path / "learning_raft_s0_d.json").unlink()
     (tmp_path / "learning_raft_s0_control.json").unlink()
     with pytest.raises(SystemExit, match="control"):
-        learning_raft.screen("learning_raft_s0*.json")
+        summary.screen("learning_raft_s0*.json")
 
 
 def test_plot_summary_draws_seeds_and_interval(tmp_path, monkeypatch):
     """``--summarize``'s picture: a PNG with matplotlib (the bench extra), None without it; one seed (no interval)
     draws too."""
     import _common
-    import learning_raft
 
     monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)  # where write_json and the figures go
     judge = {"seeds": [0, 1], "ratios": [0.5, 2.0], "geometric_mean": 1.0, "ci95": [0.0002, 6000.0]}
@@ -290,7 +283,7 @@ def test_plot_summary_draws_seeds_and_interval(tmp_path, monkeypatch):
     try:
         import matplotlib  # noqa: F401
     except ModuleNotFoundError:
-        assert learning_raft.plot_summary(out, "summary") is None
+        assert summary.plot_summary(out, "summary") is None
         return
-    path = learning_raft.plot_summary(out, "summary")
+    path = summary.plot_summary(out, "summary")
     assert path == tmp_path / "summary.png" and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,7 +1,9 @@
-"""The learning benchmark's pairs that flowsynth does not render (benchmarks/learning/learning.py): the 2D baseline
-(``chairs2d_pairs``), its photographs (``train_photos``, ``photo_sources``, ``photo_folder``) and every test set:
-homography-warped photographs (``photo_pairs``), the Motorcycle stereo pair (``stereo_pairs``) and the Middlebury
-flow pairs (``middlebury_pairs``). Each returns (img1, img2, flow, valid) float32 tensors (n, C, H, W).
+"""The learning benchmark's pairs that flowsynth does not render: the FlyingChairs-style 2D baseline
+(``chairs2d_pairs``), the photographs of its photo-textured arms (``train_photos``, ``photo_sources``,
+``photo_folder``) and the file-free textures of ``flowsynth_natural`` (``natural_folder``), the real judges (the
+Motorcycle stereo pair, ``motorcycle_full``; the Middlebury pairs, ``middlebury_pairs``) and the small-motion
+diagnostic (``small_motion_pairs``). Each set is (img1, img2, flow, valid) float32 tensors (n, C, H, W). Imports
+nothing of this package.
 """
 
 from __future__ import annotations
@@ -9,24 +11,14 @@ from __future__ import annotations
 import zlib
 from pathlib import Path
 
-W, H = 128, 96  # the training and homography-test size [px]
-# every net is tested on each: homography-warped photos with frame 1 made two ways (photo_pairs, a diagnostic
-# column since issue 38), and a real stereo pair with measured disparity (stereo_pairs: "Motorcycle", a judge)
-TESTS = ("resampled", "symmetric", "stereo")
 MIDDLEBURY = ("Dimetrodon", "Grove2", "Urban2", "Venus")  # the pairs looked for under --middlebury (any subset)
-# scikit-image images that no test uses: the textures of the photo-textured arms (--photo-arms), as FlyingChairs
-# textures its chairs' backgrounds with photographs (the photographs that ship with scikit-image and need no
-# download; most are grey)
-TRAIN_PHOTOS = ("hubble_deep_field", "retina", "moon", "cell", "clock", "microaneurysms", "page", "text")
-# issue 46: the RAFT judge's photo-textured baseline takes every photograph that ships with scikit-image (its
-# homography diagnostic, which used PHOTOS, is gone from that protocol); none is a judge's image
+# issue 46: the photo-textured arms take every photograph that ships with scikit-image (none needs a download; most
+# are grey), as FlyingChairs textures its chairs with photographs; none is a judge's image
 NATURAL_PHOTOS = ("astronaut", "brick", "camera", "cat", "cell", "chelsea", "clock", "coffee", "coins", "grass",
                   "gravel", "hubble_deep_field", "immunohistochemistry", "moon", "page", "retina", "rocket", "text")
-PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "immunohistochemistry", "camera", "coins", "grass",
-          "gravel", "brick")
 
 
-def _affine(rng, shift_px: float, rot: float, zoom: float, size: tuple[int, int] = (W, H)):
+def _affine(rng, shift_px: float, rot: float, zoom: float, size: tuple[int, int]):
     """2x3 affine map of pixel coordinates about the centre of an image of ``size`` (w, h): rotation, scale,
     translation."""
     import numpy as np
@@ -39,14 +31,11 @@ def _affine(rng, shift_px: float, rot: float, zoom: float, size: tuple[int, int]
     return np.concatenate([R, t[:, None]], 1)
 
 
-def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0, visible: bool = False):
+def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0):
     """n FlyingChairs-style pairs from ``sources`` (m, 3, h, w) images (any size; 128x96 until issue 46, shape sizes
     and shifts scale with w / 128): a background and 2-5 shapes, each under its own random affine map; flow exact
     for every pixel of frame 0 (all valid, as in FlyingChairs).
-    ``motion_scale`` multiplies every shift, rotation and log-zoom range. ``visible``: the mask is instead the
-    pixels seen in both frames (their flow lands inside frame 1, on the same layer: the layer of frame 1's
-    nearest pixel there, painter's order), the baseline's counterpart of flowsynth's ``valid_fw & ~occ_fw``.
-    The images and flow do not depend on it (the same random draws)."""
+    ``motion_scale`` multiplies every shift, rotation and log-zoom range."""
     import cv2
     import numpy as np
     import torch
@@ -64,8 +53,7 @@ def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0, visibl
         A = _affine(rng, 1.5 * k * motion_scale, 0.05 * motion_scale, 0.05 * motion_scale, (W, H))
         img1, img2 = bg.copy(), cv2.warpAffine(bg, A, (W, H), borderMode=cv2.BORDER_REFLECT)
         flow = grid @ A.T - grid[..., :2]
-        layer1, layer2 = np.zeros((H, W), np.int32), np.zeros((H, W), np.int32)  # 0: background, k: shape k
-        for shape in range(1, rng.integers(2, 6) + 1):
+        for _shape in range(rng.integers(2, 6)):
             tex = src[rng.integers(len(src))]
             mask = np.zeros((H, W), np.uint8)
             centre = (int(rng.uniform(0.1, 0.9) * W), int(rng.uniform(0.1, 0.9) * H))
@@ -86,20 +74,14 @@ def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0, visibl
             tex2 = cv2.warpAffine(tex, B, (W, H))
             img2[m2] = tex2[m2]
             flow[m1] = (grid @ B.T - grid[..., :2])[m1]
-            layer1[m1], layer2[m2] = shape, shape
         valid = np.ones((H, W, 1))
-        if visible:
-            q = np.rint(grid[..., :2] + flow).astype(np.int64)
-            inside = (q[..., 0] >= 0) & (q[..., 0] < W) & (q[..., 1] >= 0) & (q[..., 1] < H)
-            seen = layer2[q[..., 1].clip(0, H - 1), q[..., 0].clip(0, W - 1)] == layer1
-            valid = (inside & seen)[..., None].astype(np.float64)
         for lst, x in zip(out, (img1, img2, flow, valid)):
             lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
     return tuple(torch.stack(x) for x in out)
 
 
-def train_photos(names: tuple = TRAIN_PHOTOS) -> list:
-    """The scikit-image images ``names`` (default TRAIN_PHOTOS) as (h, w, 3) float32 arrays in [0, 1] (grey ones
+def train_photos(names: tuple = NATURAL_PHOTOS) -> list:
+    """The scikit-image images ``names`` as (h, w, 3) float32 arrays in [0, 1] (grey ones
     repeated over 3 channels)."""
     import numpy as np
     import skimage.data
@@ -112,14 +94,13 @@ def train_photos(names: tuple = TRAIN_PHOTOS) -> list:
     return out
 
 
-def photo_folder(names: tuple = TRAIN_PHOTOS) -> Path:
-    """A folder (.cache/learning_photos[_N] under the repository) holding the scikit-image images ``names`` as PNG:
-    the texture_dir of the flowsynth_photos arm."""
+def photo_folder(names: tuple = NATURAL_PHOTOS) -> Path:
+    """A folder (.cache/learning_photos_N under the repository, N photographs) holding the scikit-image images ``names``
+    as PNG: the texture_dir of the flowsynth_photos arm."""
     import cv2
     import numpy as np
 
-    tag = "" if names == TRAIN_PHOTOS else f"_{len(names)}"
-    root = Path(__file__).resolve().parents[2] / ".cache" / f"learning_photos{tag}"
+    root = Path(__file__).resolve().parents[2] / ".cache" / f"learning_photos_{len(names)}"
     root.mkdir(parents=True, exist_ok=True)
     for name, im in zip(names, train_photos(names)):
         f = root / f"{name}.png"
@@ -149,7 +130,7 @@ def natural_folder(kinds: tuple = ("pink", "leaves", "edges"), per_kind: int = 3
     return root
 
 
-def photo_sources(n: int, seed: int, size: tuple[int, int] = (W, H), names: tuple = TRAIN_PHOTOS):
+def photo_sources(n: int, seed: int, size: tuple[int, int], names: tuple = NATURAL_PHOTOS):
     """n (3, h, w) crops (``size`` = (w, h)) of the scikit-image images ``names`` at random scales (0.25-1 of the
     largest crop that fits): the backgrounds and shape textures of the chairs2d_photos arm."""
     import cv2
@@ -168,83 +149,6 @@ def photo_sources(n: int, seed: int, size: tuple[int, int] = (W, H), names: tupl
         crop = cv2.resize(im[y0:y0 + h, x0:x0 + w], (w0, h0), interpolation=cv2.INTER_AREA)
         out.append(torch.from_numpy(np.ascontiguousarray(crop)).permute(2, 0, 1))
     return torch.stack(out)
-
-
-def photo_pairs(n: int, seed: int, symmetric: bool = False):
-    """n test pairs: crops of scikit-image photos warped by random homographies; flow of frame 0 exact.
-
-    Default ("resampled"): frame 0 is the crop resized (INTER_AREA), frame 1 is frame 0 warped bilinearly, so
-    only frame 1 carries resampling blur, as in the chairs2d baseline's pairs. ``symmetric``: both frames are
-    sampled bilinearly from the same anti-aliased photo (Gaussian of sigma 0.5 source px per test px), frame 1
-    through the homography, so neither frame is a resampled copy of the other."""
-    import cv2
-    import numpy as np
-    import skimage.data
-    import torch
-
-    rng = np.random.default_rng(10_000 + seed)
-    photos = []
-    for name in PHOTOS:
-        im = getattr(skimage.data, name)()
-        im = np.stack([im] * 3, -1) if im.ndim == 2 else im[..., :3]
-        photos.append(im.astype(np.float32) / 255.0)
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-    pts = np.stack([xs, ys, np.ones_like(xs)], -1)
-    out = [[], [], [], []]
-    for i in range(n):
-        im = photos[i % len(photos)]
-        s = rng.uniform(0.25, 0.6) * min(im.shape[0] / H, im.shape[1] / W)  # source pixels per test pixel
-        h, w = int(H * s), int(W * s)
-        y0, x0 = rng.integers(0, im.shape[0] - h + 1), rng.integers(0, im.shape[1] - w + 1)
-        corners = np.array([[0, 0], [W - 1, 0], [W - 1, H - 1], [0, H - 1]], np.float32)
-        moved = corners + rng.normal(size=2) * 3.0 + rng.uniform(-6, 6, size=(4, 2))
-        Hm = cv2.getPerspectiveTransform(corners, moved.astype(np.float32)).astype(np.float64)
-        if symmetric:
-            sx, sy = w / W, h / H  # test pixel centre x -> source (x + 0.5) * sx - 0.5 + x0
-            A = np.array([[sx, 0, x0 + 0.5 * sx - 0.5], [0, sy, y0 + 0.5 * sy - 0.5], [0, 0, 1]])
-            src = cv2.GaussianBlur(im, (0, 0), 0.5 * max(sx, sy))
-            inv = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-            img1 = cv2.warpPerspective(src, A, (W, H), flags=inv, borderMode=cv2.BORDER_REFLECT)
-            img2 = cv2.warpPerspective(src, A @ np.linalg.inv(Hm), (W, H), flags=inv, borderMode=cv2.BORDER_REFLECT)
-        else:
-            img1 = cv2.resize(im[y0:y0 + h, x0:x0 + w], (W, H), interpolation=cv2.INTER_AREA)
-            img2 = cv2.warpPerspective(img1, Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        q = pts @ Hm.T
-        q = q[..., :2] / q[..., 2:]
-        flow = q - pts[..., :2]
-        valid = (q[..., 0] >= 0) & (q[..., 0] <= W - 1) & (q[..., 1] >= 0) & (q[..., 1] <= H - 1)
-        for lst, x in zip(out, (img1, img2, flow, valid[..., None])):
-            lst.append(torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).permute(2, 0, 1))
-    return tuple(torch.stack(x) for x in out)
-
-
-def stereo_pairs(n: int, seed: int):
-    """n test pairs from a real scene: crops of the Middlebury 2014 Motorcycle stereo pair with its measured
-    disparity (scikit-image's ``stereo_motorcycle``, 741x500, disparity 7-60 px). A left pixel x is seen at
-    x - d in the right image, so the left -> right flow is (-d, 0). Each pair downsamples both views by f = 3 or
-    5 (INTER_AREA) and takes a random 128x96 crop; the flow of a downsampled pixel is -d / f with d read at the
-    source pixel at its centre. Half the pairs are mirrored left-right (flow (+d / f, 0)). Valid: the
-    disparity is known (finite) and the target lands inside the crop. Unlike the homography tests, this has
-    depth edges, occlusions and real lighting; the flow is purely horizontal, 1.4-20 px."""
-    import cv2
-    import numpy as np
-    import torch
-
-    left, right, disp = skimage_stereo()
-    rng = np.random.default_rng(20_000 + seed)
-    out = [[], [], [], []]
-    for _ in range(n):
-        f = int(rng.choice([3, 5]))  # odd: a downsampled pixel's centre is a source pixel's centre
-        h, w = disp.shape[0] // f, disp.shape[1] // f
-        a, b = (cv2.resize(x[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA) for x in (left, right))
-        d = disp[f // 2::f, f // 2::f][:h, :w].astype(np.float64) / f
-        fx = -d
-        if rng.uniform() < 0.5:  # mirrored: the left view's point at w-1-x is at w-1-x+d in the mirrored right
-            a, b, fx = a[:, ::-1], b[:, ::-1], d[:, ::-1]
-        y0, x0 = int(rng.integers(0, h - H + 1)), int(rng.integers(0, w - W + 1))
-        a, b, fx = (x[y0:y0 + H, x0:x0 + W] for x in (a, b, fx))
-        _append_horizontal(out, a, b, fx)
-    return tuple(torch.stack(x) for x in out)
 
 
 def _append_horizontal(out: list, a, b, fx) -> None:
@@ -359,10 +263,3 @@ def small_motion_pairs(middlebury: dict, seed: int = 0, magnitudes: tuple = SMAL
     photos.update({k[3:]: v[0][0] for k, v in middlebury.items()})
     return {f"sm_{name}_{m:g}": small_motion_pair(x.permute(1, 2, 0).numpy(), seed + zlib.crc32(name.encode()), m)
             for name, x in photos.items() for m in magnitudes}
-
-
-def test_sets(n: int, seed: int, middlebury: dict | None = None) -> dict:
-    """Every test set of TESTS, n pairs each, and the Middlebury pairs of ``middlebury`` (middlebury_pairs)."""
-    sets = {kind: stereo_pairs(n, seed) if kind == "stereo" else photo_pairs(n, seed, symmetric=kind == "symmetric")
-            for kind in TESTS}
-    return {**sets, **(middlebury or {})}

@@ -1,0 +1,113 @@
+"""The learning benchmark's command line: does a flow network trained on flowsynth work on real flow? The RAFT judge
+(``raft``; protocol and rules pre-registered in docs/decisions/0023-raft-judge.md) trains, pools and diagnoses.
+
+    python benchmarks/learning [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400] [--middlebury DIR]
+                               [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2] [--at-once]
+    python benchmarks/learning --summarize [--files 'learning_raft*.json'] [--arm flowsynth] [--against chairs2d_photos]
+    python benchmarks/learning --screen [--files 'learning_raft_s0*.json']       # rule 4 for every lever of seed 0
+    python benchmarks/learning --diagnose --nets A.pt,B.pt [--middlebury DIR]   # where the saved nets fail
+    python benchmarks/learning --figures NAME --nets A.pt [--middlebury DIR]    # their predicted flow
+    python benchmarks/learning --plot NAME | --stats [--set FIELD=JSON]
+
+Writes results/learning_raft[_TAG].json after every seed (``raft.run``), and the readings beside it:
+learning_raft_summary_*, learning_raft_screens*, learning_raft_diagnose*, learning_raft_stats* (``summary``,
+``diagnose``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from _common import print_table, write_json
+
+from .diagnose import diagnose, figures, pool_stats
+from .raft import ARMS, EVERY, POOL, STEPS, run
+from .summary import plot_judge_curves, plot_summary, screen, summarize
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Parse ``argv`` (default: the process's arguments) and run what it asks for (the module docstring)."""
+    p = argparse.ArgumentParser(prog="python benchmarks/learning", description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="a smoke run: 12 pairs an arm, 20 steps, tests every 10")
+    p.add_argument("--seeds", default="0")
+    p.add_argument("--arms", default="flowsynth,chairs2d_photos",
+                   help=f"comma-separated, of {', '.join(ARMS)}")
+    p.add_argument("--steps", type=int, default=None, help=f"training steps per net (default {STEPS})")
+    p.add_argument("--every", type=int, default=None, help=f"test every this many steps (default {EVERY})")
+    p.add_argument("--pool", type=int, default=None, help=f"training pairs per arm (default {POOL})")
+    p.add_argument("--workers", type=int, default=2, help="DataLoader workers rendering the flowsynth pairs")
+    p.add_argument("--threads", type=int, default=2, help="torch threads in all (split between --jobs)")
+    p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of its own; 0: one "
+                                                       "after another in this process")
+    p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda)")
+    p.add_argument("--at-once", action="store_true", help="render every seed's pools, then train every net of every "
+                   "seed at once, each in a process of its own (a lent GPU)")
+    p.add_argument("--train-after", default=None, metavar="FILE", help="--at-once: render the pools, then wait until "
+                   "FILE exists before training (so that other benchmarks have the GPU to themselves)")
+    p.add_argument("--middlebury", default=None, metavar="DIR",
+                   help="a folder of Middlebury flow pairs (NAME/frame10.png, frame11.png, flow10.flo)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
+                   help="a lever: the flowsynth arms' config with this field changed (repeatable); use with --tag")
+    p.add_argument("--tag", default="", help="results/learning_raft_TAG.json")
+    p.add_argument("--summarize", action="store_true", help="train nothing: pool the seeds of --files")
+    p.add_argument("--files", default="learning_raft*.json", help="--summarize: results/ files to pool (a glob)")
+    p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm")
+    p.add_argument("--against", default="chairs2d_photos", help="--summarize: the denominator arm")
+    p.add_argument("--screen", action="store_true", help="train nothing: rule 4 for every lever of seed 0 in the "
+                   "--files results, against the default and its control (results/learning_raft_screens.json)")
+    p.add_argument("--figures", default=None, metavar="NAME",
+                   help="train nothing: results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
+    p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
+    p.add_argument("--plot", default=None, metavar="NAME", help="train nothing: results/NAME_JUDGE.png, the learning "
+                   "curves of every arm and seed in the --files results")
+    p.add_argument("--stats", action="store_true", help="train nothing: flow-magnitude and texture statistics of "
+                   "--arms' pools, a lever's with --set (--pool pairs, default 64), beside the real judges")
+    p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
+                   "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
+                   "[_TAG].json)")
+    args = p.parse_args(argv)
+    args.overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key in ("width", "height", "num_frames") or not value:
+            p.error(f"--set {item!r}: give FIELD=JSON for a field other than width, height, num_frames")
+        try:
+            args.overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8]")
+    if args.summarize:
+        out = summarize(args.files, args.arm, args.against)
+        name = f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else "")
+        write_json(name, out)
+        print(f"plot: {plot_summary(out, name) or 'none (matplotlib is in the bench extra)'}")
+        return
+    if args.screen:
+        rows = screen(args.files)
+        print_table(rows, list(rows[0])) if rows else print("--screen: no lever in the files")
+        write_json("learning_raft_screens" + (f"_{args.tag}" if args.tag else ""), {"files": args.files, "rows": rows})
+        return
+    if args.plot:
+        for path in plot_judge_curves(args.plot, args.files):
+            print(f"wrote {path}")
+        return
+    if args.stats:
+        rows = pool_stats(args.arms.split(","), args.pool or 64, args.workers, args.overrides, args.middlebury)
+        print_table(rows, list(rows[0]))
+        write_json("learning_raft_stats" + (f"_{args.tag}" if args.tag else ""), {"pairs": args.pool or 64,
+                                                                                   "rows": rows})
+        return
+    if args.diagnose:
+        rows = diagnose([n for n in args.nets.split(",") if n], args.middlebury)
+        print_table(rows, list(rows[0]))
+        write_json("learning_raft_diagnose" + (f"_{args.tag}" if args.tag else ""), {"rows": rows})
+        return
+    if args.figures:
+        for path in figures(args.figures, args.middlebury, [n for n in args.nets.split(",") if n]):
+            print(f"wrote {path}")
+        return
+    if args.steps is not None and args.steps < 20:
+        p.error(f"--steps {args.steps}: give at least 20 steps")
+    if args.quick:
+        args.pool, args.steps, args.every = args.pool or 12, args.steps or 20, args.every or 10
+    run(args)

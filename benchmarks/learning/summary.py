@@ -1,0 +1,202 @@
+"""What the RAFT judge's runs say: ``--summarize`` pools the seeds of complete runs (rule 5 of
+docs/decisions/0023-raft-judge.md), ``--screen`` applies rule 4 to every lever against the default and its control,
+and the plots of both (``plot_summary``, ``plot_judge_curves``). Reads results/learning_raft*.json, old runs' too.
+"""
+
+from __future__ import annotations
+
+import json
+
+from _common import RESULTS_DIR, plot_curves, print_table, pyplot, save_figure
+
+from .raft import JUDGED, JUDGES, NET, score
+
+
+def _complete_runs(pattern: str, who: str):
+    """(file, its JSON, one seed's run) for every seed of the complete runs of this judge in the results/ files
+    matching ``pattern``, in name order; unfinished runs and other judges are skipped. All must share the protocol."""
+    protocol = {}
+    for f in sorted(RESULTS_DIR.glob(pattern)):
+        d = json.loads(f.read_text())
+        if not d.get("complete") or d.get("net") != NET:
+            continue
+        same = {k: d.get(k) for k in ("steps", "pool", "batch", "resolution", "every", "lr", "updates")}
+        if protocol and same != protocol:
+            raise SystemExit(f"{who}: {f.name} ran another protocol ({same}) than the files before it ({protocol})")
+        protocol = same
+        for r in d.get("runs", []):
+            yield f, d, r
+
+
+def summarize(pattern: str, arm: str, against: str) -> dict:
+    """Pool the seeds on which the complete runs with no ``--set`` in the results/ files matching ``pattern`` hold
+    both arms (a seed's two arms may come from two files; an arm twice on one seed is an error): per judge, each
+    seed's score ratio ``arm`` / ``against``, their geometric mean with a 95% interval (t on the log ratios), the
+    seeds in favour, and the rule-1 count (``arm``'s net ends below zero flow and below its untrained start)."""
+    import numpy as np
+    from scipy import stats
+
+    runs = {}  # seed -> {"results": {arm: result}, "zero_flow_epe": ...}: one seed's arms may lie in several files
+    for f, d, r in _complete_runs(pattern, "--summarize"):
+        if d.get("overrides"):
+            continue  # a --set lever's flowsynth arm is not the default
+        names = {arm, against} & set(r["results"])
+        if not names:
+            continue
+        seed = runs.setdefault(r["seed"], {"seed": r["seed"], "results": {}, "zero_flow_epe": r["zero_flow_epe"],
+                                           "config": d.get("flowsynth_config"), "file": f.name})
+        zero, other = seed["zero_flow_epe"], r["zero_flow_epe"]  # float32 sums differ in the 7th digit
+        if set(zero) != set(other) or any(abs(zero[k] - other[k]) > 1e-5 * abs(zero[k]) for k in zero):
+            differ = "their judges (zero flow EPE)"  # another --middlebury: not one comparison
+        elif d.get("flowsynth_config") != seed["config"]:
+            differ = "flowsynth_config"  # another default
+        else:
+            differ = None
+        if differ:
+            raise SystemExit(f"--summarize: seed {r['seed']}'s runs in {seed['file']} and {f.name} differ in {differ}")
+        for name in names:
+            if name in seed["results"]:
+                raise SystemExit(f"--summarize: seed {r['seed']}'s {name} is in {seed['results'][name][0]} and in "
+                                 f"{f.name}")
+            seed["results"][name] = (f.name, r["results"][name])
+    runs = {k: {**v, "results": {a: res for a, (_, res) in v["results"].items()}} for k, v in sorted(runs.items())
+            if {arm, against} <= set(v["results"])}
+    if not runs:
+        raise SystemExit(f"--summarize: no complete run of results/{pattern} with no --set holds both {arm} and "
+                         f"{against} on a seed")
+    out, rows = {}, []
+    for j in JUDGES:
+        rs = [r for r in runs.values() if j in r["zero_flow_epe"]]
+        if not rs:
+            continue
+        a = np.array([score(r["results"][arm]["curve"], j) for r in rs])
+        b = np.array([score(r["results"][against]["curve"], j) for r in rs])
+        logs = np.log(a / b)
+        if not np.isfinite(logs).all():  # a diverged net (NaN EPE) or a zero score: no ratio to pool
+            bad = [r["seed"] for r, x in zip(rs, logs) if not np.isfinite(x)]
+            raise SystemExit(f"--summarize: {arm} / {against} on {j} is not finite on seeds {bad}")
+        n = len(logs)
+        half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n) if n > 1 else None  # one seed: none
+        useful = sum(score(r["results"][arm]["curve"], j) < min(r["zero_flow_epe"][j],
+                                                                 r["results"][arm]["curve"][0][j]) for r in rs)
+        out[j] = {"seeds": [r["seed"] for r in rs], "ratios": (a / b).tolist(),
+                  "geometric_mean": float(np.exp(logs.mean())),
+                  "ci95": None if half is None else [float(np.exp(logs.mean() - half)),
+                                                     float(np.exp(logs.mean() + half))],
+                  "in_favour": int((logs < 0).sum()), "useful": useful, arm: a.tolist(), against: b.tolist(),
+                  "zero_flow": float(np.mean([r["zero_flow_epe"][j] for r in rs])),
+                  "untrained": float(np.mean([r["results"][arm]["curve"][0][j] for r in rs]))}
+        o = out[j]
+        rows.append({"judge": j, "seeds": n, "ratio": o["geometric_mean"],
+                     "95% CI": f"{o['ci95'][0]:.3f}-{o['ci95'][1]:.3f}" if o["ci95"] else "n/a (one seed)",
+                     "in favour": f"{o['in_favour']} of {n}",
+                     f"{arm} useful": f"{useful} of {n}", arm: float(a.mean()), against: float(b.mean()),
+                     "zero flow": o["zero_flow"], "untrained": o["untrained"]})
+    print(f"{arm} / {against}, scores (mean of the last {JUDGED} checkpoints), seeds {sorted(runs)}")
+    print_table(rows, list(rows[0]))
+    return {"arm": arm, "against": against, "pattern": pattern, "judges": out}
+
+
+def plot_summary(out: dict, name: str):
+    """``summarize``'s result as a picture (results/NAME.png): per judge, each seed's ratio arm / against as a dot
+    labelled by its seed, the geometric mean as a bar with its 95% interval, and 1 (no difference) as a line; a log
+    axis, so 0.5 and 2 lie as far from 1. Returns the path (None without matplotlib)."""
+    plt = pyplot()
+    if plt is None:
+        return None
+    judges = list(out["judges"])
+    fig, ax = plt.subplots(figsize=(5, 4), dpi=110)
+    for x, j in enumerate(judges):
+        o = out["judges"][j]
+        ax.plot([x] * len(o["ratios"]), o["ratios"], "o", color="C0", alpha=0.7)
+        for seed, r in zip(o["seeds"], o["ratios"]):
+            ax.annotate(f"s{seed}", (x, r), textcoords="offset points", xytext=(6, -3), fontsize=7)
+        lo, hi = o["ci95"] or (o["geometric_mean"],) * 2
+        ax.errorbar([x + 0.25], [o["geometric_mean"]], yerr=[[o["geometric_mean"] - lo], [hi - o["geometric_mean"]]],
+                    fmt="s", color="C3", capsize=4)
+    ax.axhline(1.0, color="grey", lw=1)
+    ax.set_yscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%.2g"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%.2g"))
+    ax.set_xticks(range(len(judges)), [{"stereo": "Motorcycle", "middlebury": "Middlebury mean"}.get(j, j)
+                                       for j in judges])
+    ax.set_xlim(-0.5, len(judges) - 0.3)
+    ax.set_ylabel(f"score ratio {out['arm']} / {out['against']}")
+    ax.set_title("seeds (dots), geometric mean and 95% interval (squares)", fontsize=9)
+    ax.grid(True, which="both", axis="y", alpha=0.3)
+    fig.tight_layout()
+    return save_figure(fig, name)
+
+
+SCREEN_MB, SCREEN_MOTO = 0.85, 1.10  # rule 4's thresholds on candidate / default (Middlebury mean, Motorcycle)
+
+
+def screen(pattern: str, seed: int = 0) -> list[dict]:
+    """Rule 4 of docs/decisions/0023 for every lever in the results/ files matching ``pattern``: on ``seed``, the
+    score ratio candidate / default per judge beside the control's ratio control / default. The default is the
+    ``flowsynth`` arm of a run with no ``--set``; the control, the ``control`` arm of such a run; a candidate, any
+    other flowsynth-made arm (``flowsynth`` with ``--set``, ``flowsynth_natural``, ``flowsynth_photos``,
+    ``flowsynth_final``, ``mixture``, ``curriculum``). Promising: Middlebury ratio below ``SCREEN_MB`` and below the
+    control's band (the lower of c and 1/c: a gain beyond the noise), and Motorcycle ratio at most ``SCREEN_MOTO``;
+    each judge's ratio is also read against the band (better, within the noise, worse). Only complete runs of this
+    judge count, and all must share the protocol."""
+    ref, cands = {}, []
+    for f, d, r in _complete_runs(pattern, "--screen"):
+        if r["seed"] != seed:
+            continue
+        for arm, res in r["results"].items():
+            if arm in ("flowsynth", "control") and not d.get("overrides"):
+                if arm in ref:
+                    raise SystemExit(f"--screen: seed {seed}'s {arm} is in {ref[arm][0]} and in {f.name}")
+                ref[arm] = (f.name, res["curve"])
+            elif not arm.startswith("chairs2d"):
+                label = arm if arm != "flowsynth" else ",".join(f"{k}={v}" for k, v in d["overrides"].items())
+                cands.append((f.stem.removeprefix("learning_raft_"), label, res["curve"]))
+    if len(ref) < 2:
+        raise SystemExit(f"--screen: results/{pattern} must hold seed {seed}'s default and its control (complete runs "
+                         "with no --set)")
+    default, control = ref["flowsynth"][1], ref["control"][1]
+    band = {j: sorted((score(control, j) / score(default, j), score(default, j) / score(control, j))) for j in JUDGES}
+    rows = []
+    for tag, label, curve in cands:
+        ratio = {j: score(curve, j) / score(default, j) for j in JUDGES}
+        reading = {j: "better" if ratio[j] < band[j][0] else "worse" if ratio[j] > band[j][1] else "noise"
+                   for j in JUDGES}
+        promising = (ratio["middlebury"] < SCREEN_MB and reading["middlebury"] == "better"
+                     and ratio["stereo"] <= SCREEN_MOTO)
+        rows.append({"run": tag, "lever": label, "Motorcycle": ratio["stereo"],
+                     "Motorcycle vs noise": reading["stereo"], "Middlebury": ratio["middlebury"],
+                     "Middlebury vs noise": reading["middlebury"],
+                     "promising (rule 4)": promising})
+    print(f"seed {seed}: candidate / default; control / default: Motorcycle {band['stereo'][0]:.3f}-"
+          f"{band['stereo'][1]:.3f}, Middlebury {band['middlebury'][0]:.3f}-{band['middlebury'][1]:.3f}")
+    return rows
+
+
+def plot_judge_curves(name: str, pattern: str) -> list:
+    """One plot per real judge (results/NAME_JUDGE.png): test EPE against training step of every arm and seed of
+    the results files matching ``pattern``, each line labelled by its file's tag, arm and seed; the untrained start
+    is the step-0 point; zero flow's EPE is a line. Returns the paths written (none without matplotlib)."""
+    files = sorted(RESULTS_DIR.glob(pattern))
+    paths = []
+    for judge in JUDGES:
+        series, zero = {}, {}
+        for f in files:
+            d = json.loads(f.read_text())
+            tag = f.stem.removeprefix("learning_")
+            for r in d.get("runs", []):
+                for arm, res in r["results"].items():
+                    pts = [(c["step"], c[judge]) for c in res["curve"] if judge in c]
+                    if pts:
+                        series[f"{tag} {arm} s{r['seed']}"] = tuple(zip(*pts))
+                        if judge in r.get("zero_flow_epe", {}):
+                            zero[r["zero_flow_epe"][judge]] = max(zero.get(r["zero_flow_epe"][judge], 0), pts[-1][0])
+        for z, last in zero.items():  # zero flow's EPE: a net above this line is worse than predicting nothing
+            series[f"zero flow ({z:.2f})"] = ((0, last), (z, z))
+        if series:
+            path = plot_curves(f"{name}_{judge}", series, "training step", f"{judge} test EPE [px]", logx=False,
+                               logy=True, title=f"{judge}: the learning curves ({pattern})")
+            paths += [path] if path else []
+    return paths
