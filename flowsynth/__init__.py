@@ -10,7 +10,7 @@ from flowsynth.caches import clear_caches
 from flowsynth.errors import AssetError, ConfigError, ExportError, FlowsynthError, ForkError, ShapeError, StorageError
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
-from flowsynth.renderer import render, render_plan
+from flowsynth.renderer import render, render_batch, render_plan
 from flowsynth.scene import Camera, Scene, SceneObject
 
 __version__ = "0.2.0"
@@ -33,6 +33,7 @@ __all__ = [
     "datasets",
     "make_plan",
     "render",
+    "render_batch",
     "render_plan",
 ]
 

@@ -4,10 +4,11 @@
 DataLoader whose workers survive CUDA (forkserver, not fork)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
+from flowsynth.datasets.device_batches import DeviceBatches
 from flowsynth.datasets.flowpairs import FlowPairs
 from flowsynth.datasets.loader import loader
 
-__all__ = ["BouncingThings", "Exported", "FlowPairs", "Mixture", "Shards", "loader", "sample_seed"]
+__all__ = ["BouncingThings", "DeviceBatches", "Exported", "FlowPairs", "Mixture", "Shards", "loader", "sample_seed"]
 
 
 def __getattr__(name: str):

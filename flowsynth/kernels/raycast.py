@@ -28,12 +28,16 @@ __all__ = ["Culling", "Instances", "Pinhole", "TileLists", "primary_kernel", "ti
 
 @wp.struct
 class Instances:
-    """F frames x N rigid instances, as every tracing kernel reads them (flowsynth.raycast.accel.SceneAccel)."""
+    """F frames of rigid instances, as every tracing kernel reads them (flowsynth.raycast.accel.SceneAccel).
+
+    Frame f's items are ``frame_start[f] .. frame_start[f + 1] - 1``, instance n of the frame's scene at item
+    ``frame_start[f] + n``: one clip of N instances (item f N + n), or a batch of clips, frame b T + t of clip b
+    (``SceneAccel.batch``)."""
 
     bvh: wp.uint64  # grouped top-level BVH over instance boxes, group f = frame f
     roots: wp.array[wp.int32]  # (F,) root node of each group
-    use_bvh: wp.int32  # 0: camera rays walk the near-to-far candidate lists instead of the BVH
-    frame_start: wp.array[wp.int32]  # (F + 1,) CSR start of each frame's items in frame_items
+    use_bvh: wp.array[wp.int32]  # (F,) 0: the frame's camera rays walk the near-to-far candidate lists, not the BVH
+    frame_start: wp.array[wp.int32]  # (F + 1,) CSR start of each frame's items (its first item, and frame_items')
     frame_items: wp.array[wp.int32]  # (F * N,) each frame's items, nearest box first
     near: wp.array[wp.float32]  # (F * N,) distance from the frame's camera centre to the item's box [m]
     lowers: wp.array[wp.vec3]  # (F * N,) item box, reference frame [m]
@@ -47,7 +51,7 @@ class Instances:
     blas_slot: wp.array[wp.int32]
     obj_T_ref: wp.array[wp.mat44]  # (F * N,) reference (camera) frame -> object frame
     ref_T_obj: wp.array[wp.mat44]  # (F * N,) object frame -> reference frame
-    n_inst: wp.int32  # N
+    item_inst: wp.array[wp.int32]  # (items,) the item's row in per-instance tables (n; clip b's from its first row)
     thin: wp.array[wp.int32]  # (F * N,) 1: the item's object-frame box is thin (a room wall); rays test it first
     obj_lo: wp.array[wp.vec3]  # (F * N,) object-frame box of the item's mesh, padded [m]
     obj_hi: wp.array[wp.vec3]
@@ -227,12 +231,12 @@ def closest_from_camera(inst: Instances, g: wp.int32, start: wp.array[wp.int32],
                         lst: wp.int32, d: wp.vec3, max_t: wp.float32):
     """``trace_closest`` for a ray leaving the camera centre of frame g, same result.
 
-    With few instances (``use_bvh`` = 0) the candidates of list ``lst`` of the CSR lists (start, items)
+    With few instances (``use_bvh[g]`` = 0) the candidates of list ``lst`` of the CSR lists (start, items)
     (all the frame's instances, or those whose clipped hull projects onto the ray's screen tile) are visited near
     to far (sorted by ``near``) and the walk stops at the first box farther than the best hit: ~1.2 mesh
     queries per ray instead of one per box crossed.
     """
-    if inst.use_bvh != 0:
+    if inst.use_bvh[g] != 0:
         return trace_closest(inst, inst.roots[g], wp.vec3(0.0), d, max_t)
     best_t = max_t
     best_item = wp.int32(-1)
@@ -293,7 +297,7 @@ def any_in_list(near: wp.array[wp.float32], lowers: wp.array[wp.vec3], uppers: w
 def any_from_camera(inst: Instances, g: wp.int32, d: wp.vec3, max_t: wp.float32):
     """``trace_any`` for a ray leaving the camera centre of frame g: the frame's instances near to far,
     first blocker ends the walk (any-hit mesh queries)."""
-    if inst.use_bvh != 0:
+    if inst.use_bvh[g] != 0:
         return trace_any(inst, inst.roots[g], wp.vec3(0.0), d, max_t)
     return any_in_list(inst.near, inst.lowers, inst.uppers, inst.item_root, inst.blas_bounds, inst.blas_kids,
                        inst.blas_tris, inst.obj_T_ref, inst.frame_items,
@@ -309,15 +313,17 @@ def pixel_ray(i: wp.int32, j: wp.int32, cam: Pinhole):
 
 
 @specialised_builder
-def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
+def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False, per_pixel: bool = False):
     """The primary G-buffer kernel, specialised so unrequested channels are compiled out.
 
     ``lens``: the pixel rays come from ``cam.rays`` (H, W) (a lens model's unprojected pixel centres,
     flowsynth.scene.camera; a ray with z < 0 marks an uncovered pixel: no hit) instead of the pinhole ``cam``.
 
-    Launch dims (F, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread casts
-    the W pixels of its row (a Warp CPU thread per pixel spends ~35 ns unravelling its 3-D index: the pair
-    kernel's measurement, flowsynth/kernels/reproject.py). Outputs per pixel (every pixel written): ``dist``
+    Two launch shapes of one body (``flowsynth.parallel.pixel_threads``): ``per_pixel`` False, dims (F, rows) from
+    row ``band0`` (``row_loop=True``), each thread casting the W pixels of its row (a Warp CPU thread per pixel
+    spends ~35 ns unravelling its 3-D index: docs/decisions/0004-pair-kernel-rows-and-culls.md); ``per_pixel``
+    True, dims (F, rows, W), a thread per pixel (the GPU's shape). F counts every frame of a batch of clips
+    (``SceneAccel.batch``). Outputs per pixel (every pixel written): ``dist``
     ray length [m] (0 = no hit), ``item`` (-1 = no hit), ``face`` (-1 = no hit), and when requested ``point``
     (object-frame hit point [m], 0 = no hit) and ``normal`` (unit, reference/camera frame, facing the camera;
     0 = no hit).
@@ -336,9 +342,15 @@ def primary_kernel(want_normals: bool, want_points: bool, lens: bool = False):
         point: wp.array3d[wp.vec3],
         normal: wp.array3d[wp.vec3],
     ):
-        f, i = wp.tid()
+        if wp.static(per_pixel):
+            f, i, j0 = wp.tid()
+            j1 = j0 + 1
+        else:
+            f, i = wp.tid()
+            j0 = wp.int32(0)
+            j1 = dist.shape[2]
         i += band0
-        for j in range(dist.shape[2]):
+        for j in range(j0, j1):
             d = pixel_ray(i, j, cam)
             if wp.static(lens):
                 d = cam.rays[i, j]

@@ -52,14 +52,15 @@ LENS_CODES = {"pinhole": 0, "brown_conrady": 1, "kannala_brandt": 2}
 
 @wp.struct
 class PairSource:
-    """The pair kernel's G-buffer and frames: pair t maps frame s = src0 + t into frame s + step."""
+    """The pair kernel's G-buffer and frames: pair t maps frame s = pair_src[t] into frame s + step."""
 
-    item: wp.array3d[wp.int32]  # (F, H, W) item f N + n of each pixel's hit, -1: none
+    item: wp.array3d[wp.int32]  # (F, H, W) item of each pixel's hit (``Instances``' numbering), -1: none
     point: wp.array3d[wp.vec3]  # (F, H, W) object-frame hit point [m]
     face: wp.array3d[wp.int32]  # (F, H, W) hit face (the own item's cull, occlusion="exact")
     dist: wp.array3d[wp.float32]  # (F, H, W) ray length [m] (the depth test, occlusion="depth"; else a dummy)
-    n_inst: wp.int32  # instances per frame, N
-    src0: wp.int32
+    frame_start: wp.array[wp.int32]  # (F + 1,) frame f's first item (``Instances.frame_start``)
+    item_inst: wp.array[wp.int32]  # (items,) the item's row in per-instance tables (``Instances.item_inst``)
+    pair_src: wp.array[wp.int32]  # (P,) source frame of each pair (src0 + t; a batch's clip b from frame b T)
     step: wp.int32
 
 
@@ -67,12 +68,12 @@ class PairSource:
 class PairTarget:
     """The target view's poses and projection, the stereo baseline and the scene-flow transforms."""
 
-    cam_T_obj: wp.array2d[wp.mat44d]  # (T, N) target view from each object, float64
+    cam_T_obj: wp.array[wp.mat44d]  # (items,) target view from each item's object in its frame, float64
     K: wp.mat33d  # intrinsics, skew included
     lens_k: wp.array[wp.float64]  # lens coefficients (``lens_project``; 8 entries, 0 when unused)
     lens_lim: wp.float64  # the lens model's domain bound
     fB: wp.float64  # focal length x baseline (disparity change ``dc``)
-    sfM: wp.array2d[wp.mat44d]  # (P, N) scene-flow transforms (``sf``; a dummy when not asked)
+    sfM: wp.array[wp.mat44d]  # (items,) scene-flow transform of each source item (``sf``; a dummy when not asked)
 
 
 @wp.struct
@@ -252,18 +253,22 @@ def affine_point(M: wp.mat44d, p: wp.vec3d):
 
 
 @specialised_builder
-def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False, lens: int = 0):
+def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = False, lens: int = 0,
+                per_pixel: bool = False):
     """The pair kernel, specialised so unrequested outputs are compiled out.
 
     ``lens`` (``LENS_CODES``): 0 the pinhole K, else the target view's lens model, coefficients ``lens_k`` and
     domain bound ``lens_lim`` (``lens_project``); a point outside the domain is treated as one behind the camera.
 
-    Launch dims (P, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread does
-    the W pixels of its row. Every pixel of every output is written: ``valid`` (uint8, 1 = hit and
+    Two launch shapes of one body (``flowsynth.parallel.pixel_threads``): ``per_pixel`` False, dims (P, rows) from
+    row ``band0`` (``row_loop=True``), each thread doing the W pixels of its row; ``per_pixel`` True, dims (P, rows,
+    W), a thread per pixel (the GPU's shape). P counts every pair of a batch of clips. Every pixel of every output
+    is written: ``valid`` (uint8, 1 = hit and
     X.z > 0), ``oof`` (uint8, hit and not inside [-0.5, W - 0.5) x [-0.5, H - 0.5)), and when requested
     ``flow`` (P, 2, H, W) float32, ``occ`` (uint8, oof or blocked), ``dc`` float64 disparity change, ``sf``
     (P, 3, H, W) float32 scene flow ``sfM[t, n] @ p`` (where hit, valid or not); all 0 where not hit (flow
-    and dc also where not valid). For occlusion="exact", ``tiles`` are the lists without flat items
+    and dc also where not valid). The item of the same instance in target frame r is ``it - frame_start[s] +
+    frame_start[r]`` (f N + n in one clip). For occlusion="exact", ``tiles`` are the lists without flat items
     (``SceneAccel.tile_lists(camera, flat=False)``). Inputs: the parameter blocks ``PairSource``, ``PairTarget``
     and ``PairOcclusion`` (fields documented there), then ``band0``.
     """
@@ -285,8 +290,8 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
         point = src.point
         face = src.face
         dist = src.dist
-        n_inst = src.n_inst
-        src0 = src.src0
+        frame_start = src.frame_start
+        item_inst = src.item_inst
         step = src.step
         cam_T_obj = tgt.cam_T_obj
         K = tgt.K
@@ -300,13 +305,19 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
         rel_tol = occl.rel_tol
         dz = occl.dz
         depth_tol = occl.depth_tol
-        t, i = wp.tid()
+        if wp.static(per_pixel):
+            t, i, j0 = wp.tid()
+            j1 = j0 + 1
+        else:
+            t, i = wp.tid()
+            j0 = wp.int32(0)
+            j1 = item.shape[2]
         i += band0
-        s = src0 + t
+        s = src.pair_src[t]
         r = s + step
         H = item.shape[1]
         W = item.shape[2]
-        for j in range(W):
+        for j in range(j0, j1):
             it = item[s, i, j]
             if it < 0:
                 valid[t, i, j] = wp.uint8(0)
@@ -323,15 +334,15 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                     sf[t, 1, i, j] = 0.0
                     sf[t, 2, i, j] = 0.0
                 continue
-            n = it - s * n_inst  # item index f * N + n in frame f = s (no integer division)
+            ri = it - frame_start[s] + frame_start[r]  # the same instance's item in frame r
             q = point[s, i, j]
             p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
             if wp.static(want_sf):
-                Y = affine_point(sfM[t, n], p)
+                Y = affine_point(sfM[it], p)
                 sf[t, 0, i, j] = wp.float32(Y[0])
                 sf[t, 1, i, j] = wp.float32(Y[1])
                 sf[t, 2, i, j] = wp.float32(Y[2])
-            M = cam_T_obj[r, n]
+            M = cam_T_obj[ri]
             X = affine_point(M, p)
             x = X[0]
             y = X[1]
@@ -371,7 +382,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                 flow[t, 0, i, j] = wp.float32(u - wp.float64(j))
                 flow[t, 1, i, j] = wp.float32(v - wp.float64(i))
             if wp.static(want_dc):
-                M0 = cam_T_obj[s, n]
+                M0 = cam_T_obj[it]
                 z0 = M0[2, 0] * p[0] + M0[2, 1] * p[1] + M0[2, 2] * p[2] + M0[2, 3]
                 dc[t, i, j] = fB / z - fB / z0
             if wp.static(occ_mode == 1):
@@ -382,7 +393,7 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                     if L > 0.0:
                         d = pf / L
                         max_t = L * (1.0 - rel_tol)
-                        if inst.use_bvh != 0:
+                        if inst.use_bvh[r] != 0:
                             blocked = trace_any(inst, inst.roots[r], wp.vec3(0.0), d, max_t)
                         else:
                             # cheapest first: the flat groups without the own item (room walls: three dot
@@ -397,8 +408,8 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                             have_skip = False
                             blocked = False
                             if not groups_hold(cull.grp_n, cull.grp_ab, g0, g1, X, keep, margin):
-                                skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep, margin,
-                                                r * n_inst + n)
+                                skip = own_skip(cull.face_plane[cull.face_off[item_inst[it]] + face[s, i, j]], M, p,
+                                                keep, margin, ri)
                                 have_skip = True
                                 blocked = flat_blocks(inst.near, inst.lowers, inst.uppers, inst.item_root,
                                                       inst.blas_bounds, inst.blas_kids, inst.blas_tris, inst.obj_T_ref,
@@ -414,8 +425,8 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
                                 # the lists run near to far: nothing to test when the first box starts beyond the end
                                 if a < b and inst.near[tiles.items[a]] < max_t:
                                     if not have_skip:
-                                        skip = own_skip(cull.face_plane[cull.face_off[n] + face[s, i, j]], M, p, keep,
-                                                        margin, r * n_inst + n)
+                                        skip = own_skip(cull.face_plane[cull.face_off[item_inst[it]] + face[s, i, j]],
+                                                        M, p, keep, margin, ri)
                                     blocked = list_blocks(inst.near, inst.lowers, inst.uppers, inst.item_root,
                                                           inst.blas_bounds, inst.blas_kids, inst.blas_tris,
                                                           inst.obj_T_ref, cull.sphere, cull.inner, cull.sil,
@@ -434,43 +445,57 @@ def pair_kernel(want_flow: bool, occ_mode: int, want_dc: bool, want_sf: bool = F
     return pairs
 
 
-@wp.kernel(enable_backward=False)
-def world_points_kernel(
-    item: wp.array3d[wp.int32],
-    point: wp.array3d[wp.vec3],
-    world_T_obj: wp.array2d[wp.mat44d],
-    want_moved: wp.int32,
-    motion_tol: wp.float64,
-    band0: wp.int32,
-    # outputs
-    world: wp.array3d[wp.vec3d],
-    moved: wp.array3d[wp.uint8],
-):
+@specialised_builder
+def world_points_kernel(per_pixel: bool = False):
     """The primary cast's hit points in the world frame, and whether they move to the next frame (float64).
 
-    Launch dims (frames, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread walks
-    its row. Pixel (i, j) of frame f holding instance n (``item`` f N + n, -1: no hit) at object-frame point p
-    (float32, promoted) gets ``world`` x = world_T_obj[f, n] p (0 where not hit). With ``want_moved`` != 0,
-    ``moved`` (T-1, H, W) gets, for the frames 0 .. T-2, 1 where the next frame's pose moves the same point by
-    more than motion_tol + 1e-12 |x|: |world_T_obj[f + 1, n] p - x| (the ``motion`` output, flowsynth/truth/flow.py).
+    Two launch shapes of one body (``flowsynth.parallel.pixel_threads``): ``per_pixel`` False, dims (frames, rows)
+    from row ``band0`` (``row_loop=True``), each thread walking its row; True, dims (frames, rows, W), a thread per
+    pixel. Pixel (i, j) of frame f (frame t = f - b T of clip b, ``frames`` T per clip) holding item k (-1: no hit)
+    at object-frame point p (float32, promoted) gets ``world`` x = world_T_obj[k] p (0 where not hit). With
+    ``want_moved`` != 0, ``moved`` (B (T-1), H, W) gets, for the frames t = 0 .. T-2 of each clip (row b (T-1) + t),
+    1 where the next frame's pose moves the same point by more than motion_tol + 1e-12 |x|: |world_T_obj[k'] p - x|
+    with k' = k - frame_start[f] + frame_start[f + 1] (the ``motion`` output, flowsynth/truth/flow.py).
     """
-    f, i = wp.tid()
-    i += band0
-    N = world_T_obj.shape[1]
-    last = f + 1 >= world_T_obj.shape[0]  # no next frame
-    for j in range(item.shape[2]):
-        k = item[f, i, j]
-        x = wp.vec3d()
-        m = wp.uint8(0)
-        if k >= 0:
-            n = k - f * N  # item index f * N + n (no integer division)
-            q = point[f, i, j]
-            p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
-            x = affine_point(world_T_obj[f, n], p)
+    @wp.kernel(enable_backward=False, module="unique")
+    def world_points(
+        item: wp.array3d[wp.int32],
+        point: wp.array3d[wp.vec3],
+        world_T_obj: wp.array[wp.mat44d],
+        frame_start: wp.array[wp.int32],
+        frames: wp.int32,
+        want_moved: wp.int32,
+        motion_tol: wp.float64,
+        band0: wp.int32,
+        # outputs
+        world: wp.array3d[wp.vec3d],
+        moved: wp.array3d[wp.uint8],
+    ):
+        if wp.static(per_pixel):
+            f, i, j0 = wp.tid()
+            j1 = j0 + 1
+        else:
+            f, i = wp.tid()
+            j0 = wp.int32(0)
+            j1 = item.shape[2]
+        i += band0
+        b = f // frames
+        t = f - b * frames
+        last = t + 1 >= frames  # no next frame in the clip
+        for j in range(j0, j1):
+            k = item[f, i, j]
+            x = wp.vec3d()
+            m = wp.uint8(0)
+            if k >= 0:
+                q = point[f, i, j]
+                p = wp.vec3d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]))
+                x = affine_point(world_T_obj[k], p)
+                if want_moved != 0 and not last:
+                    y = affine_point(world_T_obj[k - frame_start[f] + frame_start[f + 1]], p)
+                    if wp.length(y - x) > motion_tol + wp.float64(1.0e-12) * wp.length(x):
+                        m = wp.uint8(1)
+            world[f, i, j] = x
             if want_moved != 0 and not last:
-                y = affine_point(world_T_obj[f + 1, n], p)
-                if wp.length(y - x) > motion_tol + wp.float64(1.0e-12) * wp.length(x):
-                    m = wp.uint8(1)
-        world[f, i, j] = x
-        if want_moved != 0 and not last:
-            moved[f, i, j] = m
+                moved[f - b, i, j] = m
+
+    return world_points

@@ -9,6 +9,7 @@ Sample k of frame t:
 - time slice s = (k + o) mod S with o random per pixel, so every (position stratum, slice) pair is equally
   likely; the ray is traced in group t * S + s of the acceleration structure (the scene at that time).
 - RNG: ``wp.rand_init(seed_t, pixel * spp + k)`` with seed_t a hash of (seed, t): bit-for-bit reproducible.
+  A launch may shade a batch of scenes (frame b T + t is frame t of scene b, with scene b's seed, lights and sky).
 
 When ``reuse`` is set (spp == 1, no motion blur) the primary hit is read from the G-buffer instead of traced.
 
@@ -72,11 +73,11 @@ class ShadeScene:
     mats: wp.array[Material]  # one per instance (``flowsynth.renderer.shading.pack_materials``)
     img_data: wp.array[wp.vec3]
     img_info: wp.array2d[wp.int32]
-    n_lights: wp.int32
-    light_kind: wp.array[wp.int32]
-    light_vec: wp.array2d[wp.vec3]
-    light_irr: wp.array[wp.vec3]
-    sky: wp.vec3
+    n_lights: wp.array[wp.int32]  # (B,) delta lights of each scene (clip) of the launch
+    light_kind: wp.array2d[wp.int32]  # (B, L)
+    light_vec: wp.array2d[wp.vec3]  # (groups, L) per group (frame, or time slice), camera frame
+    light_irr: wp.array2d[wp.vec3]  # (B, L)
+    sky: wp.array[wp.vec3]  # (B,) ambient sky radiance of each scene
     pix_angle: wp.float32
     tiles: TileLists  # the G-buffer cast's per-tile candidate lists (when use_tiles)
     use_tiles: wp.int32  # 1: camera rays walk ``tiles`` near to far (no motion blur: group g is frame g)
@@ -102,7 +103,8 @@ class ShadeSampling:
     spp: wp.int32  # samples per pixel
     edge_spp: wp.int32  # samples of a silhouette pixel when > spp (else no pixel gets extra samples)
     slices: wp.int32  # motion-blur time slices per frame (1: none); group t * slices + s of ``ShadeScene.inst``
-    seed: wp.int32  # render seed (int32)
+    seeds: wp.array[wp.int32]  # (B,) render seed of each scene (int32)
+    frames: wp.int32  # frames per scene: launch frame t is frame t - b T of scene b = t // T
     bounces: wp.int32  # path-traced bounces ("path" mode)
 
 
@@ -198,7 +200,7 @@ def surface(sc: ShadeScene, item: wp.int32, face: wp.int32, p_obj: wp.vec3, d: w
         n = -n
     if sc.smooth != 0:  # the corner normals at the hit's barycentric coordinates, on the face's side facing d
         n = smooth_normal(sc, item, face, a, b, c, p_obj, n)
-    inst = item % sc.inst.n_inst
+    inst = sc.inst.item_inst[item]
     fw = spread / wp.sqrt(wp.max(wp.abs(cos), MIN_FOOTPRINT_COS))
     albedo = base_color(sc.mats, sc.img_data, sc.img_info, inst, p_obj, n_obj, fw)
     return n, albedo, sc.mats[inst].specular, sc.mats[inst].roughness
@@ -234,17 +236,18 @@ def smooth_normal(sc: ShadeScene, item: wp.int32, face: wp.int32, a: wp.vec3, b:
 
 
 @wp.func
-def direct_light(sc: ShadeScene, g: wp.int32, x: wp.vec3, n: wp.vec3, wo: wp.vec3, albedo: wp.vec3,
+def direct_light(sc: ShadeScene, clip: wp.int32, g: wp.int32, x: wp.vec3, n: wp.vec3, wo: wp.vec3, albedo: wp.vec3,
                  spec: wp.float32, rough: wp.float32, shadows: wp.bool):
-    """Radiance towards wo from the delta lights at x; with ``shadows``, one shadow ray per lit light."""
+    """Radiance towards wo from the delta lights of scene ``clip`` at x (group g); with ``shadows``, one shadow ray
+    per lit light."""
     L = wp.vec3(0.0)
     o = offset_origin(x, n)
-    for l in range(sc.n_lights):
+    for l in range(sc.n_lights[clip]):
         v = sc.light_vec[g, l]
-        E = sc.light_irr[l]
+        E = sc.light_irr[clip, l]
         wi = v
         t_max = sc.max_t
-        if sc.light_kind[l] == LIGHT_POINT:
+        if sc.light_kind[clip, l] == LIGHT_POINT:
             dv = v - x
             r2 = wp.dot(dv, dv)
             if r2 <= MIN_LIGHT_DIST2:
@@ -272,7 +275,7 @@ def clamp_indirect(c: wp.vec3):
 
 
 @wp.func
-def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp.vec3, albedo0: wp.vec3,
+def path_radiance(sc: ShadeScene, clip: wp.int32, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp.vec3, albedo0: wp.vec3,
                   spec0: wp.float32, rough0: wp.float32, bounces: wp.int32, rng: wp.uint32, spread0: wp.float32):
     """Path-traced radiance towards wo0 from hit x0: next-event estimation at every vertex, ``bounces``
     BRDF-sampled bounces (one-sample mixture of cosine and GGX half-vector sampling), Russian roulette,
@@ -284,7 +287,7 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
     albedo = albedo0
     spec = spec0
     rough = rough0
-    L = direct_light(sc, g, x, n, wo, albedo, spec, rough, True)
+    L = direct_light(sc, clip, g, x, n, wo, albedo, spec, rough, True)
     beta = wp.vec3(1.0)
     spread = spread0
     for b in range(bounces):
@@ -325,7 +328,7 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
         o = offset_origin(x, n)
         item, dist, face, bu, bv = trace_closest(sc.inst, sc.inst.roots[g], o, wi, sc.max_t)
         if item < 0:
-            L += clamp_indirect(wp.cw_mul(beta, sc.sky))
+            L += clamp_indirect(wp.cw_mul(beta, sc.sky[clip]))
             break
         x = o + wi * dist
         wo = -wi
@@ -333,7 +336,7 @@ def path_radiance(sc: ShadeScene, g: wp.int32, x0: wp.vec3, n0: wp.vec3, wo0: wp
         p_hit = eval_position(sc.inst.blas_tris, sc.inst.blas_slot, sc.inst.item_face0[item], face, bu, bv)
         n, albedo, spec, rough = surface(sc, item, face, p_hit, wi, spread)
         rough = wp.max(rough, MIN_INDIRECT_ROUGHNESS)
-        L += clamp_indirect(wp.cw_mul(beta, direct_light(sc, g, x, n, wo, albedo, spec, rough, True)))
+        L += clamp_indirect(wp.cw_mul(beta, direct_light(sc, clip, g, x, n, wo, albedo, spec, rough, True)))
     return L
 
 
@@ -371,11 +374,12 @@ def finite_nonneg(c: wp.vec3):
 
 
 @specialised_builder
-def shade_kernel(mode: str, lens: bool = False):
+def shade_kernel(mode: str, lens: bool = False, per_pixel: bool = False):
     """The shading kernel for render mode "flat", "direct" or "path" (other modes' code compiled out).
 
-    Launch dims (T, rows) from row ``band0`` (``flowsynth.parallel``, ``row_loop=True``); each thread shades
-    the W pixels of its row. Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
+    Two launch shapes of one body (``flowsynth.parallel.pixel_threads``): ``per_pixel`` False, dims (T, rows) from
+    row ``band0`` (``row_loop=True``), each thread shading the W pixels of its row; True, dims (T, rows, W), a thread
+    per pixel. Output ``radiance`` (T, H, W) vec3: mean linear radiance of the pixel's samples.
 
     ``lens``: a lens camera (flowsynth/scene/camera.py); ``cam.rays`` holds ``Camera.ray_grid(pad)`` (rows and columns
     -pad .. H - 1 + pad, pad = (rows - H) / 2 >= 1). The pixel-centre sample takes its centre's ray (the ray the
@@ -411,16 +415,23 @@ def shade_kernel(mode: str, lens: bool = False):
         spp = smp.spp
         edge_spp = smp.edge_spp
         slices = smp.slices
-        seed = smp.seed
         bounces = smp.bounces
-        t, i = wp.tid()
+        if wp.static(per_pixel):
+            t, i, j0 = wp.tid()
+            j1 = j0 + 1
+        else:
+            t, i = wp.tid()
+            j0 = wp.int32(0)
+            j1 = radiance.shape[2]
         i += band0
-        seed_t = wp.int32(hash3(t, 0, seed))
-        seed_p = wp.int32(hash3(t, 1, seed))
-        seed_e = wp.int32(hash3(t, 2, seed))
+        clip = t // smp.frames  # frame t - clip T of scene clip
+        seed = smp.seeds[clip]
+        seed_t = wp.int32(hash3(t - clip * smp.frames, 0, seed))
+        seed_p = wp.int32(hash3(t - clip * smp.frames, 1, seed))
+        seed_e = wp.int32(hash3(t - clip * smp.frames, 2, seed))
         if wp.static(lens):
             pad = (cam.rays.shape[0] - radiance.shape[1]) // 2
-        for j in range(radiance.shape[2]):
+        for j in range(j0, j1):
             pix = wp.uint32(i * radiance.shape[2] + j)
             prng = wp.rand_init(seed_p, wp.int32(pix))
             scramble = wp.uint32(wp.randi(prng))
@@ -475,17 +486,17 @@ def shade_kernel(mode: str, lens: bool = False):
                         p_obj = eval_position(sc.inst.blas_tris, sc.inst.blas_slot, sc.inst.item_face0[item], face,
                                               bu, bv)
                 if item < 0:
-                    acc += sc.sky
+                    acc += sc.sky[clip]
                     continue
                 spread = dist * pix_angle
                 n, albedo, spec, rough = surface(sc, item, face, p_obj, d, spread)
                 x = d * dist
                 L = wp.vec3(0.0)
                 if wp.static(path):
-                    L = path_radiance(sc, g, x, n, -d, albedo, spec, rough, bounces, rng, spread)
+                    L = path_radiance(sc, clip, g, x, n, -d, albedo, spec, rough, bounces, rng, spread)
                 else:
-                    L = wp.cw_mul(sc.sky, albedo * (1.0 - spec) + wp.vec3(spec))
-                    L += direct_light(sc, g, x, n, -d, albedo, spec, rough, wp.static(shadows))
+                    L = wp.cw_mul(sc.sky[clip], albedo * (1.0 - spec) + wp.vec3(spec))
+                    L += direct_light(sc, clip, g, x, n, -d, albedo, spec, rough, wp.static(shadows))
                 if wp.isfinite(L):
                     acc += L
             radiance[t, i, j] = finite_nonneg(acc / wp.float32(ns))

@@ -12,6 +12,8 @@ import math
 import numpy as np
 import warp as wp
 
+from flowsynth.kernels.specialise import specialised_builder
+
 __all__ = ["SrgbPow", "srgb_encode", "srgb_pow", "srgb_pow_tables", "tonemap_kernel"]
 
 
@@ -72,17 +74,28 @@ def srgb_encode(c: wp.float32, exposure: wp.float64, reinhard: wp.int32, white2:
     return wp.float32(wp.clamp(e, wp.float64(0.0), wp.float64(1.0)))
 
 
-@wp.kernel(enable_backward=False)
-def tonemap_kernel(radiance: wp.array3d[wp.vec3], exposure: wp.float64, reinhard: wp.int32, white2: wp.float64,
-                   tab: SrgbPow, band0: wp.int32, rgb: wp.array4d[wp.float32]):
-    """(T, H, W) vec3 linear radiance -> (T, 3, H, W) float32 sRGB (``srgb_encode``). Launch dims (T, rows)
-    from row ``band0``, each thread one row (``flowsynth.parallel``, ``row_loop=True``)."""
-    t, i = wp.tid()
-    i += band0
-    for j in range(radiance.shape[2]):
-        c = radiance[t, i, j]
-        for k in range(3):
-            rgb[t, k, i, j] = srgb_encode(c[k], exposure, reinhard, white2, tab)
+@specialised_builder
+def tonemap_kernel(per_pixel: bool = False):
+    """(F, H, W) vec3 linear radiance -> (F, 3, H, W) float32 sRGB (``srgb_encode``). Two launch shapes of one body
+    (``flowsynth.parallel.pixel_threads``): ``per_pixel`` False, dims (F, rows) from row ``band0``, each thread one
+    row (``row_loop=True``); True, dims (F, rows, W), a thread per pixel."""
+    @wp.kernel(enable_backward=False, module="unique")
+    def tonemap(radiance: wp.array3d[wp.vec3], exposure: wp.float64, reinhard: wp.int32, white2: wp.float64,
+                tab: SrgbPow, band0: wp.int32, rgb: wp.array4d[wp.float32]):
+        if wp.static(per_pixel):
+            t, i, j0 = wp.tid()
+            j1 = j0 + 1
+        else:
+            t, i = wp.tid()
+            j0 = wp.int32(0)
+            j1 = radiance.shape[2]
+        i += band0
+        for j in range(j0, j1):
+            c = radiance[t, i, j]
+            for k in range(3):
+                rgb[t, k, i, j] = srgb_encode(c[k], exposure, reinhard, white2, tab)
+
+    return tonemap
 
 
 def srgb_pow_tables(device: str = "cpu") -> SrgbPow:

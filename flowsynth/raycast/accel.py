@@ -14,11 +14,12 @@ import numpy as np
 import trimesh
 
 from flowsynth.caches import register
-from flowsynth.errors import ConfigError
+from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.kernels import wp_runtime
 from flowsynth.raycast.blas import atlas, corner_normals
-from flowsynth.raycast.culling import FLAT_REL, MESH_CACHE_SIZE, build_culling, hull_points
-from flowsynth.raycast.tiles import posed_hull, tile_lists
+from flowsynth.raycast.culling import (FLAT_REL, MESH_CACHE_SIZE, culling_struct, culling_tables, hull_points,
+                                       join_culling)
+from flowsynth.raycast.tiles import join_tiles, posed_hull, tile_struct, tile_tables
 
 # Up to this many instances per frame, camera rays walk candidate lists near to far instead of the BVH
 # (``flowsynth.raycast.tiles``).
@@ -46,7 +47,7 @@ def resolve_device(device) -> str:
 
 
 class SceneAccel:
-    """Ray-casting structure for F frames of N instances.
+    """Ray-casting structure for F frames of N instances, or for a batch of clips (``SceneAccel.batch``).
 
     Args:
         meshes: N object-frame meshes (instances may share a mesh).
@@ -54,79 +55,84 @@ class SceneAccel:
         world_T_obj: (F, N, 4, 4) float64.
         device: Warp device ("cpu", the default; "cuda", "cuda:1", ... where Warp finds one: ``resolve_device``).
             Every array of the accel lives there.
+
+    Items: instance n of frame f is item ``frame_start[f] + n`` (f N + n for one clip); ``F`` counts every frame,
+    ``B`` the clips, ``T`` the frames of each; ``frame_start`` (F + 1,) and ``inst_start`` (B + 1,) (the first row of
+    each clip in per-instance tables) are numpy int64. ``N`` is the clip's instance count (one clip) or None.
     """
 
     def __init__(self, meshes: list[trimesh.Trimesh], cam_T_world: np.ndarray, world_T_obj: np.ndarray,
-                 device: str = "cpu") -> None:
-        """Build the per-frame instance boxes (camera frame), their near-to-far order and the grouped BVH."""
+                 device: str = "cpu", *, clips: list | None = None) -> None:
+        """Build the per-frame instance boxes (camera frame), their near-to-far order and the grouped BVH (of one
+        clip, or of ``clips``: ``SceneAccel.batch``)."""
+        self._build(list(clips) if clips is not None else [(meshes, cam_T_world, world_T_obj)], device)
+
+    @classmethod
+    def batch(cls, clips, device: str = "cpu") -> SceneAccel:
+        """One accel over B clips, each (meshes, cam_T_world (T, 4, 4), world_T_obj (T, N_b, 4, 4)) with the same T:
+        frame b T + t is frame t of clip b, and every table holds clip b's rows after clip b - 1's. Each clip's
+        rows are the ones its own accel holds (the grouped BVH builds each frame's subtree from that frame's boxes
+        alone), so a kernel launched once over the batch computes what B launches over single clips compute."""
+        return cls([], np.zeros((0, 4, 4)), np.zeros((0, 0, 4, 4)), device, clips=clips)
+
+    def _build(self, clips: list, device: str) -> None:
         wp = wp_runtime()
-        F = cam_T_world.shape[0]
-        N = len(meshes)
         device = resolve_device(device)
-        self.F, self.N, self.device = F, N, device
-        self.empty = N == 0
+        frames = {int(c[1].shape[0]) for c in clips}
+        if len(frames) != 1:
+            raise ShapeError(f"every clip of a batch needs the same number of frames, got {sorted(frames)}")
+        T = frames.pop()
+        counts = np.array([len(c[0]) for c in clips], np.int64)
+        B = len(clips)
+        self.B, self.T, self.F, self.device = B, T, B * T, device
+        self.N = int(counts[0]) if B == 1 else None
+        self.counts = counts
+        self.frame_start = np.concatenate([[0], np.cumsum(np.repeat(counts, T))]).astype(np.int64)
+        self.inst_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.empty = int(counts.sum()) == 0
         if self.empty:
             return
-        # cam_T_obj per (frame, instance), float64
-        cam_T_obj = np.einsum("fij,fnjk->fnik", cam_T_world, world_T_obj)
-        obj_T_cam = _rigid_inverse(cam_T_obj)
-        lo = np.empty((F, N, 3))
-        hi = np.empty((F, N, 3))
-        scale = np.empty((F, N, 1))
-        v_lo, v_hi = np.empty((N, 3)), np.empty((N, 3))  # object-frame boxes: those of the hull points
-        self._posed = []  # each instance's hull points in the camera frames (F, K, 3): the screen bounds' too
-        boxes = {}  # id(mesh) -> its hull points and their object-frame box, once per distinct mesh
-        for n, m in enumerate(meshes):  # tight boxes: the posed hull vertices, not the posed local box
-            if id(m) not in boxes:
-                hull = hull_points(m)
-                boxes[id(m)] = hull, hull.min(0), hull.max(0)
-            hull, v_lo[n], v_hi[n] = boxes[id(m)]
-            pts = posed_hull(hull, cam_T_obj[:, n])
-            self._posed.append(pts)
-            lo[:, n], hi[:, n] = pts.min(1), pts.max(1)
-            # max |coordinate| of the points: max(max, -min) over the axes, the same value as abs().max()
-            scale[:, n, 0] = (hi[:, n] - lo[:, n]).max(-1) + np.maximum(hi[:, n], -lo[:, n]).max(-1)
-        pad = BOX_PAD_REL * scale + 1e-30
-        lowers = (lo - pad).reshape(-1, 3).astype(np.float32)
-        uppers = (hi + pad).reshape(-1, 3).astype(np.float32)
-        # distance from each frame's camera centre to each box, and the near-to-far visiting order
-        near = np.linalg.norm(np.maximum(lo - pad, 0.0) + np.maximum(-(hi + pad), 0.0), axis=-1)
-        order = np.argsort(near, axis=1, kind="stable") + (np.arange(F) * N)[:, None]
-        self.near = wp.array((near * (1.0 - 1e-6)).reshape(-1).astype(np.float32), dtype=wp.float32, device=device)
-        self._order_np, self._lo, self._hi = order, lo - pad, hi + pad
-        self.frame_start = wp.array(np.arange(F + 1, dtype=np.int32) * N, dtype=wp.int32, device=device)
-        self.frame_items = wp.array(order.reshape(-1).astype(np.int32), dtype=wp.int32, device=device)
-        self.use_bvh = int(N > ORDERED_MAX)
-        self._tiles: dict = {}
-        self._bounds: dict = {}  # camera (size, K, lens) -> its screen bounds (flowsynth.raycast.tiles)
-        groups = np.repeat(np.arange(F, dtype=np.int32), N)
-        self.lowers = wp.array(lowers, dtype=wp.vec3, device=device)  # (F * N,) padded instance boxes, camera frame
-        self.uppers = wp.array(uppers, dtype=wp.vec3, device=device)
-        self._groups = wp.array(groups, dtype=wp.int32, device=device)
-        self.bvh = wp.Bvh(self.lowers, self.uppers, constructor="sah" if wp.get_device(device).is_cpu else None,
-                          groups=self._groups)
-        roots = _group_roots(self.bvh, F, device)
-        self.roots = roots
-        distinct = {id(m): m for m in meshes}  # instances sharing a mesh share its tree
+        parts = [_clip_tables(*c) for c in clips]
+        distinct = {id(m): m for c in clips for m in c[0]}  # instances sharing a mesh share its tree
         slot = {k: i for i, k in enumerate(distinct)}
         self._distinct = list(distinct.values())
         self.blas = atlas(self._distinct, device)
+        which = [np.array([slot[id(m)] for m in c[0]], np.int64) for c in clips]
+        item0 = self.frame_start[::T]  # (B + 1,) each clip's first item
+        # near-to-far visiting order per frame, as items of the batch
+        self._order_np = [part["order"] + item0[b] for b, part in enumerate(parts)]
+
+        def cat(key, dtype):
+            return np.concatenate([part[key] for part in parts]).astype(dtype)
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=device)
+
+        self.near = arr(cat("near", np.float32), wp.float32)
+        self._frame_start_dev = arr(self.frame_start.astype(np.int32), wp.int32)
+        self.frame_items = arr(np.concatenate([o.reshape(-1) for o in self._order_np]).astype(np.int32), wp.int32)
+        self.use_bvh = np.repeat(counts > ORDERED_MAX, T).astype(np.int32)  # (F,) per frame, as its clip
+        self._use_bvh = arr(self.use_bvh, wp.int32)
+        self._tiles: dict = {}
+        self._bounds: list = [{} for _ in clips]  # per clip: camera (size, K, lens) -> screen bounds (tiles.py)
+        groups = np.repeat(np.arange(self.F, dtype=np.int32), np.repeat(counts, T))
+        self.lowers = arr(cat("lowers", np.float32), wp.vec3)  # (items,) padded instance boxes, camera frame
+        self.uppers = arr(cat("uppers", np.float32), wp.vec3)
+        self._groups = arr(groups, wp.int32)
+        self.bvh = wp.Bvh(self.lowers, self.uppers, constructor="sah" if wp.get_device(device).is_cpu else None,
+                          groups=self._groups)
+        self.roots = _group_roots(self.bvh, self.F, device)
         self._corners = None
-        which = [slot[id(m)] for m in meshes]
-        self.item_root = wp.array(np.tile(self.blas["roots"][which], F), dtype=wp.int32, device=device)
-        self.item_face0 = wp.array(np.tile(self.blas["face0"][which], F), dtype=wp.int32, device=device)
-        self.obj_T_ref = wp.array(obj_T_cam.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
-        self.ref_T_obj = wp.array(cam_T_obj.reshape(-1, 4, 4).astype(np.float32), dtype=wp.mat44, device=device)
-        self._meshes, self._cam_T_obj, self._cull = meshes, cam_T_obj, None
-        # object-frame boxes, padded like the camera-frame ones (size plus the camera's farthest distance);
-        # per item (tiled over the frames), so the kernels index them by item like every other array
-        ext = v_hi - v_lo
-        far = np.abs(obj_T_cam[..., :3, 3]).max((0, 2)) + np.abs(np.concatenate([v_lo, v_hi], 1)).max(1)
-        o_pad = (BOX_PAD_REL * (ext.max(1) + far) + 1e-30)[:, None]
-        thin = (ext.min(1) <= FLAT_REL * ext.max(1)).astype(np.int32)
-        self.thin = wp.array(np.tile(thin, F), dtype=wp.int32, device=device)
-        self.obj_lo = wp.array(np.tile((v_lo - o_pad).astype(np.float32), (F, 1)), dtype=wp.vec3, device=device)
-        self.obj_hi = wp.array(np.tile((v_hi + o_pad).astype(np.float32), (F, 1)), dtype=wp.vec3, device=device)
+        self.item_root = arr(np.concatenate([np.tile(self.blas["roots"][w], T) for w in which]), wp.int32)
+        self.item_face0 = arr(np.concatenate([np.tile(self.blas["face0"][w], T) for w in which]), wp.int32)
+        self.item_inst = arr(np.concatenate([np.tile(self.inst_start[b] + np.arange(counts[b]), T)
+                                             for b in range(B)]).astype(np.int32), wp.int32)
+        self.obj_T_ref = arr(cat("obj_T_ref", np.float32), wp.mat44)
+        self.ref_T_obj = arr(cat("ref_T_obj", np.float32), wp.mat44)
+        self.thin = arr(cat("thin", np.int32), wp.int32)
+        self.obj_lo = arr(cat("obj_lo", np.float32), wp.vec3)
+        self.obj_hi = arr(cat("obj_hi", np.float32), wp.vec3)
+        self._clips, self._parts, self._item0, self._cull = clips, parts, item0, None
 
     def instances(self):
         """The kernels' ``Instances`` struct (flowsynth.kernels.raycast) over this accel's arrays (no copy):
@@ -134,10 +140,10 @@ class SceneAccel:
         from flowsynth.kernels.raycast import Instances
 
         inst = Instances()
-        inst.bvh, inst.roots, inst.use_bvh = self.bvh.id, self.roots, self.use_bvh
-        inst.frame_start, inst.frame_items, inst.near = self.frame_start, self.frame_items, self.near
+        inst.bvh, inst.roots, inst.use_bvh = self.bvh.id, self.roots, self._use_bvh
+        inst.frame_start, inst.frame_items, inst.near = self._frame_start_dev, self.frame_items, self.near
         inst.lowers, inst.uppers = self.lowers, self.uppers
-        inst.obj_T_ref, inst.ref_T_obj, inst.n_inst = self.obj_T_ref, self.ref_T_obj, self.N
+        inst.obj_T_ref, inst.ref_T_obj, inst.item_inst = self.obj_T_ref, self.ref_T_obj, self.item_inst
         inst.thin, inst.obj_lo, inst.obj_hi = self.thin, self.obj_lo, self.obj_hi
         inst.item_root, inst.item_face0 = self.item_root, self.item_face0
         inst.blas_bounds, inst.blas_kids = self.blas["bounds"], self.blas["kids"]
@@ -157,30 +163,92 @@ class SceneAccel:
 
     def culling(self, threads: int | None = None):
         """The visibility rays' exact culling data: a ``Culling`` struct (flowsynth.kernels.raycast), built once per
-        accel by ``flowsynth.raycast.culling.build_culling`` (face planes, flat slabs, silhouette planes; ``threads``:
-        those of the face planes' kernel on a mesh not yet cached)."""
+        accel by ``flowsynth.raycast.culling.culling_tables`` per clip (face planes, flat slabs, silhouette planes;
+        ``threads``: those of the face planes' kernel on a mesh not yet cached), the clips' rows one after another."""
         if self._cull is None:
-            self._cull, self._flat = build_culling(self._meshes, self._cam_T_obj, threads, self.device)
+            tables = [culling_tables(c[0], p["cam_T_obj"], threads, self.device)
+                      for c, p in zip(self._clips, self._parts)]
+            self._flat = [t.pop("flat") for t in tables]
+            self._cull = culling_struct(join_culling(tables, self._item0, self.T), self.device)
         return self._cull
 
     def tile_lists(self, camera, flat: bool = True, threads: int | None = None):
         """The primary cast's per-(frame, screen tile) candidate lists: a ``TileLists`` struct
-        (flowsynth.kernels.raycast) built by ``flowsynth.raycast.tiles.tile_lists`` (empty when the rays walk the BVH),
-        once per camera; ``flat=False``: without the flat instances of ``culling()`` (visibility rays test those
-        apart; ``threads``: those of ``culling``)."""
+        (flowsynth.kernels.raycast) built by ``flowsynth.raycast.tiles.tile_tables`` per clip (empty where the rays
+        walk the BVH), once per camera; ``flat=False``: without the flat instances of ``culling()`` (visibility rays
+        test those apart; ``threads``: those of ``culling``)."""
         key = (camera.width, camera.height, camera.K.tobytes(), flat, camera.model, camera.dist)
         if key not in self._tiles:
-            order = None
-            if not self.use_bvh:
-                order = self._order_np
-                if not flat:
-                    self.culling(threads)
-                    local = order - (np.arange(self.F) * self.N)[:, None]
-                    keep = ~self._flat[local]  # (F, N): the same instances are flat in every frame
-                    order = order[keep].reshape(self.F, -1)
-            self._tiles[key] = tile_lists(self._meshes, self._cam_T_obj, order, camera, self._bounds, self.device,
-                                          self._posed)
+            if not flat:
+                self.culling(threads)
+            lists = []
+            for b, (c, part) in enumerate(zip(self._clips, self._parts)):
+                order = None
+                if not self.use_bvh[b * self.T]:
+                    order = part["order"]  # the clip's own items: join_tiles shifts them
+                    if not flat:
+                        keep = ~self._flat[b][part["rank"]]  # (T, N): the same instances are flat in every frame
+                        order = order[keep].reshape(self.T, -1)
+                lists.append(tile_tables(c[0], part["cam_T_obj"], order, camera, self._bounds[b], part["posed"]))
+            self._tiles[key] = tile_struct(join_tiles(lists, self._item0, self.T), self.device)
         return self._tiles[key]
+
+
+def _clip_tables(meshes: list, cam_T_world: np.ndarray, world_T_obj: np.ndarray) -> dict:
+    """One clip's per-item tables in numpy, item t N + n for instance n of frame t (``SceneAccel``): padded
+    camera-frame boxes ``lowers``, ``uppers`` (T N, 3), their distance ``near`` from the camera, the near-to-far
+    ``order`` (T, N) of the clip's items (``rank``: of its instances), ``obj_T_ref`` and ``ref_T_obj`` (T N, 4, 4),
+    the thin flags and padded object-frame boxes ``thin``, ``obj_lo``, ``obj_hi``; ``cam_T_obj`` (T, N, 4, 4)
+    float64 and each instance's hull points in the camera frames ``posed``."""
+    F = cam_T_world.shape[0]
+    N = len(meshes)
+    # cam_T_obj per (frame, instance), float64
+    cam_T_obj = np.einsum("fij,fnjk->fnik", cam_T_world, world_T_obj) if N else np.zeros((F, 0, 4, 4))
+    none = np.zeros((F, 0), np.int64)
+    out = {"cam_T_obj": cam_T_obj, "posed": [], "order": none, "rank": none}
+    if N == 0:
+        for k, w in (("lowers", 3), ("uppers", 3), ("obj_lo", 3), ("obj_hi", 3)):
+            out[k] = np.zeros((0, w))
+        for k in ("near", "thin"):
+            out[k] = np.zeros(0)
+        out["obj_T_ref"] = out["ref_T_obj"] = np.zeros((0, 4, 4))
+        return out
+    obj_T_cam = _rigid_inverse(cam_T_obj)
+    lo = np.empty((F, N, 3))
+    hi = np.empty((F, N, 3))
+    scale = np.empty((F, N, 1))
+    v_lo, v_hi = np.empty((N, 3)), np.empty((N, 3))  # object-frame boxes: those of the hull points
+    posed = out["posed"]  # each instance's hull points in the camera frames (F, K, 3): the screen bounds' too
+    boxes = {}  # id(mesh) -> its hull points and their object-frame box, once per distinct mesh
+    for n, m in enumerate(meshes):  # tight boxes: the posed hull vertices, not the posed local box
+        if id(m) not in boxes:
+            hull = hull_points(m)
+            boxes[id(m)] = hull, hull.min(0), hull.max(0)
+        hull, v_lo[n], v_hi[n] = boxes[id(m)]
+        pts = posed_hull(hull, cam_T_obj[:, n])
+        posed.append(pts)
+        lo[:, n], hi[:, n] = pts.min(1), pts.max(1)
+        # max |coordinate| of the points: max(max, -min) over the axes, the same value as abs().max()
+        scale[:, n, 0] = (hi[:, n] - lo[:, n]).max(-1) + np.maximum(hi[:, n], -lo[:, n]).max(-1)
+    pad = BOX_PAD_REL * scale + 1e-30
+    out["lowers"] = (lo - pad).reshape(-1, 3).astype(np.float32)
+    out["uppers"] = (hi + pad).reshape(-1, 3).astype(np.float32)
+    # distance from each frame's camera centre to each box, and the near-to-far visiting order
+    near = np.linalg.norm(np.maximum(lo - pad, 0.0) + np.maximum(-(hi + pad), 0.0), axis=-1)
+    out["rank"] = np.argsort(near, axis=1, kind="stable")  # (F, N) instances near to far
+    out["order"] = out["rank"] + (np.arange(F) * N)[:, None]
+    out["near"] = (near * (1.0 - 1e-6)).reshape(-1).astype(np.float32)
+    out["obj_T_ref"] = obj_T_cam.reshape(-1, 4, 4).astype(np.float32)
+    out["ref_T_obj"] = cam_T_obj.reshape(-1, 4, 4).astype(np.float32)
+    # object-frame boxes, padded like the camera-frame ones (size plus the camera's farthest distance);
+    # per item (tiled over the frames), so the kernels index them by item like every other array
+    ext = v_hi - v_lo
+    far = np.abs(obj_T_cam[..., :3, 3]).max((0, 2)) + np.abs(np.concatenate([v_lo, v_hi], 1)).max(1)
+    o_pad = (BOX_PAD_REL * (ext.max(1) + far) + 1e-30)[:, None]
+    out["thin"] = np.tile((ext.min(1) <= FLAT_REL * ext.max(1)).astype(np.int32), F)
+    out["obj_lo"] = np.tile((v_lo - o_pad).astype(np.float32), (F, 1))
+    out["obj_hi"] = np.tile((v_hi + o_pad).astype(np.float32), (F, 1))
+    return out
 
 
 def _rigid_inverse(T: np.ndarray) -> np.ndarray:

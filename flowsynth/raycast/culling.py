@@ -21,7 +21,7 @@ from flowsynth.caches import register
 from flowsynth.kernels import wp_runtime
 from flowsynth.scene import freeze
 
-__all__ = ["FLAT_REL", "MESH_CACHE_SIZE", "build_culling", "hull_points"]
+__all__ = ["FLAT_REL", "MESH_CACHE_SIZE", "culling_struct", "culling_tables", "hull_points", "join_culling"]
 
 # Maximum number of per-mesh hulls and face planes kept per process (least recently used are dropped).
 MESH_CACHE_SIZE = 512
@@ -63,10 +63,11 @@ def _cached(cache: OrderedDict, key, make):
 
 
 
-def build_culling(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, threads: int | None = None,
-            device: str = "cpu") -> tuple:
-    """The visibility rays' exact culling data of N instances in F frames (``cam_T_obj`` (F, N, 4, 4) float64): a
-    ``Culling`` struct (flowsynth.kernels.raycast) on ``device``, and the (N,) bool flags of the flat instances.
+def culling_tables(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, threads: int | None = None,
+                   device: str = "cpu") -> dict:
+    """The visibility rays' exact culling data of one clip of N instances in F frames (``cam_T_obj`` (F, N, 4, 4)
+    float64) in numpy: the ``Culling`` struct's fields (flowsynth.kernels.raycast; items f N + n), and ``flat``, the
+    (N,) bool flags of the flat instances. ``culling_struct`` uploads them (``join_culling`` joins a batch's first).
 
     Per face of every asset, its plane (unit normal n, e = max over the asset's vertices of n . v): the
     whole mesh lies in n . x <= e. The flat instances (``FLAT_REL``: room walls), and per (frame, item)
@@ -74,43 +75,75 @@ def build_culling(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, threads:
     the ``SIL_K`` planes through the camera centre that bound its convex hull (``_silhouette_planes``). All float64,
     from the float32 vertices the mesh queries use. Visibility rays test the flat instances of their
     frame first, then walk ``SceneAccel.tile_lists(camera, flat=False)``. ``threads``: those of the face planes'
-    kernel on a mesh not yet cached (``_face_planes``; the result does not depend on it).
+    kernel on a mesh not yet cached (``_face_planes``, on ``device``; the result does not depend on it).
     """
-    from flowsynth.kernels.raycast import Culling
-
-    wp = wp_runtime()
     bounds = [_face_planes(m, threads, device) for m in meshes]
     planes, slabs = [b["planes"] for b in bounds], [b["slab"] for b in bounds]
     offsets = np.cumsum([0] + [len(p) for p in planes])[:-1]
-    flat = np.array([s is not None for s in slabs])
-    n_obj = np.array([s[:3] if s is not None else np.zeros(3) for s in slabs])  # (N, 3)
-    lh = np.array([s[3:] if s is not None else (1.0, 0.0) for s in slabs])  # (N, 2); lo > hi: not flat
+    flat = np.array([s is not None for s in slabs], bool)
+    n_obj = np.array([s[:3] if s is not None else np.zeros(3) for s in slabs]).reshape(-1, 3)  # (N, 3)
+    lh = np.array([s[3:] if s is not None else (1.0, 0.0) for s in slabs]).reshape(-1, 2)  # (N, 2); lo > hi: not flat
     F, N = cam_T_obj.shape[:2]
     R, t = cam_T_obj[..., :3, :3], cam_T_obj[..., :3, 3]  # (F, N, 3, 3), (F, N, 3)
     n_cam = np.einsum("fnij,nj->fni", R, n_obj)
     shift = np.einsum("fni,fni->fn", n_cam, t)
     lh_cam = np.where(flat[None, :, None], lh[None] + shift[..., None], lh[None])
-    c = Culling()
-    c.face_plane = wp.array(np.concatenate(planes), dtype=wp.vec4d, device=device)
-    c.face_off = wp.array(np.asarray(offsets, np.int32), dtype=wp.int32, device=device)
-    c.slab_n = wp.array(n_cam.reshape(-1, 3), dtype=wp.vec3d, device=device)
-    c.slab_lh = wp.array(lh_cam.reshape(-1, 2), dtype=wp.vec2d, device=device)
-    sph = np.array([b["sphere"] for b in bounds])  # (N, 4)
+    sph = np.array([b["sphere"] for b in bounds]).reshape(-1, 4)  # (N, 4)
     centre = np.einsum("fnij,nj->fni", R, sph[:, :3]) + t
-    c.sphere = wp.array(np.concatenate([centre, np.broadcast_to(sph[:, 3], (F, N))[..., None]], -1)
-                        .reshape(-1, 4), dtype=wp.vec4d, device=device)
-    c.inner = wp.array(np.tile([b["inner"] for b in bounds], F), dtype=wp.float64, device=device)
     g_off, g_n, g_ab, g_item, m_start, m_items = _flat_groups(n_cam, lh_cam, np.flatnonzero(flat))
-    c.grp_item = wp.array(g_item, dtype=wp.vec2i, device=device)
-    c.grp_off = wp.array(g_off, dtype=wp.int32, device=device)
-    c.grp_n = wp.array(g_n, dtype=wp.vec3d, device=device)
-    c.grp_ab = wp.array(g_ab, dtype=wp.vec2d, device=device)
-    c.mem_start = wp.array(m_start, dtype=wp.int32, device=device)
-    c.mem_items = wp.array(m_items, dtype=wp.int32, device=device)
     sil, sil_z = _silhouette_planes(meshes, cam_T_obj)
-    c.sil = wp.array(sil.reshape(-1, 4), dtype=wp.vec4d, device=device)
-    c.sil_z = wp.array(sil_z.reshape(-1), dtype=wp.float64, device=device)
-    return c, flat
+    return {"face_plane": np.concatenate(planes) if planes else np.zeros((0, 4)),
+            "face_off": np.asarray(offsets, np.int32), "slab_n": n_cam.reshape(-1, 3), "slab_lh": lh_cam.reshape(-1, 2),
+            "sphere": np.concatenate([centre, np.broadcast_to(sph[:, 3], (F, N))[..., None]], -1).reshape(-1, 4),
+            "inner": np.tile(np.array([b["inner"] for b in bounds], np.float64), F),
+            "grp_off": g_off, "grp_n": g_n, "grp_ab": g_ab, "grp_item": g_item, "mem_start": m_start,
+            "mem_items": m_items, "sil": sil.reshape(-1, 4), "sil_z": sil_z.reshape(-1), "flat": flat}
+
+
+def join_culling(tables: list[dict], item0: np.ndarray, frames: int) -> dict:
+    """The ``culling_tables`` of a batch's clips (without ``flat``) as one: per-item and per-face rows one clip after
+    another, per-frame and CSR offsets and the items they name shifted (clip b's items by its first item
+    ``item0[b]``; -2, no item, stays). One clip is returned as it is."""
+    if len(tables) == 1:
+        return tables[0]
+    out = {k: np.concatenate([t[k] for t in tables]) for k in ("face_plane", "slab_n", "slab_lh", "sphere", "inner",
+                                                               "sil", "sil_z")}
+    planes = np.cumsum([0] + [len(t["face_plane"]) for t in tables])
+    out["face_off"] = np.concatenate([t["face_off"] + planes[b] for b, t in enumerate(tables)]).astype(np.int32)
+    g_off, g_n, g_ab, g_item, m_start, m_items = [], [], [], [], [], []
+    groups = members = 0
+    for b, t in enumerate(tables):
+        G, Mn = int(t["grp_off"][-1]), int(t["mem_start"][-1])
+        g_off.append(t["grp_off"][:-1] + groups)
+        g_n.append(t["grp_n"][:G])
+        g_ab.append(t["grp_ab"][:G])
+        g_item.append(np.where(t["grp_item"][:G] >= 0, t["grp_item"][:G] + item0[b], t["grp_item"][:G]))
+        m_start.append(t["mem_start"][:-1] + members)
+        m_items.append(t["mem_items"][:Mn] + item0[b])
+        groups, members = groups + G, members + Mn
+    out["grp_off"] = np.concatenate(g_off + [[groups]]).astype(np.int32)
+    out["mem_start"] = np.concatenate(m_start + [[members]]).astype(np.int32)
+    out["grp_n"] = np.concatenate(g_n) if groups else np.zeros((1, 3))
+    out["grp_ab"] = np.concatenate(g_ab) if groups else np.zeros((1, 2))
+    out["grp_item"] = np.concatenate(g_item).astype(np.int32) if groups else np.zeros((1, 2), np.int32)
+    out["mem_items"] = np.concatenate(m_items).astype(np.int32) if members else np.zeros(1, np.int32)
+    if not len(out["face_plane"]):
+        out["face_plane"] = np.zeros((1, 4))
+    return out
+
+
+def culling_struct(tables: dict, device: str = "cpu"):
+    """The ``Culling`` struct (flowsynth.kernels.raycast) of ``culling_tables`` (or ``join_culling``) on ``device``."""
+    from flowsynth.kernels.raycast import Culling
+
+    wp = wp_runtime()
+    types = {"face_plane": wp.vec4d, "face_off": wp.int32, "slab_n": wp.vec3d, "slab_lh": wp.vec2d,
+             "sphere": wp.vec4d, "inner": wp.float64, "grp_item": wp.vec2i, "grp_off": wp.int32, "grp_n": wp.vec3d,
+             "grp_ab": wp.vec2d, "mem_start": wp.int32, "mem_items": wp.int32, "sil": wp.vec4d, "sil_z": wp.float64}
+    c = Culling()
+    for name, dtype in types.items():
+        setattr(c, name, wp.array(tables[name], dtype=dtype, device=device))
+    return c
 
 
 _HULLS: OrderedDict = register("culling.hulls", OrderedDict())

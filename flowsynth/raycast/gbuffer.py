@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from flowsynth.kernels import wp_runtime
-from flowsynth.parallel import BAND0, launch_bands
+from flowsynth.parallel import BAND0, launch_image
 from flowsynth.raycast.accel import SceneAccel, pinhole
 from flowsynth.scene import Scene
 
@@ -35,7 +35,7 @@ class HostGBuffer:
     face: np.ndarray
     point: np.ndarray | None
     normal: np.ndarray | None
-    num_instances: int
+    frame_start: np.ndarray
 
     @property
     def hit(self) -> np.ndarray:
@@ -43,17 +43,19 @@ class HostGBuffer:
 
     @property
     def instance_index(self) -> np.ndarray:
-        """0-based instance index per pixel, -1 where nothing is hit (item f * N + n in frame f: n = item - f * N,
-        a subtraction rather than a remainder)."""
-        offset = (np.arange(self.item.shape[0], dtype=self.item.dtype) * self.num_instances).reshape(-1, 1, 1)
+        """0-based instance index per pixel (within its clip), -1 where nothing is hit (item frame_start[f] + n in
+        frame f: n = item - frame_start[f], a subtraction rather than a remainder)."""
+        offset = self.frame_start[:-1].astype(self.item.dtype).reshape(-1, 1, 1)
         return np.where(self.item >= 0, self.item - offset, -1)
 
 
 @dataclass
 class GBuffer:
-    """Raw per-pixel result of the primary cast for F frames: Warp arrays (F, H, W) on ``device``.
+    """Raw per-pixel result of the primary cast for F frames (every frame of a batch of clips): Warp arrays (F, H, W)
+    on ``device``.
 
-    ``item`` int32 is -1 where the ray hits nothing, else ``f * N + n`` for instance n (0-based); ``dist``
+    ``item`` int32 is -1 where the ray hits nothing, else ``frame_start[f] + n`` for instance n (0-based; f N + n
+    in one clip of N instances, ``SceneAccel``); ``frame_start`` (F + 1,) numpy int64; ``dist``
     float32 ray length [m] (0 where no hit); ``face`` int32 the hit face (-1 where no hit); ``point`` vec3
     object-frame hit point [m] and ``normal`` vec3 camera-frame normal, or None when not cast. ``host()``: the
     same in numpy.
@@ -64,7 +66,7 @@ class GBuffer:
     face: Any
     point: Any | None
     normal: Any | None
-    num_instances: int
+    frame_start: np.ndarray
     device: str
     _host: HostGBuffer | None = field(default=None, repr=False, compare=False)
 
@@ -73,13 +75,18 @@ class GBuffer:
         """(F, H, W)."""
         return tuple(self.dist.shape)
 
+    @property
+    def num_instances(self) -> int:
+        """Items of every frame together (0: nothing to hit anywhere)."""
+        return int(self.frame_start[-1])
+
     def host(self) -> HostGBuffer:
         """The G-buffer in numpy: made on the first call (a view on the CPU, one copy from another device), the
         same object after. The hand-over of the stages that compute on the host."""
         if self._host is None:
             self._host = HostGBuffer(self.dist.numpy(), self.item.numpy(), self.face.numpy(),
                                      None if self.point is None else self.point.numpy(),
-                                     None if self.normal is None else self.normal.numpy(), self.num_instances)
+                                     None if self.normal is None else self.normal.numpy(), self.frame_start)
         return self._host
 
 
@@ -91,8 +98,9 @@ def to_torch(a) -> torch.Tensor:
 
 def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: bool,
                  max_dist: float = 1e9, threads: int | None = None) -> GBuffer:
-    """One primary ray per pixel centre for each of the accel's F frames: one kernel launch, cut into row
-    bands over ``threads`` threads (``flowsynth.parallel``; None = all cores), on the accel's device."""
+    """One primary ray per pixel centre for each of the accel's F frames (every frame of a batch of clips, which
+    share ``camera``): one kernel launch, a thread per pixel on a GPU, cut into row bands over ``threads`` threads
+    on the CPU (``flowsynth.parallel``; None = all cores), on the accel's device."""
     F, H, W = accel.F, camera.height, camera.width
     wp = wp_runtime()
     dev = accel.device
@@ -101,7 +109,8 @@ def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: 
                        wp.full((F, H, W), -1, dtype=wp.int32, device=dev),
                        wp.full((F, H, W), -1, dtype=wp.int32, device=dev),
                        wp.zeros((F, H, W), dtype=wp.vec3, device=dev) if want_points else None,
-                       wp.zeros((F, H, W), dtype=wp.vec3, device=dev) if want_normals else None, 0, dev)
+                       wp.zeros((F, H, W), dtype=wp.vec3, device=dev) if want_normals else None,
+                       accel.frame_start, dev)
     from flowsynth.kernels.raycast import primary_kernel
 
     dist = wp.empty((F, H, W), dtype=wp.float32, device=dev)  # the kernel writes every pixel
@@ -109,13 +118,11 @@ def cast_gbuffer(accel: SceneAccel, camera, *, want_normals: bool, want_points: 
     face = wp.empty((F, H, W), dtype=wp.int32, device=dev)
     point = wp.empty((F, H, W) if want_points else (1, 1, 1), dtype=wp.vec3, device=dev)
     normal = wp.empty((F, H, W) if want_normals else (1, 1, 1), dtype=wp.vec3, device=dev)
-    launch_bands(
-        primary_kernel(want_normals, want_points, not camera.is_pinhole), (F, H, W), 1,
-        [accel.instances(), accel.tile_lists(camera), pinhole(camera, dev), float(max_dist), BAND0],
-        [dist, item, face, point, normal], dev, threads, row_loop=True,
-    )
-    return GBuffer(dist, item, face, point if want_points else None, normal if want_normals else None, accel.N,
-                   dev)
+    launch_image(lambda per_pixel: primary_kernel(want_normals, want_points, not camera.is_pinhole, per_pixel),
+                 (F, H, W), [accel.instances(), accel.tile_lists(camera), pinhole(camera, dev), float(max_dist), BAND0],
+                 [dist, item, face, point, normal], dev, threads)
+    return GBuffer(dist, item, face, point if want_points else None, normal if want_normals else None,
+                   accel.frame_start, dev)
 
 
 def scene_arrays(scene: Scene) -> tuple[list, np.ndarray, np.ndarray]:

@@ -13,40 +13,67 @@ import trimesh
 from flowsynth.kernels import wp_runtime
 from flowsynth.raycast.culling import hull_points
 
-__all__ = ["CLIP_Z", "LENS_TILE_BOUNDS", "TILE", "tile_lists"]
+__all__ = ["CLIP_Z", "LENS_TILE_BOUNDS", "TILE", "join_tiles", "posed_hull", "tile_struct", "tile_tables"]
 
 # Primary rays take their candidate list from their TILE x TILE pixel screen tile (benchmarks/speed/tiles.py:
 # 1.30 Mrays/s with one list per frame, 1.48 with 16 px tiles, same hits; docs/decisions/0002-screen-tiles-16px.md).
 TILE = 16  # a power of two: the kernels find a pixel's tile by a shift
 
 
-def tile_lists(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, order: np.ndarray | None, camera,
-               bounds: dict, device: str = "cpu", posed: list | None = None):
-    """The per-(frame, screen tile) candidate lists of N instances in F frames (``cam_T_obj`` (F, N, 4, 4)): a
-    ``TileLists`` struct (flowsynth.kernels.raycast) on ``device`` holding, per tile, the instances of ``order``
-    (F, N') (global item indices near to far: all N, or those that are not flat) whose hull, clipped to z >=
-    ``CLIP_Z``, projects within a pixel of the tile (``_screen_bounds``), near to far. ``order`` None: empty
-    lists (the rays walk the BVH). ``bounds``: the caller's memo of screen bounds per camera (keyed by its size,
-    K and lens). ``posed``: each instance's hull points already posed by ``posed_hull`` (the accel's), or None."""
-    from flowsynth.kernels.raycast import TileLists
-
-    wp = wp_runtime()
+def tile_tables(meshes: list[trimesh.Trimesh], cam_T_obj: np.ndarray, order: np.ndarray | None, camera,
+                bounds: dict, posed: list | None = None) -> tuple[np.ndarray, np.ndarray, int, int] | None:
+    """The per-(frame, screen tile) candidate lists of one clip of N instances in F frames (``cam_T_obj`` (F, N, 4,
+    4)) in numpy: CSR (start (F ty tx + 1,), items) int32 and the tile grid (tx, ty), holding per tile the items of
+    ``order`` (F, N') (the clip's items f N + n near to far: all N, or those that are not flat) whose hull, clipped
+    to z >= ``CLIP_Z``, projects within a pixel of the tile (``_screen_bounds``), near to far. ``order`` None: None
+    (the rays walk the BVH). ``bounds``: the caller's memo of screen bounds per camera (keyed by its size, K and
+    lens). ``posed``: each instance's hull points already posed by ``posed_hull`` (the accel's), or None."""
     if TILE <= 0 or TILE & (TILE - 1):
         raise ValueError(f"flowsynth.raycast.tiles.TILE must be a power of two, got {TILE}")
     if order is None:
-        start, items, tx, ty = np.zeros(2, np.int32), np.zeros(1, np.int32), 1, 1
-    else:
-        kb = (camera.width, camera.height, camera.K.tobytes(), camera.model, camera.dist)
-        if camera.is_pinhole:
-            if kb not in bounds:
-                bounds[kb] = _screen_bounds(meshes, cam_T_obj, camera.K, posed)
-            start, items, tx, ty = _tile_lists(bounds[kb], order, camera.width, camera.height, TILE)
-        else:  # a lens model: rays' normalised coordinates per tile against the hulls' (_lens_tile_mask)
-            if kb not in bounds:
-                bounds[kb] = _screen_bounds(meshes, cam_T_obj, np.eye(3), posed)
-            mask = _lens_tile_mask(bounds[kb], order, camera, TILE)
-            start, items = _csr_lists(mask, order)
-            ty, tx = mask.shape[2:]
+        return None
+    kb = (camera.width, camera.height, camera.K.tobytes(), camera.model, camera.dist)
+    if camera.is_pinhole:
+        if kb not in bounds:
+            bounds[kb] = _screen_bounds(meshes, cam_T_obj, camera.K, posed)
+        return _tile_lists(bounds[kb], order, camera.width, camera.height, TILE)
+    # a lens model: rays' normalised coordinates per tile against the hulls' (_lens_tile_mask)
+    if kb not in bounds:
+        bounds[kb] = _screen_bounds(meshes, cam_T_obj, np.eye(3), posed)
+    mask = _lens_tile_mask(bounds[kb], order, camera, TILE)
+    start, items = _csr_lists(mask, order)
+    ty, tx = mask.shape[2:]
+    return start, items, tx, ty
+
+
+def join_tiles(lists: list, item0: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The lists of a batch of clips (``tile_tables`` of each, None where a clip's rays walk the BVH) as one CSR
+    over the batch's frames, clip b's items shifted by its first item ``item0[b]``; a clip without lists gets empty
+    ones. One clip is returned as it is (no lists at all: one empty list on a 1 x 1 grid)."""
+    grids = {(x[2], x[3]) for x in lists if x is not None}
+    if not grids:
+        return np.zeros(2, np.int32), np.zeros(1, np.int32), 1, 1
+    if len(lists) == 1:
+        return lists[0]
+    tx, ty = grids.pop()
+    starts, items, total = [], [], 0
+    for b, x in enumerate(lists):
+        if x is None:
+            starts.append(np.full(frames * ty * tx, total, np.int64))
+            continue
+        starts.append(x[0][:-1].astype(np.int64) + total)
+        items.append(x[1][:x[0][-1]].astype(np.int64) + item0[b])
+        total += int(x[0][-1])
+    start = np.concatenate(starts + [np.array([total])]).astype(np.int32)
+    return start, (np.concatenate(items).astype(np.int32) if total else np.zeros(1, np.int32)), tx, ty
+
+
+def tile_struct(lists: tuple[np.ndarray, np.ndarray, int, int], device: str = "cpu"):
+    """The ``TileLists`` struct (flowsynth.kernels.raycast) of CSR lists (start, items, tx, ty) on ``device``."""
+    from flowsynth.kernels.raycast import TileLists
+
+    wp = wp_runtime()
+    start, items, tx, ty = lists
     t = TileLists()
     t.start = wp.array(start, dtype=wp.int32, device=device)
     t.items = wp.array(items if len(items) else np.zeros(1, np.int32), dtype=wp.int32, device=device)

@@ -25,12 +25,13 @@ from flowsynth.appearance import mip_pyramid, resolve_lights, resolve_material, 
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
-from flowsynth.parallel import BAND0, launch_bands
+from flowsynth.parallel import BAND0, launch_image
 from flowsynth.plan import TONEMAPS
 from flowsynth.raycast import SceneAccel, pinhole, to_torch
 
-__all__ = ["MAX_TIME_SLICES", "median_hit_distance", "pack_materials", "poses_at", "render_radiance", "render_rgb",
-           "shade_radiance", "shutter_times", "srgb_tables", "tonemap_array", "tonemap_frames", "tonemap_srgb"]
+__all__ = ["MAX_TIME_SLICES", "median_hit_distance", "median_hit_distance_device", "pack_material_batch",
+           "pack_materials", "poses_at", "render_radiance", "render_rgb", "render_rgb_batch", "shade_radiance",
+           "shade_scenes", "shutter_times", "srgb_tables", "tonemap_array", "tonemap_frames", "tonemap_srgb"]
 
 # White point of the extended Reinhard operator: linear radiance that maps to 1.
 REINHARD_WHITE = 4.0
@@ -78,7 +79,7 @@ def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float 
 
 def tonemap_array(radiance, method: str = "clamp", exposure: float = 1.0, threads: int | None = None):
     """``tonemap_srgb`` of a (T, H, W) vec3 Warp array of linear radiance into a (T, 3, H, W) float32 Warp array on
-    the same device, the same float64 steps in one Warp kernel pass over rows
+    the same device, the same float64 steps in one Warp kernel pass (a thread per row on the CPU, per pixel on a GPU)
     (``flowsynth.kernels.tonemap.tonemap_kernel``); the numpy form took 0.81 s of CPU per T=24 view at 512x384
     (docs/decisions/0013-tonemap-kernel.md)."""
     from flowsynth.kernels.tonemap import tonemap_kernel
@@ -88,9 +89,8 @@ def tonemap_array(radiance, method: str = "clamp", exposure: float = 1.0, thread
     dev = str(radiance.device)
     T, H, W = radiance.shape
     rgb = wp.empty((T, 3, H, W), dtype=wp.float32, device=dev)
-    launch_bands(tonemap_kernel, (T, H, W), 1, [radiance, float(exposure), int(method == "reinhard"),
-                                                REINHARD_WHITE**2, srgb_tables(dev), BAND0], [rgb], dev, threads,
-                 row_loop=True)
+    launch_image(tonemap_kernel, (T, H, W), [radiance, float(exposure), int(method == "reinhard"), REINHARD_WHITE**2,
+                                             srgb_tables(dev), BAND0], [rgb], dev, threads)
     return rgb
 
 
@@ -122,19 +122,13 @@ def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
     """Linear radiance of every pixel, a (T, H, W) vec3 Warp array on ``device``, finite and >= 0 (before tone
     mapping)."""
     wp = wp_runtime()
-    from flowsynth.kernels.raycast import TileLists
-    from flowsynth.kernels.shade import ShadeGBuffer, ShadeSampling, ShadeScene, shade_kernel
-    from flowsynth.kernels.texture import Material, layer_trig_kernel
-
     T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
     lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
-    sky = sum((np.asarray(x.color) * x.intensity for x in lights if x.kind == "ambient"), np.zeros(3))
+    sky = _sky(lights)
     if accel.empty:
         return wp.array(np.broadcast_to(sky.astype(np.float32), (T, H, W, 3)).copy(), dtype=wp.vec3, device=device)
-
     spp, shutter = int(plan.spp), float(plan.shutter)
     slices = min(spp, MAX_TIME_SLICES) if shutter > 0 else 1
-    reuse = spp == 1 and shutter == 0 and gb.point is not None
     cam_T_world = scene.cam_T_world
     if shutter > 0:
         times = shutter_times(T, shutter, slices).reshape(-1) + plan.shutter_offset  # offset: the final pass
@@ -142,47 +136,111 @@ def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
         cam_T_world = np.linalg.inv(world_T_cam)
         world_T_obj = np.stack([poses_at(o.poses, times) for o in scene.objects], 1)
         accel = SceneAccel([o.mesh for o in scene.objects], cam_T_world, world_T_obj, device=device)
+    return shade_scenes([scene], [lights], [cam_T_world], [plan.seed], accel, gb, plan, slices, device)
 
+
+def render_rgb_batch(scenes, accel: SceneAccel, gb, plan, device: str = "cpu"):
+    """``rgb`` of a batch of scenes (``flowsynth.renderer.batch``), without motion blur: a (B T, 3, H, W) float32
+    Warp array on ``device``, frame b T + t that of scene b. One shading launch and one tone-mapping launch; the
+    default lights' scale (the median hit distance of each scene's frame 0) is taken on the device, and only those
+    B numbers come to the host."""
+    _check_tonemap(plan.tonemap, plan.exposure)
+    wp = wp_runtime()
+    T = scenes[0].num_frames
+    lights = []
+    for b, scene in enumerate(scenes):
+        median = median_hit_distance_device(gb, b * T) if not scene.lights else 1.0
+        lights.append(resolve_lights(scene.lights, scene.world_T_cam[0], median))
+    seeds = [int(scene.render_seed) if plan.seed is None else plan.seed for scene in scenes]
+    if accel.empty:
+        H, W = scenes[0].camera.height, scenes[0].camera.width
+        sky = np.stack([np.broadcast_to(_sky(x).astype(np.float32), (T, H, W, 3)) for x in lights])
+        radiance = wp.array(sky.reshape(-1, H, W, 3), dtype=wp.vec3, device=device)
+    else:
+        radiance = shade_scenes(scenes, lights, [s.cam_T_world for s in scenes], seeds, accel, gb, plan, 1, device)
+    return tonemap_array(radiance, plan.tonemap, plan.exposure, plan.threads)
+
+
+def median_hit_distance_device(gb, frame: int) -> float:
+    """``median_hit_distance`` of frame ``frame`` of a G-buffer, computed on its device (numpy's median: the mean of
+    the two middle values in float32 for an even count), 1 when nothing is hit; one number comes to the host."""
+    wp = wp_runtime()
+    dist = wp.to_torch(gb.dist)[frame]
+    hits = torch.sort(dist[wp.to_torch(gb.item)[frame] >= 0]).values
+    n = hits.numel()
+    if n == 0:
+        return 1.0
+    mid = hits[n // 2] if n % 2 else (hits[n // 2 - 1] + hits[n // 2]) / 2
+    return float(mid)
+
+
+def _sky(lights) -> np.ndarray:
+    """The ambient lights' radiance, (3,) float64."""
+    return sum((np.asarray(x.color) * x.intensity for x in lights if x.kind == "ambient"), np.zeros(3))
+
+
+def shade_scenes(scenes, lights: list, cam_T_worlds: list, seeds: list, accel: SceneAccel, gb, plan, slices: int,
+                 device: str):
+    """The shading kernel over B scenes of T frames each (one, or a batch: ``accel`` and ``gb`` hold their B T frames,
+    or, with motion blur, one scene's T ``slices`` time groups), one launch: (B T, H, W) vec3 radiance on ``device``.
+    ``lights``: each scene's resolved lights; ``cam_T_worlds``: each scene's (groups, 4, 4) camera poses of the
+    light vectors; ``seeds``: each scene's render seed."""
+    wp = wp_runtime()
+    from flowsynth.kernels.raycast import TileLists
+    from flowsynth.kernels.shade import ShadeGBuffer, ShadeSampling, ShadeScene, shade_kernel
+    from flowsynth.kernels.texture import Material, layer_trig_kernel
+
+    camera = scenes[0].camera
+    T, H, W = scenes[0].num_frames, camera.height, camera.width
+    B = len(scenes)
+    spp, shutter = int(plan.spp), float(plan.shutter)
+    reuse = spp == 1 and shutter == 0 and gb.point is not None
     sc = ShadeScene()
     sc.inst, sc.max_t = accel.instances(), MAX_RAY_DIST
     # Without motion blur, camera rays (extra samples of edge pixels, spp > 1) walk the G-buffer cast's tile lists
     # (sample offsets stay within a pixel of the tile, as the lists allow) instead of the top-level BVH.
     sc.use_tiles = int(shutter == 0 and CAMERA_RAY_TILES)
-    sc.tiles = accel.tile_lists(scene.camera) if sc.use_tiles else TileLists()
+    sc.tiles = accel.tile_lists(camera) if sc.use_tiles else TileLists()
     sc.smooth = int(bool(plan.smooth_shading))
     sc.corner_n = accel.corner_normals() if sc.smooth else wp.zeros(1, dtype=wp.vec3, device=device)
-    mats, img_data, img_info = pack_materials(scene)
+    mats, img_data, img_info = pack_material_batch(scenes)
     sc.mats = wp.array(mats, dtype=Material, device=device)
     wp.launch(layer_trig_kernel, len(mats), [sc.mats], device=device)
     sc.img_data = wp.array(img_data, dtype=wp.vec3, device=device)
     sc.img_info = wp.array(img_info, dtype=wp.int32, device=device)
-    delta = [light for light in lights if light.kind != "ambient"]
-    kind, vec, irr = _light_tables(delta, cam_T_world)
-    sc.n_lights = len(delta)
+    delta = [[light for light in x if light.kind != "ambient"] for x in lights]
+    L = max(max(len(d) for d in delta), 1)
+    kind, vec, irr = np.zeros((B, L), np.int32), [], np.zeros((B, L, 3), np.float32)
+    for b, (d, cam_T_world) in enumerate(zip(delta, cam_T_worlds)):
+        k, v, e = _light_tables(d, cam_T_world)
+        kind[b, :len(k)], irr[b, :len(e)] = k, e
+        vec.append(np.pad(v, ((0, 0), (0, L - v.shape[1]), (0, 0))))
+    sc.n_lights = wp.array(np.array([len(d) for d in delta], np.int32), dtype=wp.int32, device=device)
     sc.light_kind = wp.array(kind, dtype=wp.int32, device=device)
-    sc.light_vec = wp.array(vec, dtype=wp.vec3, device=device)
+    sc.light_vec = wp.array(np.concatenate(vec), dtype=wp.vec3, device=device)
     sc.light_irr = wp.array(irr, dtype=wp.vec3, device=device)
-    sc.sky = wp.vec3(*sky.astype(np.float32))
+    sc.sky = wp.array(np.stack([_sky(x) for x in lights]).astype(np.float32), dtype=wp.vec3, device=device)
     # Ray-cone spread per metre of one sample: a pixel's angle shared by spp samples (texture filtering).
-    sc.pix_angle = float(1.0 / np.sqrt(scene.camera.K[0, 0] * scene.camera.K[1, 1] * spp))
+    sc.pix_angle = float(1.0 / np.sqrt(camera.K[0, 0] * camera.K[1, 1] * spp))
 
     edge_spp = int(plan.edge_spp) if plan.edge_spp > spp else 0  # 0: no pixel gets extra samples
 
     def gbuf(a, dtype, fill, needed=False):  # the G-buffer's own array where the kernel reads it, else a dummy
         return a if reuse or needed else wp.full((1, 1, 1), fill, dtype=dtype, device=device)
 
-    radiance = wp.empty((T, H, W), dtype=wp.vec3, device=device)  # the kernel writes every pixel
-    lens = not scene.camera.is_pinhole  # sub-pixel rays blend the ray grid's centres (kernels/shade.lens_ray)
-    cam = pinhole(scene.camera, device, pad=LENS_RAY_PAD if lens else 0)
+    radiance = wp.empty((B * T, H, W), dtype=wp.vec3, device=device)  # the kernel writes every pixel
+    lens = not camera.is_pinhole  # sub-pixel rays blend the ray grid's centres (kernels/shade.lens_ray)
+    cam = pinhole(camera, device, pad=LENS_RAY_PAD if lens else 0)
     g = ShadeGBuffer()
     g.item, g.face = gbuf(gb.item, wp.int32, -1, edge_spp > 0), gbuf(gb.face, wp.int32, -1)
     g.dist, g.point = gbuf(gb.dist, wp.float32, 0.0), gbuf(gb.point, wp.vec3, wp.vec3(0.0))
     g.reuse = int(reuse)
     smp = ShadeSampling()
     smp.spp, smp.edge_spp, smp.slices = spp, edge_spp, slices
-    smp.seed, smp.bounces = _seed32(plan.seed), int(plan.bounces)
-    launch_bands(shade_kernel(plan.render_mode, lens), (T, H, W), 1, [sc, g, cam, smp, BAND0], [radiance], device,
-                 plan.threads, row_loop=True)
+    smp.seeds = wp.array(np.array([_seed32(x) for x in seeds], np.int32), dtype=wp.int32, device=device)
+    smp.frames, smp.bounces = T, int(plan.bounces)
+    launch_image(lambda per_pixel: shade_kernel(plan.render_mode, lens, per_pixel), (B * T, H, W),
+                 [sc, g, cam, smp, BAND0], [radiance], device, plan.threads)
     return radiance  # finite and >= 0: the kernel clamps each value (kernels/shade.finite_nonneg)
 
 
@@ -299,6 +357,33 @@ def pack_materials(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     counts = [len(p) for p in pyramids for _ in p]
     info = np.array([[o, lv.shape[1], lv.shape[0], c] for o, lv, c in zip(offsets, levels, counts)], np.int32)
     return mats, np.concatenate([lv.reshape(-1, 3) for lv in levels]).astype(np.float32), info
+
+
+def pack_material_batch(scenes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``pack_materials`` of B scenes as one set of tables: scene b's N_b materials from row ``inst_start[b]`` on
+    (``SceneAccel``'s instance rows), their image atlases one after another (an image layer's row shifted). One
+    scene's tables are ``pack_materials``' own."""
+    from flowsynth.kernels.texture import FAMILIES
+
+    packed = [pack_materials(s) for s in scenes]
+    if len(packed) == 1:
+        return packed[0]
+    mats, data, info, rows, texels = [], [], [], 0, 0
+    for s, (m, d, i) in zip(scenes, packed):
+        m = m[:len(s.objects)].copy()
+        for name in ("a", "b"):
+            lay = m[name]
+            lay["image"] = np.where(lay["family"] == FAMILIES["image"], lay["image"] + rows, lay["image"])
+        i = i.copy()
+        i[:, 0] += texels
+        mats.append(m)
+        data.append(d)
+        info.append(i)
+        rows, texels = rows + len(i), texels + len(d)
+    m = np.concatenate(mats)
+    if not len(m):
+        m = packed[0][0][:1]
+    return m, np.concatenate(data), np.concatenate(info)
 
 
 def _seed32(seed: int) -> int:

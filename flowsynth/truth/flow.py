@@ -28,7 +28,7 @@ import torch
 from kornia.geometry.conversions import convert_points_from_homogeneous
 
 from flowsynth.kernels import wp_runtime
-from flowsynth.parallel import BAND0, launch_bands
+from flowsynth.parallel import BAND0, launch_bands, launch_image
 from flowsynth.plan import gap_key
 
 __all__ = ["DEPTH_TEST_REL_TOL", "MOTION_TOL", "VISIBILITY_REL_TOL", "flow_outputs", "reproject", "reproject_pixels",
@@ -68,8 +68,8 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
                      camera=None, flow: bool = False, occlusion: str | None = None, fB: float | None = None,
                      scene_flow_T: np.ndarray | None = None, lens=None,
                      threads: int | None = None) -> dict[str, np.ndarray]:
-    """Every hit pixel of G-buffer ``gb`` reprojected into a target frame, per pair: one Warp kernel thread per
-    (pair, row) (flowsynth/kernels/reproject.py), launched in row bands (bit-identical for any ``threads``).
+    """Every hit pixel of one clip's G-buffer ``gb`` reprojected into a target frame, per pair (``pair_arrays``
+    handed to the host as numpy).
 
     Pair t maps frame s = src0 + t into frame s + step of the target view, whose (T, N, 4, 4) float64
     ``cam_T_obj`` is given (the same view for flow, the other view for stereo). Definitions: module docstring.
@@ -88,30 +88,65 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         ``dc`` (P, 1, H, W) float64, ``scene_flow`` (P, 3, H, W) float32 when asked; 0 where not hit (flow and dc
         also where not valid).
     """
-    from flowsynth.kernels.raycast import Culling, Instances, TileLists
-    from flowsynth.kernels.reproject import (LENS_CODES, OCC_DEPTH, OCC_EXACT, OCC_NONE, PairOcclusion, PairSource,
-                                             PairTarget, pair_kernel)
-
     F, H, W = gb.shape
     want_dc = fB is not None
     want_sf = scene_flow_T is not None
-    occ_mode = {None: OCC_NONE, "exact": OCC_EXACT, "depth": OCC_DEPTH}[occlusion]
-    N = gb.num_instances
-    if P <= 0 or N == 0:  # (a G-buffer without hits needs no shortcut: the kernel writes 0 at every miss)
+    if P <= 0 or gb.num_instances == 0:  # (a G-buffer without hits needs no shortcut: the kernel writes 0 at misses)
         res = {"valid": np.zeros((P, 1, H, W), bool), "oof": np.zeros((P, 1, H, W), bool)}
         if flow:
             res["flow"] = np.zeros((P, 2, H, W), np.float32)
-        if occ_mode != OCC_NONE:
+        if occlusion is not None:
             res["occ"] = np.zeros((P, 1, H, W), bool)
         if want_dc:
             res["dc"] = np.zeros((P, 1, H, W))
         if want_sf:
             res["scene_flow"] = np.zeros((P, 3, H, W), np.float32)
         return res
+    N = cam_T_obj.shape[1]
+    sfM = None
+    if want_sf:  # per source item: frame src0 + t's rows hold pair t's transforms
+        sfM = np.zeros((F * N, 4, 4))
+        sfM[src0 * N:(src0 + P) * N] = np.asarray(scene_flow_T, np.float64).reshape(-1, 4, 4)
+    got = pair_arrays(gb, cam_T_obj.reshape(-1, 4, 4), K, np.arange(P) + src0, step, accel=accel, camera=camera,
+                      flow=flow, occlusion=occlusion, fB=fB, scene_flow_items=sfM, lens=lens, threads=threads)
+    res = {"valid": got["valid"].numpy().view(bool)[:, None], "oof": got["oof"].numpy().view(bool)[:, None]}
+    if flow:
+        res["flow"] = got["flow"].numpy()
+    if occlusion is not None:
+        res["occ"] = got["occ"].numpy().view(bool)[:, None]
+    if want_dc:
+        res["dc"] = got["dc"].numpy()[:, None]
+    if want_sf:
+        res["scene_flow"] = got["scene_flow"].numpy()
+    return res
+
+
+def pair_arrays(gb, cam_T_obj_items: np.ndarray, K: np.ndarray, pair_src: np.ndarray, step: int, *, accel=None,
+                camera=None, flow: bool = False, occlusion: str | None = None, fB: float | None = None,
+                scene_flow_items: np.ndarray | None = None, lens=None, threads: int | None = None) -> dict:
+    """The pair kernel (flowsynth/kernels/reproject.py) over G-buffer ``gb`` of one clip or a batch of clips: one
+    launch, a thread per pixel on a GPU, row bands on the CPU; the results stay Warp arrays on the G-buffer's
+    device.
+
+    Pair t maps frame s = ``pair_src[t]`` (P,) into frame s + step of the target view. ``cam_T_obj_items``: (items,
+    4, 4) float64 target view from each item's object in its frame (``SceneAccel``'s item order);
+    ``scene_flow_items``: (items, 4, 4) float64 scene-flow transform of each source item, or None. Other arguments
+    as ``reproject_pixels``'. Returns Warp arrays: ``valid``, ``oof`` (P, H, W) uint8, and as asked ``flow`` (P, 2,
+    H, W) float32, ``occ`` (P, H, W) uint8, ``dc`` (P, H, W) float64, ``scene_flow`` (P, 3, H, W) float32.
+    """
+    from flowsynth.kernels.raycast import Culling, Instances, TileLists
+    from flowsynth.kernels.reproject import (LENS_CODES, OCC_DEPTH, OCC_EXACT, OCC_NONE, PairOcclusion, PairSource,
+                                             PairTarget, pair_kernel)
+
+    F, H, W = gb.shape
+    P = len(pair_src)
+    want_dc = fB is not None
+    want_sf = scene_flow_items is not None
+    occ_mode = {None: OCC_NONE, "exact": OCC_EXACT, "depth": OCC_DEPTH}[occlusion]
     wp = wp_runtime()
     dev = gb.device
     item, point, face = gb.item, gb.point, gb.face  # the G-buffer's own arrays, on its device
-    M = wp.array(np.ascontiguousarray(cam_T_obj, np.float64), dtype=wp.mat44d, device=dev)
+    M = wp.array(np.ascontiguousarray(cam_T_obj_items, np.float64), dtype=wp.mat44d, device=dev)
     inst, tiles, cull = Instances(), TileLists(), Culling()
     if occ_mode == OCC_EXACT:
         cull = accel.culling(threads)
@@ -121,13 +156,12 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     dz = wp.array(np.ascontiguousarray(camera.pixel_rays_numpy()[..., 2]) if occ_mode == OCC_DEPTH
                   else np.zeros((1, 1)), dtype=wp.float64, device=dev)
     shape = (P, H, W)
-    valid = wp.empty(shape, wp.uint8, dev)
-    oof = wp.empty(shape, wp.uint8, dev)
-    occ = wp.empty(shape if occ_mode != OCC_NONE else one, wp.uint8, dev)
-    fl = wp.empty((P, 2, H, W) if flow else (1, 1, 1, 1), wp.float32, dev)
-    dc = wp.empty(shape if want_dc else one, wp.float64, dev)
-    sf = wp.empty((P, 3, H, W) if want_sf else (1, 1, 1, 1), wp.float32, dev)
-    sfM = wp.array(np.ascontiguousarray(scene_flow_T, np.float64) if want_sf else np.zeros((1, 1, 4, 4)),
+    out = {"valid": wp.empty(shape, wp.uint8, dev), "oof": wp.empty(shape, wp.uint8, dev),
+           "occ": wp.empty(shape if occ_mode != OCC_NONE else one, wp.uint8, dev),
+           "flow": wp.empty((P, 2, H, W) if flow else (1, 1, 1, 1), wp.float32, dev),
+           "dc": wp.empty(shape if want_dc else one, wp.float64, dev),
+           "scene_flow": wp.empty((P, 3, H, W) if want_sf else (1, 1, 1, 1), wp.float32, dev)}
+    sfM = wp.array(np.ascontiguousarray(scene_flow_items, np.float64) if want_sf else np.zeros((1, 4, 4)),
                    dtype=wp.mat44d, device=dev)
     model = 0 if lens is None else LENS_CODES[lens.model]
     coef = np.zeros(8)
@@ -137,25 +171,23 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
     lens_lim = min(float(lens.lens_limit), 1e300) if model else 0.0
     src = PairSource()
     src.item, src.point, src.face, src.dist = item, point, face, dist
-    src.n_inst, src.src0, src.step = N, int(src0), int(step)
+    src.frame_start = wp.array(np.asarray(gb.frame_start, np.int32), dtype=wp.int32, device=dev)
+    # each item's instance row: read by occlusion="exact" only (the own item's face planes), which has an accel
+    src.item_inst = accel.item_inst if occ_mode == OCC_EXACT else wp.zeros(1, dtype=wp.int32, device=dev)
+    src.pair_src = wp.array(np.asarray(pair_src, np.int32), dtype=wp.int32, device=dev)
+    src.step = int(step)
     tgt = PairTarget()
     tgt.cam_T_obj, tgt.K = M, wp.mat33d(*np.asarray(K, np.float64).ravel())
     tgt.lens_k, tgt.lens_lim, tgt.fB, tgt.sfM = lens_k, lens_lim, float(fB or 0.0), sfM
     occl = PairOcclusion()
     occl.inst, occl.tiles, occl.cull, occl.rel_tol = inst, tiles, cull, VISIBILITY_REL_TOL
     occl.dz, occl.depth_tol = dz, DEPTH_TEST_REL_TOL
-    launch_bands(pair_kernel(flow, occ_mode, want_dc, want_sf, model), shape, 1, [src, tgt, occl, BAND0],
-                 [valid, oof, occ, fl, dc, sf], dev, threads, row_loop=True)
-    res = {"valid": valid.numpy().view(bool)[:, None], "oof": oof.numpy().view(bool)[:, None]}
-    if flow:
-        res["flow"] = fl.numpy()
-    if occ_mode != OCC_NONE:
-        res["occ"] = occ.numpy().view(bool)[:, None]
-    if want_dc:
-        res["dc"] = dc.numpy()[:, None]
-    if want_sf:
-        res["scene_flow"] = sf.numpy()
-    return res
+    if P > 0:
+        launch_image(lambda per_pixel: pair_kernel(flow, occ_mode, want_dc, want_sf, model, per_pixel), shape,
+                     [src, tgt, occl, BAND0], [out[k] for k in ("valid", "oof", "occ", "flow", "dc", "scene_flow")],
+                     dev, threads)
+    return {k: v for k, v in out.items() if k in ("valid", "oof") or (k == "flow" and flow)
+            or (k == "occ" and occ_mode != OCC_NONE) or (k == "dc" and want_dc) or (k == "scene_flow" and want_sf)}
 
 
 def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
@@ -213,21 +245,32 @@ def visibility(accel, rays: list[tuple[np.ndarray, np.ndarray]], threads: int | 
 
 def world_points(gb, world_T_obj: np.ndarray, *, moved: bool, threads: int | None = None):
     """The G-buffer's hit points in the world frame, (T, H, W, 3) float64 (0 where not hit), and with ``moved``
-    the ``motion`` flags (T-1, H, W) bool of frames 0 .. T-2 (else None): one ``world_points_kernel`` launch in
-    row bands (flowsynth/kernels/reproject.py), no per-pixel gather of matrices."""
+    the ``motion`` flags (T-1, H, W) bool of frames 0 .. T-2 (else None): ``world_point_arrays`` of one clip
+    (``world_T_obj`` (T, N, 4, 4)) handed to the host."""
     T, H, W = gb.shape
     if gb.num_instances == 0:  # (no hit needs no shortcut: the kernel writes 0 at every miss)
         return np.zeros((T, H, W, 3)), (np.zeros((T - 1, H, W), bool) if moved else None)
-    wp = wp_runtime()
-    from flowsynth.kernels.reproject import world_points_kernel
-
-    dev = gb.device
-    world = wp.empty((T, H, W), dtype=wp.vec3d, device=dev)  # the kernel writes every pixel
-    flags = wp.empty((T - 1, H, W) if moved and T > 1 else (1, 1, 1), dtype=wp.uint8, device=dev)
-    launch_bands(world_points_kernel, (T, H, W), 1,
-                 [gb.item, gb.point, wp.array(np.ascontiguousarray(world_T_obj, np.float64), dtype=wp.mat44d,
-                                              device=dev), int(moved), MOTION_TOL, BAND0],
-                 [world, flags], dev, threads, row_loop=True)
+    world, flags = world_point_arrays(gb, np.asarray(world_T_obj).reshape(-1, 4, 4), T, moved=moved, threads=threads)
     if not moved:
         return world.numpy(), None
     return world.numpy(), (flags.numpy().astype(bool) if T > 1 else np.zeros((0, H, W), bool))
+
+
+def world_point_arrays(gb, world_T_obj_items: np.ndarray, frames: int, *, moved: bool, threads: int | None = None):
+    """``world_points_kernel`` (flowsynth/kernels/reproject.py) over G-buffer ``gb`` of B clips of ``frames`` T
+    frames each, one launch (a thread per pixel on a GPU, row bands on the CPU): Warp arrays on its device, the
+    world points (B T, H, W) vec3d and with ``moved`` the flags (B (T-1), H, W) uint8 (else a dummy).
+    ``world_T_obj_items``: (items, 4, 4) float64, each item's object pose in its frame (``SceneAccel``'s order)."""
+    from flowsynth.kernels.reproject import world_points_kernel
+
+    wp = wp_runtime()
+    F, H, W = gb.shape
+    dev = gb.device
+    world = wp.empty((F, H, W), dtype=wp.vec3d, device=dev)  # the kernel writes every pixel
+    flags = wp.empty((F - F // frames, H, W) if moved and frames > 1 else (1, 1, 1), dtype=wp.uint8, device=dev)
+    M = np.ascontiguousarray(world_T_obj_items, np.float64) if len(world_T_obj_items) else np.zeros((1, 4, 4))
+    launch_image(lambda per_pixel: world_points_kernel(per_pixel), (F, H, W),
+                 [gb.item, gb.point, wp.array(M, dtype=wp.mat44d, device=dev),
+                  wp.array(np.asarray(gb.frame_start, np.int32), dtype=wp.int32, device=dev), int(frames), int(moved),
+                  MOTION_TOL, BAND0], [world, flags], dev, threads)
+    return world, flags

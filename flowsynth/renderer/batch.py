@@ -1,0 +1,214 @@
+"""``fs.render_batch``: B scenes rendered together on one device, every per-pixel stage launched once per batch, the
+results (B, ...) torch tensors on that device.
+
+A batch is one clip of B T frames to the kernels (``flowsynth.raycast.SceneAccel.batch``): frame b T + t is frame t
+of scene b, and the scenes' items follow one another (``Instances.frame_start``). The kernels are those of
+``fs.render``, which is the batch of one: the primary cast, the pair kernel (flow, validity, occlusion, out of frame,
+scene flow), world points (position, motion), shading and tone mapping each run once, a thread per pixel on a GPU
+and row bands on the CPU (``flowsynth.parallel.launch_image``). The per-pixel outputs stay on the device: Warp arrays
+become tensors by ``wp.to_torch`` (no copy), and the outputs ``fs.render`` derives on the host (depth, ids) are torch
+operations on the device here. Only the scenes' tables (poses, boxes, tile lists, materials) go up; no pixel comes
+down.
+
+On the CPU, scene b of a batch gets bit for bit what ``fs.render(scenes[b], ...)`` gives (tests/test_batched.py): each
+pixel is computed from the same inputs in the same steps, and the grouped top-level BVH builds each frame's subtree
+from that frame's boxes alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+import numpy as np
+import torch
+
+from flowsynth.errors import ConfigError, ShapeError
+from flowsynth.kernels import wp_runtime
+from flowsynth.options import RenderOptions
+from flowsynth.plan import GAP_KEYS, Plan, gap_key, make_plan, split_gap_key
+from flowsynth.raycast import SceneAccel, cast_gbuffer, resolve_device, scene_arrays
+from flowsynth.scene import Scene, check_lens_outputs
+
+__all__ = ["BATCH_KEYS", "check_batch_plan", "render_batch", "render_batch_plan"]
+
+# The outputs a batch renders (flow-family keys at every frame gap too: ``gap_key``); the others (stereo, tracks,
+# object tables, the final pass) come from ``fs.render`` per scene.
+BATCH_KEYS = frozenset({"depth", "distance", "normals", "position", "instance", "category", "asset", "flow_fw",
+                        "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw", "motion",
+                        "scene_flow_fw", "scene_flow_bw", "rgb", "K", "cam_T_world"})
+
+
+def render_batch(scenes: Sequence[Scene], outputs: Sequence[str] = ("depth",), *,
+                 options: RenderOptions | None = None, device: str = "cpu", occlusion: str = "exact",
+                 **kwargs) -> dict[str, torch.Tensor]:
+    """Render the requested outputs of B scenes at once, as (B, ...) tensors on ``device``.
+
+    Args:
+        scenes: B >= 1 scenes with one camera (size, K and lens model) and one frame count T.
+        outputs: keys of ``BATCH_KEYS`` (shapes and units as ``fs.render``'s, docs/conventions.md).
+        options, occlusion, kwargs: as ``fs.render``'s (``spp``, ``render_mode``, ``threads``...); ``seed`` None
+            gives each scene its own render seed.
+        device: Warp device of every stage ("cpu", "cuda", "cuda:1", ...); the tensors live there (a CUDA device's
+            tensors on torch's device of the same ordinal).
+
+    Returns:
+        dict mapping each key to a tensor with a leading batch dimension: per-frame keys (B, T, C, H, W),
+        per-pair keys (B, T-k, C, H, W), ``K`` (B, 3, 3), ``cam_T_world`` (B, T, 4, 4). Scene b's slice equals
+        ``fs.render(scenes[b], outputs, ...)`` (bit for bit on the CPU).
+
+    Raises:
+        ConfigError: no scene, an output the batch does not render, a motion-blurred rgb, scenes with different
+            cameras, or a device Warp does not find. ShapeError: scenes of different sizes or frame counts.
+    """
+    plan = make_plan(outputs, options, occlusion=occlusion, **kwargs)
+    return render_batch_plan(scenes, plan, device=device)
+
+
+def render_batch_plan(scenes: Sequence[Scene], plan: Plan, device: str = "cpu") -> dict[str, torch.Tensor]:
+    """``render_batch`` with a plan made once (``fs.make_plan``), as the device datasets call it."""
+    scenes = _check_scenes(scenes, plan)
+    device = resolve_device(device)  # one device for every stage (ConfigError where Warp has none such)
+    wp = wp_runtime()
+    camera = scenes[0].camera
+    B, T, H, W = len(scenes), scenes[0].num_frames, camera.height, camera.width
+    clips = [scene_arrays(s) for s in scenes]
+    accel = SceneAccel.batch(clips, device)
+    gb = cast_gbuffer(accel, camera, want_normals=plan.normals, want_points=plan.points, threads=plan.threads)
+    want = set(plan.outputs)
+    tdev = wp.device_to_torch(device) if wp.get_device(device).is_cuda else torch.device("cpu")
+    out: dict[str, torch.Tensor] = {}
+
+    def frames(x: torch.Tensor) -> torch.Tensor:  # (B T, ...) -> (B, T, ...)
+        return x.reshape(B, T, *x.shape[1:])
+
+    dist = wp.to_torch(gb.dist)
+    if "distance" in want:
+        out["distance"] = frames(dist[:, None])
+    if "depth" in want:  # as fs.render: float64 product, rounded to float32
+        dz = torch.tensor(camera.pixel_rays_numpy()[..., 2], dtype=torch.float64, device=tdev)
+        out["depth"] = frames((dist.to(torch.float64) * dz).to(torch.float32)[:, None])
+    if "normals" in want:
+        out["normals"] = frames(wp.to_torch(gb.normal).permute(0, 3, 1, 2).contiguous())
+    ids = [k for k in ("instance", "category", "asset") if k in want]
+    if ids:
+        item = wp.to_torch(gb.item)
+        rows = torch.full_like(item, int(accel.inst_start[-1]))  # no hit: the table's last row, 0
+        if not accel.empty:
+            hit = item >= 0
+            rows[hit] = wp.to_torch(accel.item_inst)[item[hit].long()]
+        for key in ids:
+            table = np.array([getattr(o, key) for s in scenes for o in s.objects] + [0], np.int32)
+            out[key] = frames(torch.as_tensor(table, device=tdev)[rows.long()][:, None])
+    if "position" in want or "motion" in want:
+        from flowsynth.truth import world_point_arrays
+
+        world_T_obj = np.concatenate([w.reshape(-1, 4, 4) for _, _, w in clips])
+        world, moved = world_point_arrays(gb, world_T_obj, T, moved="motion" in want, threads=plan.threads)
+        if "position" in want:
+            out["position"] = frames(wp.to_torch(world).to(torch.float32).permute(0, 3, 1, 2).contiguous())
+        if "motion" in want:
+            out["motion"] = (wp.to_torch(moved).view(torch.bool)[:, None].reshape(B, T - 1, 1, H, W) if T > 1
+                             else torch.zeros((B, 0, 1, H, W), dtype=torch.bool, device=tdev))
+    if plan.flow_stage:
+        out.update(_pairs(scenes, clips, accel, gb, plan, want, B, T, tdev))
+    if plan.rgb:
+        from flowsynth.renderer.shading import render_rgb_batch
+
+        out["rgb"] = frames(wp.to_torch(render_rgb_batch(scenes, accel, gb, plan, device)))
+    if "K" in want:
+        out["K"] = torch.as_tensor(np.stack([s.camera.K for s in scenes]).astype(np.float32), device=tdev)
+    if "cam_T_world" in want:
+        out["cam_T_world"] = torch.as_tensor(np.stack([c for _, c, _ in clips]).astype(np.float32), device=tdev)
+    return {k: out[k] for k in plan.outputs}
+
+
+def _pairs(scenes, clips, accel, gb, plan: Plan, want: set, B: int, T: int, tdev) -> dict[str, torch.Tensor]:
+    """The flow family of every (direction, gap k) of ``plan.pair_jobs``: one pair-kernel launch over the B (T - k)
+    pairs of the batch each (``flowsynth.truth.flow.pair_arrays``)."""
+    from flowsynth.truth import pair_arrays
+
+    wp = wp_runtime()
+    camera = scenes[0].camera
+    H, W = camera.height, camera.width
+    cam_T_obj = [np.matmul(c[:, None], w) for _, c, w in clips]  # (T, N_b, 4, 4) per scene, as fs.render
+    items = np.concatenate([m.reshape(-1, 4, 4) for m in cam_T_obj])
+    out: dict[str, torch.Tensor] = {}
+    for name, k in plan.pair_jobs:
+        P = max(T - k, 0)
+        key = {kind: gap_key(f"{kind}_{name}", k) for kind in ("flow", "valid", "occ", "oof", "scene_flow")}
+        if not want & set(key.values()):
+            continue
+        src0, step = (0, k) if name == "fw" else (k, -k)
+        pair_src = (np.arange(B)[:, None] * T + src0 + np.arange(P)[None, :]).reshape(-1)
+        sf = None
+        if key["scene_flow"] in want:  # per source item: cam_T_world[s] (world_T_obj[s + step] - world_T_obj[s])
+            sf = []
+            for _, c, w in clips:
+                rows = np.zeros((T,) + w.shape[1:])
+                src = np.arange(P) + src0
+                rows[src] = np.matmul(c[src][:, None], w[src + step] - w[src])
+                sf.append(rows.reshape(-1, 4, 4))
+            sf = np.concatenate(sf)
+        if P == 0 or gb.num_instances == 0:
+            res = _zero_pairs(key, want, plan, B, P, H, W, tdev)
+        else:
+            got = pair_arrays(gb, items, camera.K, pair_src, step, accel=accel, camera=camera,
+                              flow=key["flow"] in want, occlusion=plan.occlusion if key["occ"] in want else None,
+                              scene_flow_items=sf, lens=camera, threads=plan.threads)
+            res = {}
+            for kind, arr in got.items():
+                x = wp.to_torch(arr)
+                x = x.view(torch.bool)[:, None] if kind in ("valid", "oof", "occ") else x
+                res[key[kind]] = x.reshape(B, P, *x.shape[1:])
+        out.update({k2: v for k2, v in res.items() if k2 in want})
+    return out
+
+
+def _zero_pairs(key: dict, want: set, plan: Plan, B: int, P: int, H: int, W: int, tdev) -> dict[str, torch.Tensor]:
+    """The pair outputs where there are no pairs or nothing to hit: zeros (False), as ``fs.render`` gives."""
+    res = {}
+    for kind, c, dtype in (("flow", 2, torch.float32), ("valid", 1, torch.bool), ("oof", 1, torch.bool),
+                           ("occ", 1, torch.bool), ("scene_flow", 3, torch.float32)):
+        if key[kind] in want:
+            res[key[kind]] = torch.zeros((B, P, c, H, W), dtype=dtype, device=tdev)
+    return res
+
+
+def check_batch_plan(plan: Plan) -> None:
+    """ConfigError unless a batch renders every output of ``plan``: keys of ``BATCH_KEYS`` (and the flow family at
+    any frame gap), and rgb without motion blur."""
+    unknown = [k for k in plan.outputs if k not in BATCH_KEYS and (split_gap_key(k) or ("",))[0] not in GAP_KEYS]
+    if unknown:
+        raise ConfigError(f"render_batch does not render {unknown}; it renders {sorted(BATCH_KEYS)} (and the flow "
+                          "family at every frame gap). Render the others per scene with fs.render")
+    if plan.rgb and plan.shutter > 0:
+        raise ConfigError(f"render_batch renders rgb without motion blur only (shutter 0, got {plan.shutter}); "
+                          "render motion-blurred rgb per scene with fs.render")
+
+
+def _check_scenes(scenes, plan: Plan) -> list[Scene]:
+    """The batch's checks, before anything runs: scenes given, one size, frame count and camera, outputs the batch
+    renders, no motion blur."""
+    if isinstance(scenes, Scene):
+        scenes = [scenes]
+    scenes = list(scenes)
+    if not scenes:
+        raise ConfigError("render_batch needs at least one scene (B >= 1), got none")
+    for i, s in enumerate(scenes):
+        if not isinstance(s, Scene):
+            raise ConfigError(f"scenes[{i}] is a {type(s).__name__}, not an fs.Scene")
+    check_batch_plan(plan)
+    c0, T0 = scenes[0].camera, scenes[0].num_frames
+    for i, s in enumerate(scenes[1:], 1):
+        c = s.camera
+        if (c.width, c.height) != (c0.width, c0.height):
+            raise ShapeError(f"every scene of a batch needs one image size: scenes[0] is {c0.width}x{c0.height}, "
+                             f"scenes[{i}] {c.width}x{c.height}; batch scenes of one size together")
+        if s.num_frames != T0:
+            raise ShapeError(f"every scene of a batch needs one frame count: scenes[0] has {T0}, scenes[{i}] "
+                             f"{s.num_frames}")
+        if not (np.array_equal(c.K, c0.K) and c.model == c0.model and tuple(c.dist) == tuple(c0.dist)):
+            raise ConfigError(f"every scene of a batch needs one camera (K and lens model): scenes[{i}] differs "
+                              "from scenes[0]; batch scenes of one camera together, or render them with fs.render")
+    for s in scenes:
+        check_lens_outputs(s.camera, plan.outputs)
+    return scenes
