@@ -1,6 +1,6 @@
-"""CPU against GPU in one run: samples/s of the default scene at 512x384, 2 frames (issue 47, item 2).
+"""CPU against GPU in one run: samples/s of the default scene at 512x384, 2 frames (issues 47 and 52).
 
-    python benchmarks/device/gpu.py [--quick] [--cpu-samples N] [--gpu-samples M] [--workers K]
+    python benchmarks/device/gpu.py [--quick] [--cpu-samples N] [--gpu-samples M] [--workers K] [--batch B]
 
 Two workloads, each a ``fs.datasets.BouncingThings(cfg, outputs, seed=0, device=...)`` timed through ``.sample(i)``
 on the CPU ("cpu", every core the process may use) and on Warp's "cuda" where Warp finds one (else that column says
@@ -14,8 +14,14 @@ How it is timed. Every scene the run will render is simulated once first (``ds.s
 device), so Newton's kernels and its per-shape-mix variants are built before any clock runs; the median of those
 scene times is reported as ``scene_s``, the host's physics share of a sample. Then, per workload and device: warm-up
 samples (the first on CUDA compiles or loads every render kernel: ``first_sample_s``), then timed samples
-(``samples_per_s`` = samples / their summed wall time; ``median_s``; every time in ``times_s``). The library has no
-call that renders several samples in one launch (one ``sample(i)`` is one scene), so nothing is batched here.
+(``samples_per_s`` = samples / their summed wall time; ``median_s``; every time in ``times_s``): one scene per
+``sample(i)`` call.
+
+Batched rows (issue 52, item 3; ``--batch B``, default 32, 0 skips): ``render_batch of B, scenes ready`` times
+``fs.render_batch`` alone on batches of scenes simulated before the clock (the device's ceiling; on CUDA one more batch
+runs under Warp's activity timing: the GPU's busy share and its top kernels), and ``batches of B, K scene workers``
+times ``fs.datasets.DeviceBatches`` end to end (scenes sampled and simulated by K CPU processes while the device
+renders). Each batch is read back once (a sum), so the clock waits for the device.
 
 Where the time goes: one CUDA sample (a CPU sample where there is no CUDA) of each workload under cProfile (the
 host functions with the most cumulative and the most own time, and own time summed per file), and one more under
@@ -174,6 +180,69 @@ def time_workers(name: str, device: str, workers: int, n: int) -> dict:
             "load_average": [load, os.getloadavg()[0]]}
 
 
+def time_batches(name: str, device: str, batch: int, workers: int, n: int, warm: int = 2) -> dict:
+    """``fs.datasets.DeviceBatches`` end to end: scenes from ``workers`` CPU processes, every per-pixel stage once per
+    batch of ``batch`` on ``device``. ``warm`` batches first (start-up, kernel loads), then ``n`` batches timed
+    together; each batch's tensors are read back to the host once (``.sum().item()``), so the clock waits for the
+    device."""
+    import flowsynth as fs
+
+    outputs, overrides = WORKLOADS[name]
+    ds = fs.datasets.DeviceBatches(config(**overrides), outputs=outputs, batch_size=batch, device=device, seed=0,
+                                   workers=workers, length=warm + n)
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    it = iter(ds)
+    for _ in range(warm):
+        next(it)["depth"].sum().item()
+    start_s = time.perf_counter() - t0
+    t = time.perf_counter()
+    got = sum(int(b["depth"].sum().item() >= 0) for b in it)
+    dt = time.perf_counter() - t
+    assert got == n, (got, n)
+    return {"workload": name, "device": device, "mode": f"batches of {batch}, {workers} scene workers",
+            "samples": n * batch, "warm": warm * batch, "first_sample_s": start_s, "median_s": None,
+            "samples_per_s": n * batch / dt, "times_s": [dt], "load_average": [load, os.getloadavg()[0]]}
+
+
+def batch_render(name: str, device: str, batch: int, n: int, activity: bool = False) -> dict:
+    """``fs.render_batch`` alone on ``n`` batches of scenes simulated before the clock (the device's ceiling, no
+    physics); with ``activity`` the last batch also runs under Warp's CUDA activity timing (the GPU's busy share)."""
+    import flowsynth as fs
+
+    from flowsynth.kernels import wp_runtime
+
+    outputs, overrides = WORKLOADS[name]
+    ds = fs.datasets.BouncingThings(config(**overrides), outputs=outputs, seed=0)
+    batches = [[ds.scene(b * batch + k) for k in range(batch)] for b in range(n + 1)]
+    fs.render_batch(batches[0], outputs, device=device, **overrides)["depth"].sum().item()  # warm: kernels
+    times = []
+    for scenes in batches[1:]:
+        t = time.perf_counter()
+        fs.render_batch(scenes, outputs, device=device, **overrides)["depth"].sum().item()
+        times.append(time.perf_counter() - t)
+    row = {"workload": name, "device": device, "mode": f"render_batch of {batch}, scenes ready",
+           "samples": n * batch, "warm": batch, "first_sample_s": None, "median_s": statistics.median(times) / batch,
+           "samples_per_s": n * batch / sum(times), "times_s": times}
+    if activity:
+        wp = wp_runtime()
+        wp.timing_begin(wp.TIMING_ALL)
+        try:
+            t = time.perf_counter()
+            fs.render_batch(batches[-1], outputs, device=device, **overrides)["depth"].sum().item()
+            wall = time.perf_counter() - t
+        finally:
+            results = wp.timing_end()
+        busy = sum(r.elapsed for r in results) / 1e3
+        by_name: dict[str, float] = {}
+        for r in results:
+            by_name[r.name] = by_name.get(r.name, 0.0) + r.elapsed
+        row["gpu_activity"] = {"wall_s": wall, "gpu_busy_s": busy, "gpu_busy_fraction": busy / wall,
+                               "top": sorted(({"activity": k, "ms": v} for k, v in by_name.items()),
+                                             key=lambda r: -r["ms"])[:15]}
+    return row
+
+
 def _short(path: str) -> str:
     for marker in ("/site-packages/", "/flowsynth/", "/benchmarks/"):
         if marker in path:
@@ -247,7 +316,19 @@ def main() -> int:
     p.add_argument("--workers", type=int, default=None, help="DataLoader workers for the streamed rows (default 8; "
                    "0 skips; --quick: 0)")
     p.add_argument("--no-cpu", action="store_true", help="skip the CPU rows (CUDA only)")
+    p.add_argument("--batch", type=int, default=None, help="samples per batch of the batched rows (default 32; "
+                   "--quick 2; 0 skips them)")
+    p.add_argument("--batches", type=int, default=None, help="timed batches per batched row (default 8; --quick 2)")
+    p.add_argument("--scene-workers", type=int, default=None, help="CPU processes making the batched rows' scenes "
+                   "(default: the cores less one; --quick 1)")
     args = p.parse_args()
+    for key in ("cpu_samples", "gpu_samples", "workers", "batch", "batches", "scene_workers"):
+        if getattr(args, key) is not None and getattr(args, key) < 0:
+            p.error(f"--{key.replace('_', '-')} {getattr(args, key)}: must be at least 0")
+    batch = args.batch if args.batch is not None else (2 if args.quick else 32)
+    n_batches = args.batches if args.batches is not None else (2 if args.quick else 8)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    scene_workers = args.scene_workers if args.scene_workers is not None else (1 if args.quick else max(cores - 1, 1))
     n_cpu = args.cpu_samples if args.cpu_samples is not None else (2 if args.quick else 4)
     n_gpu = args.gpu_samples if args.gpu_samples is not None else (4 if args.quick else 24)
     workers = args.workers if args.workers is not None else (0 if args.quick else 8)
@@ -257,7 +338,8 @@ def main() -> int:
     name = "gpu" + ("_quick" if args.quick else "") + ("" if has_cuda else "_nocuda")
     result: dict = {"size": list(SIZE), "num_frames": FRAMES, "seed": 0,
                     "workloads": {k: {"outputs": v[0], **v[1]} for k, v in WORKLOADS.items()}, "goals": GOALS,
-                    "batching": "none: the library renders one scene per sample() call; no batched launch exists",
+                    "batching": "rows '1 process' and 'N workers': one scene per sample() call; rows 'render_batch' "
+                                "and 'batches of B': fs.render_batch / fs.datasets.DeviceBatches, B scenes a launch",
                     "cuda": has_cuda, "machine": versions(has_cuda), "rows": [], "profile": [], "gpu_activity": []}
     cuda_note = None if has_cuda else "no CUDA: Warp finds no CUDA device"
     result["note"] = cuda_note
@@ -313,6 +395,17 @@ def main() -> int:
                 print_table([{"activity": r["activity"][-70:], "count": r["count"], "ms": r["ms"]}
                              for r in act["top"][:10]], ["activity", "count", "ms"])
         sys.stdout.flush()
+
+    if batch > 0:  # issue 52, item 3: every per-pixel stage once per batch on the device
+        for wl in WORKLOADS:
+            for device in ["cpu"] * (not args.no_cpu) + ["cuda"] * has_cuda:
+                for row in (batch_render(wl, device, batch, n_batches, activity=device == "cuda"),
+                            time_batches(wl, device, batch, scene_workers, n_batches)):
+                    result["rows"].append(row)
+                    save()
+                    busy = row.get("gpu_activity", {}).get("gpu_busy_fraction")
+                    print(f"{wl} on {device}, {row['mode']}: {row['samples_per_s']:.2f} samples/s"
+                          + (f" (GPU busy {100 * busy:.0f}%)" if busy is not None else ""), flush=True)
 
     if workers > 0:
         for wl in WORKLOADS:
