@@ -1,38 +1,43 @@
 #!/usr/bin/env bash
-# Issue 47's checks on a lent GPU machine, as one bounded run (after the wheels are installed into /tmp/site; see
-# the lead's notes on the device calls). Usage, from the repository root there:
+# Issue 52's checks on a lent GPU machine (items 1, 2 and 4), as one bounded run after the wheels are installed into
+# /tmp/site (../shared/GPU.md's three calls). Usage, from the repository root there:
 #
-#     OUT=/some/dir bash scripts/device_run.sh [BUDGET_S]        # BUDGET_S: the whole run's seconds, default 420
+#     OUT=/some/dir bash scripts/device_run.sh [BUDGET_S]        # BUDGET_S: the whole run's seconds, default 450
+#     SMOKE=1 OUT=/tmp/o bash scripts/device_run.sh 900           # the same steps on a CPU-only machine, quick sizes
 #
 # Steps, in order, each under its own `timeout` (its cap, or what is left of the budget) and each run whatever the
 # step before it returned:
 #   env          nvidia-smi; Python, torch, warp (and its devices), numpy versions
-#   gpu          python benchmarks/device/gpu.py (CPU against GPU samples/s at 512x384, T=2; profile); then it touches
-#                $GPU_DONE_MARKER (default /tmp/gpu_steps_done): the hook may use the GPU from then on
-#   agreement    python benchmarks/device/device_agreement.py (CPU against cuda, every main output, issue 47's tolerances)
-#   tests        python -m pytest -q -x tests/test_device.py (placement of every stage, parametrised on "cuda")
-#   tests_more   the other tests that touch CUDA: tests/test_device_agreement.py (a small scene on every CUDA
-#                device against the CPU) and tests/test_datasets.py::test_cpu_run_never_initialises_cuda
-# Hook: if an executable device_extra.sh sits beside this script, it starts in the background before the first
-# step (its output in $OUT/extra.log, stdin closed), bounded by the same deadline, and is waited for at the end.
-# It shares the machine with the steps: its CPU and GPU load slow them and colour every timing of the gpu step.
-# EXTRA_AT=after_gpu starts it after the last step instead (then it has only what is left of the budget).
+#   stream       item 1: tests/test_workers_cuda.py (spawn, forkserver and fs.datasets.loader yield the fork samples;
+#                a worker forked after CUDA refuses; and, marked cuda, the stream with 4 workers in a process that
+#                initialised CUDA by torch alone and by torch and Warp renders: rate against before CUDA, no
+#                "CUDA error" line, a plain forked DataLoader refused)
+#   feed         item 2: benchmarks/device/feed.py, RAFT-small's step on cuda fed by fs.datasets.loader's workers
+#                (the cores less one) against pairs in memory (feed.json, feed.png)
+#   feed_device  item 2 with batched device rendering: feed.py --source device (fs.datasets.DeviceBatches;
+#                feed_device.json, feed_device.png)
+#   gpu          item 4: benchmarks/device/gpu.py, CPU and GPU side by side at 512x384, T=2: one by one, batched
+#                (render_batch alone and DeviceBatches end to end, the GPU's busy share), profiles (gpu.json)
+#   tests        tests/test_batched.py and tests/test_device.py (placement of every stage, on "cuda" too)
+# SMOKE=1: no GPU needed: feed on the CPU with --quick, gpu.py --quick, the same tests (their cuda cases skip).
+# Hook: an executable scripts/device_extra.sh runs in the background only when EXTRA_AT is set (start: before the
+# first step; after_gpu: after the last), bounded by the same deadline (output in $OUT/extra.log); it shares the
+# machine with the steps, so every timing would carry its load.
 #
 # Everything comes back through $OUT, written as it goes: device_run.log (every step's output, step headers, and a
-# summary line per step: name, exit status, seconds), device_agreement.json and gpu.json (each rewritten after every
-# measurement), extra.log. That is 4 of the 8 files a device call returns; the hook's own files must fit the rest.
-# Just before the budget ends (MARGIN_S, default 20 s, is kept for the read-back) whatever still runs is killed.
+# summary line per step: name, exit status, seconds), feed.json, feed.png, feed_device.json, feed_device.png, gpu.json (each
+# rewritten after every measurement). Just before the budget ends (MARGIN_S, default 20 s, kept for the read-back)
+# whatever still runs is killed.
 #
 # Environment: PYTHONPATH=/tmp/site:<repo root> (the carried wheels, then this checkout); WARP_CACHE_PATH (default
-# /tmp/warp-cache, shared by every step and the hook); FLOWSYNTH_BENCH_RESULTS=$OUT (the benchmarks' JSON); PYTHON
-# (default python3); AGREEMENT_ARGS and GPU_ARGS, extra arguments of the two benchmarks (GPU_ARGS="--workers 0"
-# drops the DataLoader rows, the slowest part of gpu.py). Where /tmp/site exists, a .pth file in the interpreter's
-# site-packages also names it, for the test that starts a fresh interpreter with its own PYTHONPATH. Exit status: 0
-# when every step passed, else 1.
+# /tmp/warp-cache, shared by every step); FLOWSYNTH_BENCH_RESULTS=$OUT (the benchmarks' JSON); PYTHON (default
+# python3); FEED_ARGS and GPU_ARGS, extra arguments of the two benchmarks. Where /tmp/site exists, a .pth file in the
+# interpreter's site-packages also names it, for the tests that start a fresh interpreter with their own
+# PYTHONPATH. Exit status: 0 when every step passed, else 1.
 set -u -o pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
-BUDGET=${1:-420}
+BUDGET=${1:-450}
 MARGIN=${MARGIN_S:-20}
 START=$(date +%s)
 DEADLINE=$((START + BUDGET - MARGIN))
@@ -105,8 +110,16 @@ start_extra() {  # the hook, in the background until it ends or the deadline; it
     ) &
     EXTRA_PID=$!
 }
-[ "${EXTRA_AT:-start}" = start ] && start_extra
+[ "${EXTRA_AT:-}" = start ] && start_extra
 
+CORES=$(nproc)
+if [ -n "${SMOKE:-}" ]; then
+    FEED=(--quick --device cpu)
+    GPU=(--quick)
+else
+    FEED=(--device cuda --workers $((CORES > 1 ? CORES - 1 : 1)))
+    GPU=(--cpu-samples 4 --gpu-samples 16 --workers 0 --batch 32 --batches 6)
+fi
 step env 60 bash -c 'nvidia-smi || echo "nvidia-smi: not found or failed"; nproc; free -g | head -2
 "$0" -c "
 import platform, sys
@@ -118,19 +131,15 @@ import warp as wp
 wp.init()
 print(\"warp\", wp.__version__, \"cuda devices\", wp.get_cuda_device_count(), [str(d) for d in wp.get_devices()])
 "' "$PY"
-# the timings first, with the GPU to themselves (the hook only renders on the CPU, at nice 19, until the marker)
+step stream 150 "$PY" -m pytest -q -rfEs --durations=5 -p no:cacheprovider tests/test_workers_cuda.py
 # shellcheck disable=SC2086  # the extra arguments split on spaces on purpose
-step gpu 300 "$PY" benchmarks/device/gpu.py ${GPU_ARGS:-}
-touch "${GPU_DONE_MARKER:-/tmp/gpu_steps_done}"  # the hook's GPU work may start now
+step feed 110 "$PY" benchmarks/device/feed.py "${FEED[@]}" ${FEED_ARGS:-}
 # shellcheck disable=SC2086
-step agreement 180 "$PY" benchmarks/device/device_agreement.py ${AGREEMENT_ARGS:-}
-step tests 240 "$PY" -m pytest -q -x -rfEs --durations=8 -p no:cacheprovider tests/test_device.py
-step tests_more 150 "$PY" -m pytest -q -rfEs --durations=5 -p no:cacheprovider tests/test_device_agreement.py
-# alone: tests/test_datasets.py imports torchdata, which the device's image lacks (2026-11-26, H200); a collection
-# error there stopped the agreement tests beside it
-step tests_cuda_init 60 "$PY" -m pytest -q -rfEs -p no:cacheprovider \
-    "tests/test_datasets.py::test_cpu_run_never_initialises_cuda"
-[ "${EXTRA_AT:-start}" = start ] || start_extra
+step feed_device 90 "$PY" benchmarks/device/feed.py --source device "${FEED[@]}" ${FEED_ARGS:-}
+# shellcheck disable=SC2086
+step gpu 150 "$PY" benchmarks/device/gpu.py "${GPU[@]}" ${GPU_ARGS:-}
+step tests 120 "$PY" -m pytest -q -x -rfEs --durations=8 -p no:cacheprovider tests/test_batched.py tests/test_device.py
+[ "${EXTRA_AT:-}" = after_gpu ] && start_extra
 
 if [ -n "$EXTRA_PID" ]; then
     log "== extra: waiting (at +$(($(date +%s) - START)) s)"

@@ -19,8 +19,9 @@ Reported per loop, after ``--warmup`` steps: steps/s; for the live loop the shar
 (16 cores, H100 or H200): live / in memory >= 0.9. On this 2-core machine without a GPU it runs as a smoke test
 (``--quick``: 160x128 pairs, 128x128 crops, batch 2, 2 updates, a few steps).
 
-Writes benchmarks/results/feed.json (``feed_quick.json`` with --quick) with the machine and every step's times, and
-``feed[_quick].png``: steps done against wall time for both loops, and the live loop's wait per step.
+Writes benchmarks/results/feed[_device][_quick].json (``_device`` with --source device, ``_quick`` with --quick) with
+the machine and every step's times, and the same name's .png: steps done against wall time for both loops, and the
+live loop's wait per step.
 """
 
 from __future__ import annotations
@@ -156,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"device {a.device}, source {a.source}, {s['workers']} workers, {s['res'][0]}x{s['res'][1]} pairs, "
           f"batch {s['batch']}, crop {s['crop']}, {s['updates']} updates, {s['steps']} timed steps")
     print_table(rows, list(rows[0]))
-    name = "feed" + ("_quick" if a.quick else "")
+    name = "feed" + ("_device" if a.source == "device" else "") + ("_quick" if a.quick else "")
     device_name = torch.cuda.get_device_name() if a.device.startswith("cuda") else None
     write_json(name, {"settings": {**s, "device": a.device, "device_name": device_name, "source": a.source},
                       "pool_s": pool_s, "live_over_in_memory": ratio, "rows": rows, "loops": loops,
