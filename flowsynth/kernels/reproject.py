@@ -1,13 +1,16 @@
 """Per-pixel reprojection of the primary cast's hit points into another frame or view (float64), with the
-validity, out-of-frame and occlusion tests fused in: one thread per (pair, row) looping over the row's
-pixels (a Warp CPU thread per pixel spends more on unravelling its 3-D index than on the reprojection:
-docs/decisions/0004-pair-kernel-rows-and-culls.md), no gather.
+validity, out-of-frame and occlusion tests fused in, no gather: on the CPU one thread per (pair, row) looping over the
+row's pixels (a Warp CPU thread per pixel spends more on unravelling its 3-D index than on the reprojection:
+docs/decisions/0004-pair-kernel-rows-and-culls.md), on a GPU one thread per pixel; the pairs of one clip or of a batch
+of clips (docs/decisions/0024-batches-on-the-device.md).
 
 Definitions are those of flowsynth/truth/flow.py's module docstring. For pair t the source frame is
-s = src0 + t and the target frame r = s + step; the pixel (i, j) of frame s holding instance n at
+s = pair_src[t] and the target frame r = s + step; the pixel (i, j) of frame s holding instance n at
 object-frame point p (float32, promoted to float64) maps to
 
     X = cam_T_obj[r, n] @ p,  valid = X.z > 0,  (u', v') = (K X)[:2] / (K X)[2]   (full K, float64)
+
+(cam_T_obj[r, n]: the target item's row of ``PairTarget.cam_T_obj``)
 
 (with a lens model, flowsynth/scene/camera.py: valid = X in the model's domain, (u', v') = the model's projection,
 ``lens_project``, the same equations as cv2.projectPoints / cv2.fisheye.projectPoints)

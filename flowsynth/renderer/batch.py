@@ -90,14 +90,13 @@ def render_batch_plan(scenes: Sequence[Scene], plan: Plan, device: str = "cpu") 
         out["normals"] = frames(wp.to_torch(gb.normal).permute(0, 3, 1, 2).contiguous())
     ids = [k for k in ("instance", "category", "asset") if k in want]
     if ids:
-        item = wp.to_torch(gb.item)
+        item = wp.to_torch(gb.item).long()
         rows = torch.full_like(item, int(accel.inst_start[-1]))  # no hit: the table's last row, 0
-        if not accel.empty:
-            hit = item >= 0
-            rows[hit] = wp.to_torch(accel.item_inst)[item[hit].long()]
+        if not accel.empty:  # (no boolean indexing: nothing waits for the device)
+            rows = torch.where(item >= 0, wp.to_torch(accel.item_inst).long()[item.clamp(min=0)], rows)
         for key in ids:
             table = np.array([getattr(o, key) for s in scenes for o in s.objects] + [0], np.int32)
-            out[key] = frames(torch.as_tensor(table, device=tdev)[rows.long()][:, None])
+            out[key] = frames(torch.as_tensor(table, device=tdev)[rows][:, None])
     if "position" in want or "motion" in want:
         from flowsynth.truth import world_point_arrays
 

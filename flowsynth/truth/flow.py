@@ -15,7 +15,8 @@ primary cast), with target frame r (r = s + k forward, r = s - k backward, k a f
     scene_flow = cam_T_world[s] (world_T_obj[r, n] - world_T_obj[s, n]) p   [m], where hit, else 0
 
 flow, valid, oof, occ and scene flow (and stereo's disparity change and view occlusion) come from one Warp kernel
-thread per (pair, image row) (``reproject_pixels``, flowsynth/kernels/reproject.py), visibility ray included (with
+launch (``pair_arrays``, flowsynth/kernels/reproject.py; a thread per (pair, row) on the CPU, per pixel on a GPU; one
+clip, or a batch of clips for ``fs.render_batch``), visibility ray included (with
 exact culls, ``SceneAccel.culling``): no per-point gather of matrices, no compaction. ``motion`` (and
 ``fs.render``'s ``position``) come from ``world_points_kernel`` the same way. ``reproject`` (numpy + kornia) serves
 the sparse track points.
