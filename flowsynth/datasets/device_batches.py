@@ -26,7 +26,7 @@ from torch.utils.data import Dataset, Sampler, get_worker_info
 from flowsynth.datasets.loader import loader
 from flowsynth.errors import ConfigError
 from flowsynth.plan import make_plan
-from flowsynth.renderer import check_batch_plan, render_batch_plan
+from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan
 from flowsynth.scene import Scene, provenance_json
 
 __all__ = ["DeviceBatches", "SceneSet"]
@@ -34,17 +34,23 @@ __all__ = ["DeviceBatches", "SceneSet"]
 
 class SceneSet(Dataset):
     """Map-style dataset of the simulated scenes of the dataset (cfg, seed): item i is the ``fs.Scene`` behind sample
-    i of ``BouncingThings(cfg, seed=seed)`` (``flowsynth.scene.sample_scene``). What ``DeviceBatches``' workers make."""
+    i of ``BouncingThings(cfg, seed=seed)`` (``flowsynth.scene.sample_scene``); with a ``plan``, the pair (scene, its
+    host tables for the plan, ``flowsynth.renderer.batch_tables``). What ``DeviceBatches``' workers make: the scene's
+    sampling, physics and tables on a CPU, so the rendering process only joins and uploads."""
 
-    def __init__(self, cfg, seed: int) -> None:
-        self.cfg, self.seed = cfg, int(seed)
+    def __init__(self, cfg, seed: int, plan=None) -> None:
+        self.cfg, self.seed, self.plan = cfg, int(seed), plan
 
-    def __getitem__(self, i: int) -> Scene:
+    def __getitem__(self, i: int):
         from flowsynth.scene import sample_scene
 
-        if get_worker_info() is not None:
+        in_worker = get_worker_info() is not None
+        if in_worker:
             torch.set_num_threads(1)  # workers share the cores (flowsynth.parallel: one thread each)
-        return sample_scene(self.cfg, self.seed, int(i))
+        scene = sample_scene(self.cfg, self.seed, int(i))
+        if self.plan is None:
+            return scene
+        return scene, batch_tables(scene, self.plan, threads=1 if in_worker else self.plan.threads)
 
 
 class _Indices(Sampler):
@@ -116,7 +122,7 @@ class DeviceBatches:
         self.cfg, self.batch_size, self.seed, self.start = cfg, int(batch_size), int(seed), int(start)
         self.workers, self.length = int(workers), length
         self.outputs = self.plan.outputs
-        self.scenes = SceneSet(cfg, self.seed)
+        self.scenes = SceneSet(cfg, self.seed, self.plan)
 
     def __len__(self) -> int:
         if self.length is None:
@@ -134,9 +140,11 @@ class DeviceBatches:
             raise ConfigError(f"batch index must be an integer >= 0, got {i!r}")
         return self.render([self.scenes[k] for k in self.indices(i)], self.indices(i).start)
 
-    def render(self, scenes: list[Scene], first: int) -> dict:
-        """Render the batch of ``scenes``, samples ``first`` .. ``first`` + B - 1, on the device."""
-        out = render_batch_plan(scenes, self.plan, device=self.device)
+    def render(self, items: list[tuple[Scene, dict]], first: int) -> dict:
+        """Render the batch of ``items`` (``SceneSet``'s (scene, tables)), samples ``first`` .. ``first`` + B - 1, on
+        the device."""
+        scenes = [scene for scene, _ in items]
+        out = render_batch_plan(scenes, self.plan, device=self.device, prepared=[t for _, t in items])
         like = out[self.plan.outputs[0]]
         out["index"] = torch.arange(first, first + len(scenes), dtype=torch.int64, device=like.device)
         out["seed"] = torch.full((len(scenes),), self.seed, dtype=torch.int64, device=like.device)

@@ -3,7 +3,7 @@
 tables built with numpy; ``blas`` and ``tiles`` are exported as modules for benchmarks (``tiles.TILE``)."""
 
 from flowsynth.raycast import blas, tiles
-from flowsynth.raycast.accel import SceneAccel, pinhole, resolve_device
+from flowsynth.raycast.accel import SceneAccel, pinhole, prepare_clip, resolve_device
 from flowsynth.raycast.gbuffer import GBuffer, HostGBuffer, cast_gbuffer, scene_arrays, to_torch
 
 __all__ = [
@@ -13,6 +13,7 @@ __all__ = [
     "blas",
     "cast_gbuffer",
     "pinhole",
+    "prepare_clip",
     "resolve_device",
     "scene_arrays",
     "tiles",

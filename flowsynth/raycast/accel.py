@@ -25,7 +25,8 @@ from flowsynth.raycast.tiles import join_tiles, posed_hull, tile_struct, tile_ta
 # (``flowsynth.raycast.tiles``).
 ORDERED_MAX = 64
 
-__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "pinhole", "resolve_device"]
+__all__ = ["BOX_PAD_REL", "MESH_CACHE_SIZE", "SceneAccel", "clip_tiles", "pinhole", "prepare_clip", "resolve_device",
+           "tiles_key"]
 
 # Instance boxes are inflated by this fraction of their size (plus the same fraction of their distance
 # to the camera) so float32 rounding of the ray never culls a true hit.
@@ -62,20 +63,22 @@ class SceneAccel:
     """
 
     def __init__(self, meshes: list[trimesh.Trimesh], cam_T_world: np.ndarray, world_T_obj: np.ndarray,
-                 device: str = "cpu", *, clips: list | None = None) -> None:
+                 device: str = "cpu", *, clips: list | None = None, prepared: list | None = None) -> None:
         """Build the per-frame instance boxes (camera frame), their near-to-far order and the grouped BVH (of one
         clip, or of ``clips``: ``SceneAccel.batch``)."""
-        self._build(list(clips) if clips is not None else [(meshes, cam_T_world, world_T_obj)], device)
+        clips = list(clips) if clips is not None else [(meshes, cam_T_world, world_T_obj)]
+        self._build(clips, device, list(prepared) if prepared is not None else [None] * len(clips))
 
     @classmethod
-    def batch(cls, clips, device: str = "cpu") -> SceneAccel:
+    def batch(cls, clips, device: str = "cpu", prepared: list | None = None) -> SceneAccel:
         """One accel over B clips, each (meshes, cam_T_world (T, 4, 4), world_T_obj (T, N_b, 4, 4)) with the same T:
         frame b T + t is frame t of clip b, and every table holds clip b's rows after clip b - 1's. Each clip's
         rows are the ones its own accel holds (the grouped BVH builds each frame's subtree from that frame's boxes
-        alone), so a kernel launched once over the batch computes what B launches over single clips compute."""
-        return cls([], np.zeros((0, 4, 4)), np.zeros((0, 0, 4, 4)), device, clips=clips)
+        alone), so a kernel launched once over the batch computes what B launches over single clips compute.
+        ``prepared``: each clip's ``prepare_clip`` (made where the scene was made), or None to compute it here."""
+        return cls([], np.zeros((0, 4, 4)), np.zeros((0, 0, 4, 4)), device, clips=clips, prepared=prepared)
 
-    def _build(self, clips: list, device: str) -> None:
+    def _build(self, clips: list, device: str, prepared: list) -> None:
         wp = wp_runtime()
         device = resolve_device(device)
         frames = {int(c[1].shape[0]) for c in clips}
@@ -92,7 +95,7 @@ class SceneAccel:
         self.empty = int(counts.sum()) == 0
         if self.empty:
             return
-        parts = [_clip_tables(*c) for c in clips]
+        parts = [p["clip"] if p is not None else _clip_tables(*c) for c, p in zip(clips, prepared)]
         distinct = {id(m): m for c in clips for m in c[0]}  # instances sharing a mesh share its tree
         slot = {k: i for i, k in enumerate(distinct)}
         self._distinct = list(distinct.values())
@@ -132,7 +135,7 @@ class SceneAccel:
         self.thin = arr(cat("thin", np.int32), wp.int32)
         self.obj_lo = arr(cat("obj_lo", np.float32), wp.vec3)
         self.obj_hi = arr(cat("obj_hi", np.float32), wp.vec3)
-        self._clips, self._parts, self._item0, self._cull = clips, parts, item0, None
+        self._clips, self._parts, self._item0, self._cull, self._prepared = clips, parts, item0, None, prepared
 
     def instances(self):
         """The kernels' ``Instances`` struct (flowsynth.kernels.raycast) over this accel's arrays (no copy):
@@ -166,9 +169,10 @@ class SceneAccel:
         accel by ``flowsynth.raycast.culling.culling_tables`` per clip (face planes, flat slabs, silhouette planes;
         ``threads``: those of the face planes' kernel on a mesh not yet cached), the clips' rows one after another."""
         if self._cull is None:
-            tables = [culling_tables(c[0], p["cam_T_obj"], threads, self.device)
-                      for c, p in zip(self._clips, self._parts)]
-            self._flat = [t.pop("flat") for t in tables]
+            tables = [pre["culling"] if pre is not None and pre["culling"] is not None
+                      else culling_tables(c[0], p["cam_T_obj"], threads, self.device)
+                      for c, p, pre in zip(self._clips, self._parts, self._prepared)]
+            self._flat = [t["flat"] for t in tables]
             self._cull = culling_struct(join_culling(tables, self._item0, self.T), self.device)
         return self._cull
 
@@ -177,21 +181,58 @@ class SceneAccel:
         (flowsynth.kernels.raycast) built by ``flowsynth.raycast.tiles.tile_tables`` per clip (empty where the rays
         walk the BVH), once per camera; ``flat=False``: without the flat instances of ``culling()`` (visibility rays
         test those apart; ``threads``: those of ``culling``)."""
-        key = (camera.width, camera.height, camera.K.tobytes(), flat, camera.model, camera.dist)
+        key = tiles_key(camera, flat)
         if key not in self._tiles:
-            if not flat:
-                self.culling(threads)
             lists = []
-            for b, (c, part) in enumerate(zip(self._clips, self._parts)):
-                order = None
-                if not self.use_bvh[b * self.T]:
-                    order = part["order"]  # the clip's own items: join_tiles shifts them
-                    if not flat:
-                        keep = ~self._flat[b][part["rank"]]  # (T, N): the same instances are flat in every frame
-                        order = order[keep].reshape(self.T, -1)
-                lists.append(tile_tables(c[0], part["cam_T_obj"], order, camera, self._bounds[b], part["posed"]))
+            for b, (c, part, pre) in enumerate(zip(self._clips, self._parts, self._prepared)):
+                if pre is not None and key in pre["tiles"]:
+                    lists.append(pre["tiles"][key])
+                    continue
+                flags = None if flat else self._flat_flags(b, threads)
+                lists.append(clip_tiles(c[0], part, camera, flags, self._bounds[b]))
             self._tiles[key] = tile_struct(join_tiles(lists, self._item0, self.T), self.device)
         return self._tiles[key]
+
+    def _flat_flags(self, b: int, threads: int | None) -> np.ndarray:
+        """Clip b's (N,) flags of the flat instances (``culling``'s)."""
+        pre = self._prepared[b]
+        if pre is not None and pre["culling"] is not None:
+            return pre["culling"]["flat"]
+        self.culling(threads)
+        return self._flat[b]
+
+
+def tiles_key(camera, flat: bool) -> tuple:
+    """The key of a camera's tile lists (with or without the flat instances) in ``SceneAccel`` and ``prepare_clip``."""
+    return (camera.width, camera.height, camera.K.tobytes(), flat, camera.model, camera.dist)
+
+
+def clip_tiles(meshes: list, part: dict, camera, flat_flags: np.ndarray | None, bounds: dict):
+    """``tile_tables`` of one clip (``_clip_tables``' ``part``) for ``camera``: None where its rays walk the BVH
+    (more than ``ORDERED_MAX`` instances); ``flat_flags`` (N,) bool leaves the flat instances out (None: all)."""
+    if len(meshes) > ORDERED_MAX:
+        return None
+    order = part["order"]  # the clip's own items: join_tiles shifts them
+    if flat_flags is not None:
+        keep = ~flat_flags[part["rank"]]  # (T, N): the same instances are flat in every frame
+        order = order[keep].reshape(len(order), -1)
+    return tile_tables(meshes, part["cam_T_obj"], order, camera, bounds, part["posed"])
+
+
+def prepare_clip(meshes: list, cam_T_world: np.ndarray, world_T_obj: np.ndarray, camera, *, occlusion: bool = True,
+                 threads: int | None = None, device: str = "cpu") -> dict:
+    """Everything ``SceneAccel.batch`` computes on the host for one clip and ``camera``, in numpy: the clip's tables,
+    its tile lists, and with ``occlusion`` (exact visibility rays) its culling tables (the face planes' kernel on
+    ``device``) and tile lists without the flat instances. Made where the scene is made (``DeviceBatches``' CPU
+    workers), so that the rendering process only joins and uploads them; the same arrays as computed there."""
+    part = _clip_tables(meshes, cam_T_world, world_T_obj)
+    bounds: dict = {}
+    out = {"clip": part, "culling": None, "tiles": {tiles_key(camera, True): clip_tiles(meshes, part, camera, None,
+                                                                                         bounds)}}
+    if occlusion:
+        out["culling"] = culling_tables(meshes, part["cam_T_obj"], threads, device)
+        out["tiles"][tiles_key(camera, False)] = clip_tiles(meshes, part, camera, out["culling"]["flat"], bounds)
+    return out
 
 
 def _clip_tables(meshes: list, cam_T_world: np.ndarray, world_T_obj: np.ndarray) -> dict:

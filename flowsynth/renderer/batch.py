@@ -28,7 +28,7 @@ from flowsynth.plan import GAP_KEYS, Plan, gap_key, make_plan, split_gap_key
 from flowsynth.raycast import SceneAccel, cast_gbuffer, resolve_device, scene_arrays
 from flowsynth.scene import Scene, check_lens_outputs
 
-__all__ = ["BATCH_KEYS", "check_batch_plan", "render_batch", "render_batch_plan"]
+__all__ = ["BATCH_KEYS", "batch_tables", "check_batch_plan", "render_batch", "render_batch_plan"]
 
 # The outputs a batch renders (flow-family keys at every frame gap too: ``gap_key``); the others (stereo, tracks,
 # object tables, the final pass) come from ``fs.render`` per scene.
@@ -63,15 +63,18 @@ def render_batch(scenes: Sequence[Scene], outputs: Sequence[str] = ("depth",), *
     return render_batch_plan(scenes, plan, device=device)
 
 
-def render_batch_plan(scenes: Sequence[Scene], plan: Plan, device: str = "cpu") -> dict[str, torch.Tensor]:
-    """``render_batch`` with a plan made once (``fs.make_plan``), as the device datasets call it."""
+def render_batch_plan(scenes: Sequence[Scene], plan: Plan, device: str = "cpu",
+                      prepared: Sequence[dict] | None = None) -> dict[str, torch.Tensor]:
+    """``render_batch`` with a plan made once (``fs.make_plan``), as the device datasets call it; ``prepared``: each
+    scene's host tables (``flowsynth.raycast.prepare_clip``, made where the scene was made, for ``batch_tables``), or
+    None to make them here."""
     scenes = _check_scenes(scenes, plan)
     device = resolve_device(device)  # one device for every stage (ConfigError where Warp has none such)
     wp = wp_runtime()
     camera = scenes[0].camera
     B, T, H, W = len(scenes), scenes[0].num_frames, camera.height, camera.width
     clips = [scene_arrays(s) for s in scenes]
-    accel = SceneAccel.batch(clips, device)
+    accel = SceneAccel.batch(clips, device, prepared=None if prepared is None else list(prepared))
     gb = cast_gbuffer(accel, camera, want_normals=plan.normals, want_points=plan.points, threads=plan.threads)
     want = set(plan.outputs)
     tdev = wp.device_to_torch(device) if wp.get_device(device).is_cuda else torch.device("cpu")
@@ -170,6 +173,15 @@ def _zero_pairs(key: dict, want: set, plan: Plan, B: int, P: int, H: int, W: int
         if key[kind] in want:
             res[key[kind]] = torch.zeros((B, P, c, H, W), dtype=dtype, device=tdev)
     return res
+
+
+def batch_tables(scene: Scene, plan: Plan, threads: int | None = 1) -> dict:
+    """The host tables ``render_batch_plan`` needs of ``scene`` under ``plan`` (``flowsynth.raycast.prepare_clip``: the
+    culling tables only where the plan asks for exact occlusion), numpy, to make in a scene worker."""
+    from flowsynth.raycast import prepare_clip
+
+    exact = plan.occlusion == "exact" and any((split_gap_key(k) or ("",))[0].startswith("occ_") for k in plan.outputs)
+    return prepare_clip(*scene_arrays(scene), scene.camera, occlusion=exact, threads=threads)
 
 
 def check_batch_plan(plan: Plan) -> None:
