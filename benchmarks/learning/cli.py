@@ -8,6 +8,7 @@
     python benchmarks/learning --diagnose --nets A.pt,B.pt [--middlebury DIR]   # where the saved nets fail
     python benchmarks/learning --figures NAME --nets A.pt [--middlebury DIR]    # their predicted flow
     python benchmarks/learning --plot NAME | --stats [--set FIELD=JSON]
+    python benchmarks/learning --ensemble-rate 2 [--steps 20] [--device cuda]  # K nets in one process vs K processes
 
 Writes results/learning_raft[_TAG].json after every seed (``raft.run``), and the readings beside it:
 learning_raft_summary_*, learning_raft_screens*, learning_raft_diagnose*, learning_raft_stats* (``summary``,
@@ -22,7 +23,7 @@ import json
 from _common import print_table, write_json
 
 from .diagnose import diagnose, figures, pool_stats
-from .raft import ARMS, EVERY, POOL, STEPS, run
+from .raft import ARMS, EVERY, POOL, STEPS, ensemble_rate, run
 from .summary import plot_judge_curves, plot_summary, screen, summarize
 
 
@@ -66,6 +67,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
                    "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
                    "[_TAG].json)")
+    p.add_argument("--ensemble-rate", type=int, default=None, metavar="K", help="train nothing: steps/s of K nets "
+                   "at the protocol's shape in one process (batched, and a loop) against K processes (--steps timed "
+                   "steps, default 20; --threads, --device; results/learning_raft_ensemble_rate[_TAG].json)")
     args = p.parse_args(argv)
     args.overrides = {}
     for item in args.set:
@@ -105,6 +109,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.figures:
         for path in figures(args.figures, args.middlebury, [n for n in args.nets.split(",") if n]):
             print(f"wrote {path}")
+        return
+    if args.ensemble_rate:
+        ensemble_rate(args.ensemble_rate, args.steps or 20, device=args.device, threads=args.threads, tag=args.tag)
         return
     if args.steps is not None and args.steps < 20:
         p.error(f"--steps {args.steps}: give at least 20 steps")

@@ -214,6 +214,127 @@ def checkpoint_path(save: str, step: int) -> str:
     return str(Path(save).with_name(f"{Path(save).stem}_step{step}.pt"))
 
 
+def _draw(pools: list, gens: list, stages: list, step: int, steps: int) -> tuple:
+    """One step's batches of ``train_many``: per net, ``train``'s draw from its pool and generator, stacked (K, ...)."""
+    import torch
+
+    from flowsynth.training import augment
+
+    out = []
+    for (img1, img2, flow, valid), g, n in zip(pools, gens, stages):
+        block = len(img1) // n
+        idx = torch.randint(block, (BATCH,), generator=g) + min((step - 1) * n // steps, n - 1) * block
+        out.append(augment(img1[idx], img2[idx], flow[idx], valid[idx], CROP, g))
+    return tuple(torch.stack(x) for x in zip(*out))
+
+
+def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: list, every: int, device: str = "cpu",
+               threads: int = 0, saves: list | None = None, progresses: list | None = None,
+               stages: list | None = None, batched: bool = True) -> list[dict]:
+    """``train`` for K nets at once in this process (``flowsynth.ensemble.Ensemble``: one batched step of the K nets,
+    ``batched=False``: a loop of ``train_step``s). Net k: pool ``pools[k]``, initialised from ``net_seeds[k]``,
+    batches drawn from its own generator seeded ``seeds[k]`` (``train``'s draws), ``stages[k]`` stages (default 1),
+    weights saved to ``saves[k]`` and its curve to ``progresses[k]`` as ``train`` does. Returns ``train``'s result per
+    net, with ``at_once`` = K; ``train_s`` is the whole ensemble's."""
+    import torch
+
+    from flowsynth.ensemble import Ensemble
+
+    k = len(pools)
+    stages, saves, progresses = stages or [1] * k, saves or [None] * k, progresses or [None] * k
+    if not len(seeds) == len(net_seeds) == len(stages) == len(saves) == len(progresses) == k:
+        raise ValueError(f"train_many: {k} pools need as many seeds, net_seeds, stages, saves and progresses")
+    if threads:
+        torch.set_num_threads(threads)
+    nets = []
+    for s in net_seeds:
+        torch.manual_seed(s)
+        nets.append(raft_small().to(device))
+    ens = Ensemble(nets, LR, steps, updates=UPDATES, batched=batched)
+    gens = [torch.Generator().manual_seed(s) for s in seeds]
+    t = time.perf_counter()
+    curves = [[{"step": 0, "train_loss": None, **evaluate(net, tests, device)}] for net in nets]
+    losses = []  # per step, the K losses
+    for step in range(1, steps + 1):
+        losses.append(ens.step(tuple(x.to(device) for x in _draw(pools, gens, stages, step, steps))).tolist())
+        if step % every == 0 or step == steps:
+            for i, net in enumerate(ens.nets()):
+                mine = [row[i] for row in losses[-every:]]
+                curves[i].append({"step": step, "train_loss": sum(mine) / len(mine), **evaluate(net, tests, device)})
+                if saves[i]:
+                    Path(saves[i]).parent.mkdir(parents=True, exist_ok=True)
+                    torch.save(net.state_dict(), checkpoint_path(saves[i], step))
+                if progresses[i]:
+                    Path(progresses[i]).parent.mkdir(parents=True, exist_ok=True)
+                    Path(progresses[i] + ".tmp").write_text(json.dumps({"curve": curves[i],
+                                                                        "s": time.perf_counter() - t}))
+                    Path(progresses[i] + ".tmp").replace(progresses[i])
+    for net, save in zip(ens.nets(), saves):
+        if save:
+            torch.save(net.state_dict(), save)
+    train_s = time.perf_counter() - t
+    return [{"curve": c, "train_s": train_s, "net_seed": s, "parameters": sum(p.numel() for p in net.parameters()),
+             "at_once": k} for c, s, net in zip(curves, net_seeds, ens.nets())]
+
+
+def _rate_loop(k: int, steps: int, warmup: int, batched: bool, device: str, threads: int, barrier=None) -> float:
+    """Seconds for ``steps`` steps of ``train_many``'s loop (draw, augment, step) for ``k`` nets at the protocol's
+    shape, on a random uint8 pool at RES, after ``warmup`` steps (and ``barrier``, when given)."""
+    import torch
+
+    from flowsynth.ensemble import Ensemble
+
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(0)
+    w, h = RES
+    pool = (torch.randint(256, (16, 3, h, w), dtype=torch.uint8, generator=g),
+            torch.randint(256, (16, 3, h, w), dtype=torch.uint8, generator=g), 5 * torch.randn(16, 2, h, w,
+                                                                                              generator=g),
+            torch.ones(16, 1, h, w, dtype=torch.bool))
+    nets = [raft_small().to(device) for _ in range(k)]
+    ens = Ensemble(nets, LR, warmup + steps, updates=UPDATES, batched=batched)
+    gens = [torch.Generator().manual_seed(s) for s in range(k)]
+    for step in range(1, warmup + steps + 1):
+        if step == warmup + 1:
+            if barrier is not None:
+                barrier.wait()
+            t = time.perf_counter()
+        ens.step(tuple(x.to(device) for x in _draw([pool] * k, gens, [1] * k, step, warmup + steps)))
+    return time.perf_counter() - t  # ens.step returns its losses on the CPU: the device has finished
+
+
+def ensemble_rate(k: int = 2, steps: int = 20, warmup: int = 2, device: str = "cpu", threads: int = 2,
+                  tag: str = "") -> list[dict]:
+    """Steps per second of K nets trained at once at the protocol's shape (BATCH crops of CROP, UPDATES updates):
+    in one process batched (``Ensemble``, vmap over stacked weights), in one process as a loop of ``train_step``s,
+    and in K processes of one net each (``--jobs K``: ``threads`` // K threads each, started together after their
+    warm-up). Prints a table; writes results/learning_raft_ensemble_rate[_TAG].json."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    rows = []
+    for mode, batched in (("one process, batched", True), ("one process, loop", False)):
+        s = _rate_loop(k, steps, warmup, batched, device, threads)
+        rows.append({"mode": mode, "processes": 1, "threads each": threads, "s": s})
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Manager() as manager, ProcessPoolExecutor(k, mp_context=ctx) as ex:
+        barrier = manager.Barrier(k)
+        futs = [ex.submit(_rate_loop, 1, steps, warmup, False, device, max(1, threads // k), barrier)
+                for _ in range(k)]
+        s = max(f.result() for f in futs)
+    rows.append({"mode": f"{k} processes", "processes": k, "threads each": max(1, threads // k), "s": s})
+    for r in rows:
+        r["ensemble steps/s"] = steps / r["s"]
+        r["vs processes"] = rows[-1]["s"] / r["s"]
+    print(f"{k} RAFT-small nets, {steps} steps after {warmup} of warm-up, batch {BATCH} of {CROP}, {UPDATES} updates, "
+          f"device {device}")
+    print_table(rows, list(rows[0]))
+    write_json("learning_raft_ensemble_rate" + (f"_{tag}" if tag else ""), {
+        "nets": k, "steps": steps, "warmup": warmup, "batch": BATCH, "crop": CROP, "updates": UPDATES,
+        "device": device, "threads": threads, "rows": rows, "machine": machine_info()})
+    return rows
+
+
 def score(curve: list, judge: str) -> float:
     """A net's score on ``judge``: the mean EPE of its last JUDGED checkpoints (the pre-registered rule)."""
     pts = [c[judge] for c in curve[1:] if judge in c][-JUDGED:]
