@@ -107,7 +107,8 @@ def _forget_pool() -> None:
 # -- processes and CUDA ------------------------------------------------------------------------------------
 # CUDA does not survive fork(): a child forked from a process that initialised CUDA (torch on a GPU, or Warp, which
 # initialises the CUDA driver when it starts on a machine with one) inherits a driver state it cannot use. Warp
-# calls there print "Warp CUDA error 3: initialization error" and run about 10x slow (seen on an H200; docs/architecture.md, Workers and CUDA).
+# calls there print "Warp CUDA error 3: initialization error" and run about 10x slow (seen on an H200;
+# docs/architecture.md, Workers and CUDA).
 _cuda_at_fork = False  # in the parent, just before a fork: whether it had initialised CUDA
 _forked_from_cuda = False  # in a child: whether a process it was forked from had (inherited down the generations)
 

@@ -1,12 +1,11 @@
-"""Datasets: ``BouncingThings`` streams generated samples, ``FlowPairs`` as torchvision's optical-flow tuples and
-``Mixture`` from several configs by weights or a curriculum; ``Exported`` reads a folder ``flowsynth export`` wrote,
-``Shards`` streams the shards of a ``webdataset`` export (shuffled, split by worker and rank). ``loader`` is a
-DataLoader whose workers survive CUDA (forkserver, not fork)."""
+"""Datasets: ``BouncingThings`` streams samples (``loader``: workers that survive CUDA), ``DeviceBatches`` renders
+batches on a device, ``FlowPairs`` gives torchvision's tuples, ``Mixture`` mixes configs; ``Exported`` and ``Shards``
+read what ``flowsynth export`` wrote (a folder; a ``webdataset``'s shards, shuffled, split by worker and rank)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
 from flowsynth.datasets.flowpairs import FlowPairs
-from flowsynth.datasets.loader import loader
+from flowsynth.datasets.workers import loader
 
 __all__ = ["BouncingThings", "DeviceBatches", "Exported", "FlowPairs", "Mixture", "Shards", "loader", "sample_seed"]
 

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler, get_worker_info
 
-from flowsynth.datasets.loader import loader
+from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
 from flowsynth.plan import make_plan
 from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan

@@ -1,4 +1,4 @@
-"""``loader``: a ``torch.utils.data.DataLoader`` over a flowsynth stream whose workers survive CUDA.
+"""Worker processes that survive CUDA: ``loader``, a ``torch.utils.data.DataLoader`` over a flowsynth stream.
 
 CUDA does not survive ``fork()``, and fork is DataLoader's default start method on Linux. A training script that
 moves its net to the GPU (or renders a sample with Warp) before its loader starts the workers leaves them a CUDA
