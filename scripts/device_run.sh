@@ -19,7 +19,8 @@
 #   gpu          item 4: benchmarks/device/gpu.py, CPU and GPU side by side at 512x384, T=2: one by one, batched
 #                (render_batch alone and DeviceBatches end to end, the GPU's busy share), profiles (gpu.json)
 #   tests        tests/test_batched.py and tests/test_device.py (placement of every stage, on "cuda" too)
-# SMOKE=1: no GPU needed: feed on the CPU with --quick, gpu.py --quick, the same tests (their cuda cases skip).
+# SMOKE=1: no GPU needed: feed on the CPU with --quick, gpu.py --quick, the same tests (their cuda cases skip);
+# every step's cap is multiplied by CAP_SCALE (SMOKE's default 4: a 2-core machine is slower than the lent one).
 # Hook: an executable scripts/device_extra.sh runs in the background only when EXTRA_AT is set (start: before the
 # first step; after_gpu: after the last), bounded by the same deadline (output in $OUT/extra.log); it shares the
 # machine with the steps, so every timing would carry its load.
@@ -68,6 +69,7 @@ step() {  # step NAME CAP_S COMMAND...
         FAILED=1
         return
     fi
+    cap=$((cap * ${CAP_SCALE:-1}))
     ((cap > s)) && cap=$s
     log "== $name (at +$(($(date +%s) - START)) s, timeout $cap s): $*"
     t0=$(date +%s)
@@ -114,6 +116,7 @@ start_extra() {  # the hook, in the background until it ends or the deadline; it
 
 CORES=$(nproc)
 if [ -n "${SMOKE:-}" ]; then
+    CAP_SCALE=${CAP_SCALE:-4}
     FEED=(--quick --device cpu)
     GPU=(--quick)
 else
