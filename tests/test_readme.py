@@ -18,4 +18,5 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch, capsys):
     assert out[0] == "torch.Size([2, 2, 3, 192, 256]) torch.Size([2, 1, 2, 192, 256])"
     assert out[1] == "default 0"  # the Mixture block: index 12345 drawn from default, index 3 from chairs
     assert float(out[2].split("(")[1].split(")")[0]) == 3.5
-    assert out[-1] == "2 torch.Size([1, 2, 192, 256])"
+    assert out[-2] == "2 torch.Size([1, 2, 192, 256])"
+    assert out[-1] == "(2, 1, 2, 96, 128) True"  # a device batch's sample 1 is the stream's sample 1
