@@ -30,7 +30,7 @@ from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.plan import make_plan
 from flowsynth.scene import Scene, provenance_json, sample_seed
 
-__all__ = ["BouncingThings", "sample_seed"]
+__all__ = ["BouncingThings", "sample_seed", "stream_plan"]
 
 
 def _shard() -> tuple[int, int]:
@@ -41,6 +41,21 @@ def _shard() -> tuple[int, int]:
     info = get_worker_info()
     wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
     return rank * nw + wid, world * nw
+
+
+def stream_plan(cfg, outputs: Sequence[str], occlusion: str, threads: int | None):
+    """The plan of a stream of ``cfg``'s samples: ``outputs`` and K and cam_T_world, checked against the frame count
+    (flow needs two frames, a frame gap fewer than ``num_frames``). Shared by ``BouncingThings`` and
+    ``DeviceBatches``."""
+    plan = make_plan(tuple(dict.fromkeys([*outputs, "K", "cam_T_world"])), occlusion=occlusion, threads=threads,
+                     **cfg.plan_options())
+    if cfg.num_frames < 2 and plan.flow_stage:
+        raise ConfigError(f"flow outputs need num_frames >= 2, got {cfg.num_frames}; raise num_frames "
+                          "(--num-frames) or leave the flow outputs out")
+    gaps = [k for _, k in plan.pair_jobs]
+    if gaps and max(gaps) >= cfg.num_frames:
+        raise ConfigError(f"frame gap {max(gaps)} (flow_gaps) needs num_frames > {max(gaps)}, got {cfg.num_frames}")
+    return plan
 
 
 class BouncingThings(IterableDataset):
@@ -79,16 +94,7 @@ class BouncingThings(IterableDataset):
                 raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
         if length is not None and (not isinstance(length, (int, np.integer)) or length < 1):
             raise ConfigError(f"length must be None (endless) or an integer >= 1, got {length!r}")
-        requested = list(outputs)
-        self.plan = make_plan(tuple(dict.fromkeys(requested + ["K", "cam_T_world"])), occlusion=occlusion,
-                              threads=threads, **cfg.plan_options())
-        if cfg.num_frames < 2 and self.plan.flow_stage:
-            raise ConfigError(f"flow outputs need num_frames >= 2, got {cfg.num_frames}; raise num_frames "
-                              "(--num-frames) or leave the flow outputs out")
-        gaps = [k for _, k in self.plan.pair_jobs]
-        if gaps and max(gaps) >= cfg.num_frames:
-            raise ConfigError(f"frame gap {max(gaps)} (flow_gaps) needs num_frames > {max(gaps)}, "
-                              f"got {cfg.num_frames}")
+        self.plan = stream_plan(cfg, outputs, occlusion, threads)
         self.cfg, self.seed, self.length, self.start, self.device = cfg, int(seed), length, int(start), device
         self.outputs = self.plan.outputs
         self._epoch = 0

@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler, get_worker_info
 
+from flowsynth.datasets.bouncing import stream_plan
 from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
-from flowsynth.plan import make_plan
 from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan
 from flowsynth.scene import Scene, provenance_json
 
@@ -108,15 +108,7 @@ class DeviceBatches:
         if cfg.camera_dist_max is not None:
             raise ConfigError("camera_dist_max draws a lens per sample, and a batch needs one camera: leave "
                               "camera_dist_max None, or stream with BouncingThings")
-        self.plan = make_plan(tuple(dict.fromkeys(list(outputs) + ["K", "cam_T_world"])), occlusion=occlusion,
-                              threads=threads, **cfg.plan_options())
-        if cfg.num_frames < 2 and self.plan.flow_stage:
-            raise ConfigError(f"flow outputs need num_frames >= 2, got {cfg.num_frames}; raise num_frames "
-                              "(--num-frames) or leave the flow outputs out")
-        gaps = [k for _, k in self.plan.pair_jobs]
-        if gaps and max(gaps) >= cfg.num_frames:
-            raise ConfigError(f"frame gap {max(gaps)} (flow_gaps) needs num_frames > {max(gaps)}, "
-                              f"got {cfg.num_frames}")
+        self.plan = stream_plan(cfg, outputs, occlusion, threads)
         check_batch_plan(self.plan)
         self.device = resolve_device(device)  # here: the scenes' workers start by forkserver, never by fork
         self.cfg, self.batch_size, self.seed, self.start = cfg, int(batch_size), int(seed), int(start)
