@@ -33,7 +33,10 @@ Protocol (the numbers are module constants):
   shows.
 
 Writes results/learning_raft[_TAG].json after every seed, and each trained net's weights to
-.cache/learning_raft/TAG_ARM_sSEED.pt (for ``--figures``).
+.cache/learning_raft/TAG_ARM_sSEED.pt (for ``--figures``), each tested checkpoint's beside them (``checkpoint_path``).
+Each net trains in a process of its own (``train``), or with ``--ensemble`` all at once in one process
+(``train_many``, ``flowsynth.ensemble``) on the same pools, draws and checkpoints, into the same files; the results
+say which (``"trainer"``).
 """
 
 from __future__ import annotations
@@ -89,9 +92,9 @@ def _u8(x):
 def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = None, image: str = "rgb"):
     """n flowsynth pairs at RES: (img1, img2 uint8 (n, 3, h, w), flow (n, 2, h, w), valid (n, 1, h, w) bool), and the
     config. ``overrides``: config fields of a lever (not the size); ``image``: the output the images come from
-    ("rgb", or "rgb_final": the final pass)."""
+    ("rgb", or "rgb_final": the final pass). The ``workers`` render through ``fs.datasets.loader`` (forkserver), so a
+    process that has initialised CUDA renders its pools at the CPU rate; the pairs are those of any start method."""
     import torch
-    from torch.utils.data import DataLoader
 
     import flowsynth as fs
 
@@ -103,7 +106,7 @@ def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = Non
     img1, img2 = torch.empty(n, 3, h, w, dtype=torch.uint8), torch.empty(n, 3, h, w, dtype=torch.uint8)
     flow, valid = torch.empty(n, 2, h, w), torch.empty(n, 1, h, w, dtype=torch.bool)
     o = 0
-    for b in DataLoader(ds, batch_size=16, num_workers=workers):
+    for b in fs.datasets.loader(ds, batch_size=16, num_workers=workers, persistent_workers=False):
         k = len(b[image])
         img1[o:o + k], img2[o:o + k] = _u8(b[image][:, 0]), _u8(b[image][:, 1])
         flow[o:o + k], valid[o:o + k] = b["flow_fw"][:, 0], b["valid_fw"][:, 0]
@@ -235,7 +238,8 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     ``batched=False``: a loop of ``train_step``s). Net k: pool ``pools[k]``, initialised from ``net_seeds[k]``,
     batches drawn from its own generator seeded ``seeds[k]`` (``train``'s draws), ``stages[k]`` stages (default 1),
     weights saved to ``saves[k]`` and its curve to ``progresses[k]`` as ``train`` does. Returns ``train``'s result per
-    net, with ``at_once`` = K; ``train_s`` is the whole ensemble's."""
+    net, with ``at_once`` = K; ``train_s`` is the whole ensemble's, ``step_s`` its training steps' alone (draws,
+    augmentation and the step; no tests). Prints the ensemble's steps/s at each checkpoint."""
     import torch
 
     from flowsynth.ensemble import Ensemble
@@ -255,9 +259,14 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     t = time.perf_counter()
     curves = [[{"step": 0, "train_loss": None, **evaluate(net, tests, device)}] for net in nets]
     losses = []  # per step, the K losses
+    step_s = 0.0
     for step in range(1, steps + 1):
+        t0 = time.perf_counter()  # ens.step returns its losses on the CPU: the device has finished
         losses.append(ens.step(tuple(x.to(device) for x in _draw(pools, gens, stages, step, steps))).tolist())
+        step_s += time.perf_counter() - t0
         if step % every == 0 or step == steps:
+            print(f"ensemble of {k} nets: step {step} of {steps}, {step / step_s:.2f} steps/s "
+                  f"({k * step / step_s:.1f} net-steps/s) after {time.perf_counter() - t:.0f} s", flush=True)
             for i, net in enumerate(ens.nets()):
                 mine = [row[i] for row in losses[-every:]]
                 curves[i].append({"step": step, "train_loss": sum(mine) / len(mine), **evaluate(net, tests, device)})
@@ -274,7 +283,7 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
             torch.save(net.state_dict(), save)
     train_s = time.perf_counter() - t
     return [{"curve": c, "train_s": train_s, "net_seed": s, "parameters": sum(p.numel() for p in net.parameters()),
-             "at_once": k} for c, s, net in zip(curves, net_seeds, ens.nets())]
+             "at_once": k, "step_s": step_s} for c, s, net in zip(curves, net_seeds, ens.nets())]
 
 
 def _rate_loop(k: int, steps: int, warmup: int, batched: bool, device: str, threads: int, barrier=None) -> float:
@@ -365,9 +374,27 @@ def train_all(arms: dict, tests: dict, steps: int, seed: int, every: int, jobs: 
         return {name: f.result() for name, f in futs.items()}
 
 
+def train_together(pools: dict, tests: dict, steps: int, every: int, threads: int, device: str, tag: str) -> dict:
+    """``--ensemble``: the nets of ``pools`` ((seed, arm) -> pool) trained at once in this process (``train_many``),
+    each with what ``train`` gets from ``_train_args`` in its own process: its pool, batch seed, net seed, stages,
+    saved weights and progress file. Returns {(seed, arm): ``train_many``'s result}."""
+    keys = list(pools)
+    # each: (pool, tests, steps, seed, net_seed, every, threads, device, save, progress, stages)
+    argv = [_train_args({arm: pools[seed, arm]}, arm, tests, steps, seed, every, threads, device, tag)
+            for seed, arm in keys]
+    out = train_many([a[0] for a in argv], tests, steps, [a[3] for a in argv], [a[4] for a in argv], every,
+                     device=device, threads=threads, saves=[a[8] for a in argv], progresses=[a[9] for a in argv],
+                     stages=[a[10] for a in argv])
+    step_s = out[0]["step_s"]
+    print(f"ensemble of {len(keys)} nets: {steps} steps, {steps / step_s:.2f} steps/s in its training steps "
+          f"({len(keys) * steps / step_s:.1f} net-steps/s), {out[0]['train_s']:.0f} s with the tests", flush=True)
+    return dict(zip(keys, out))
+
+
 def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: dict, zero: dict, header) -> None:
     """``--at-once`` (a lent GPU): the pools of every seed first, then every net of every seed at once, each in a
-    process of its own; a seed's results are written when all its nets are done."""
+    process of its own (``--ensemble``: all in this process, ``train_together``); a seed's results are written when
+    all its nets are done."""
     import torch.multiprocessing as tmp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -380,6 +407,15 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
     while args.train_after and not Path(args.train_after).exists():  # the device's other benchmarks come first
         time.sleep(1)
     print(f"training starts after {time.perf_counter() - t:.0f} s", flush=True)
+    if args.ensemble:
+        res = train_together({(seed, name): pools[seed][name] for seed in seeds for name in names}, tests, steps,
+                             every, args.threads, args.device, args.tag)
+        runs = []
+        for seed in seeds:
+            runs.append({"seed": seed, "zero_flow_epe": zero, "results": {name: res[seed, name] for name in names},
+                         "data": infos[seed], "generation_s": gen_s})
+            header(runs, cfg, len(runs) == len(seeds))
+        return
     done: dict = {seed: {} for seed in seeds}
     runs = []
     with ProcessPoolExecutor(len(seeds) * len(names), mp_context=tmp.get_context("spawn")) as ex:
@@ -447,13 +483,16 @@ def run(args) -> None:
     zero = zero_flow(tests)
     seeds = [int(s) for s in args.seeds.split(",")]
     name = "learning_raft" + (f"_{args.tag}" if args.tag else "")
+    # how the nets trained: all at once in this process, each in a process of its own, or one after another here
+    trainer = "ensemble" if args.ensemble else "processes" if args.at_once or args.jobs else "in turn"
 
     def save(runs: list, cfg, complete: bool) -> None:
         write_json(name, {"complete": complete, "seeds_planned": seeds, "net": NET, "steps": steps,
                           "every": every, "batch": BATCH, "crop": CROP, "resolution": RES, "pool": args.pool or POOL,
                           "lr": LR,
                           "updates": [UPDATES, TEST_UPDATES], "judged_checkpoints": JUDGED, "device": args.device,
-                          "overrides": args.overrides, "flowsynth_config": cfg.to_dict(), "machine": machine_info(),
+                          "trainer": trainer, "overrides": args.overrides, "flowsynth_config": cfg.to_dict(),
+                          "machine": machine_info(),
                           "runs": sorted(runs, key=lambda r: r["seed"])})
         seed, res = runs[-1]["seed"], runs[-1]["results"]
         rows = [{"seed": seed, "arm": arm, "judge": j, "zero flow": zero[j], "untrained": r["curve"][0][j],
@@ -468,6 +507,11 @@ def run(args) -> None:
         t = time.perf_counter()
         arms, info, cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL)
         gen_s = time.perf_counter() - t
-        res = train_all(arms, tests, steps, seed, every, args.jobs, args.threads, args.device, args.tag)
+        if args.ensemble:
+            res = {arm: r for (_, arm), r in train_together({(seed, arm): pool for arm, pool in arms.items()}, tests,
+                                                            steps, every, args.threads, args.device,
+                                                            args.tag).items()}
+        else:
+            res = train_all(arms, tests, steps, seed, every, args.jobs, args.threads, args.device, args.tag)
         runs.append({"seed": seed, "zero_flow_epe": zero, "results": res, "data": info, "generation_s": gen_s})
         save(runs, cfg, seed == seeds[-1])
