@@ -19,7 +19,8 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 # The RAFT judge's flags (issue 53 keeps every one through the move into the package).
 FLAGS = ("--seeds", "--arms", "--middlebury", "--set", "--tag", "--summarize", "--screen", "--diagnose", "--figures",
          "--plot", "--stats", "--files", "--arm", "--against", "--nets", "--quick", "--jobs", "--threads", "--workers",
-         "--device", "--at-once", "--train-after", "--pool", "--steps", "--every")
+         "--device", "--at-once", "--train-after", "--pool", "--steps", "--every", "--ensemble",
+         "--diagnose-checkpoints", "--weights")
 
 
 def test_command_line_keeps_the_judges_flags(capsys):

@@ -2,17 +2,19 @@
 (``raft``; protocol and rules pre-registered in docs/decisions/0023-raft-judge.md) trains, pools and diagnoses.
 
     python benchmarks/learning [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400] [--middlebury DIR]
-                               [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2] [--at-once]
+                               [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2] [--at-once] [--ensemble]
     python benchmarks/learning --summarize [--files 'learning_raft*.json'] [--arm flowsynth] [--against chairs2d_photos]
     python benchmarks/learning --screen [--files 'learning_raft_s0*.json']       # rule 4 for every lever of seed 0
     python benchmarks/learning --diagnose --nets A.pt,B.pt [--middlebury DIR]   # where the saved nets fail
+    python benchmarks/learning --diagnose-checkpoints [--files 'learning_raft_l*.json'] [--middlebury DIR]  # every
+                               # checkpoint's invented motion and swings, and the goal of issue 53 (item 5)
     python benchmarks/learning --figures NAME --nets A.pt [--middlebury DIR]    # their predicted flow
     python benchmarks/learning --plot NAME | --stats [--set FIELD=JSON]
     python benchmarks/learning --ensemble-rate 2 [--steps 20] [--device cuda]  # K nets in one process vs K processes
 
 Writes results/learning_raft[_TAG].json after every seed (``raft.run``), and the readings beside it:
 learning_raft_summary_*, learning_raft_screens*, learning_raft_diagnose*, learning_raft_stats* (``summary``,
-``diagnose``).
+``diagnose``), learning_raft_diagnose_checkpoints* (``checkpoints``).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import json
 
 from _common import print_table, write_json
 
+from .checkpoints import diagnose_checkpoints, plot_invented, report
 from .diagnose import diagnose, figures, pool_stats
 from .raft import ARMS, EVERY, POOL, STEPS, ensemble_rate, run
 from .summary import plot_judge_curves, plot_summary, screen, summarize
@@ -44,6 +47,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda)")
     p.add_argument("--at-once", action="store_true", help="render every seed's pools, then train every net of every "
                    "seed at once, each in a process of its own (a lent GPU)")
+    p.add_argument("--ensemble", action="store_true", help="train the nets (of each seed; with --at-once, of every "
+                   "seed) at once in this process, batched (flowsynth.ensemble), in place of a process each: the same "
+                   "pools, draws, checkpoints and files")
     p.add_argument("--train-after", default=None, metavar="FILE", help="--at-once: render the pools, then wait until "
                    "FILE exists before training (so that other benchmarks have the GPU to themselves)")
     p.add_argument("--middlebury", default=None, metavar="DIR",
@@ -67,6 +73,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
                    "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
                    "[_TAG].json)")
+    p.add_argument("--diagnose-checkpoints", action="store_true", help="train nothing: per arm, seed and tested "
+                   "checkpoint of the --files runs, the motion its saved net invents on the five still photographs, "
+                   "each real pair's EPE swing and zero flow's, and the goal of issue 53 (item 5), deciding nothing "
+                   "(--middlebury, --device, --weights; results/learning_raft_diagnose_checkpoints[_TAG].json, .png)")
+    p.add_argument("--weights", default=None, metavar="DIR", help="--diagnose-checkpoints: the folder of the runs' "
+                   "saved weights (default .cache/learning_raft)")
     p.add_argument("--ensemble-rate", type=int, default=None, metavar="K", help="train nothing: steps/s of K nets "
                    "at the protocol's shape in one process (batched, and a loop) against K processes (--steps timed "
                    "steps, default 20; --threads, --device; results/learning_raft_ensemble_rate[_TAG].json)")
@@ -105,6 +117,13 @@ def main(argv: list[str] | None = None) -> None:
         rows = diagnose([n for n in args.nets.split(",") if n], args.middlebury)
         print_table(rows, list(rows[0]))
         write_json("learning_raft_diagnose" + (f"_{args.tag}" if args.tag else ""), {"rows": rows})
+        return
+    if args.diagnose_checkpoints:
+        out = diagnose_checkpoints(args.files, args.middlebury, args.device, args.weights)
+        report(out)
+        name = "learning_raft_diagnose_checkpoints" + (f"_{args.tag}" if args.tag else "")
+        write_json(name, out)
+        print(f"plot: {plot_invented(out, name) or 'none (no weights, or matplotlib is not installed)'}")
         return
     if args.figures:
         for path in figures(args.figures, args.middlebury, [n for n in args.nets.split(",") if n]):
