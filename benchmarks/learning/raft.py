@@ -446,7 +446,8 @@ def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = P
         if name in ("flowsynth", "control"):
             arms[name] = fs_pool
         elif name in ("chairs2d", "mixture", "curriculum"):
-            chairs, info["chairs2d_motion_scale"] = baseline_pool(n, seed, pool[0][n:].float() / 255, target)
+            if "chairs2d_motion_scale" not in info:  # one chairs2d pool (a pure function of n, seed) for all three
+                chairs, info["chairs2d_motion_scale"] = baseline_pool(n, seed, pool[0][n:].float() / 255, target)
             if name == "chairs2d":
                 arms[name] = chairs
             elif name == "mixture":
