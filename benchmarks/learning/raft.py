@@ -67,6 +67,7 @@ ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsyn
         "mixture", "curriculum", "control")
 STAGES = {"curriculum": 2}  # arms trained in stages: the pool's k-th of n equal blocks feeds the k-th n-th of steps
 CONTROL_SEED = 100  # the control's net seed is the run's seed + this
+DRAW_THREADS = 8  # train_many: threads drawing the nets' batches (the same batches whatever their number)
 JUDGES = ("stereo", "middlebury")
 CACHE = Path(__file__).resolve().parents[2] / ".cache" / "learning_raft"
 
@@ -217,17 +218,26 @@ def checkpoint_path(save: str, step: int) -> str:
     return str(Path(save).with_name(f"{Path(save).stem}_step{step}.pt"))
 
 
-def _draw(pools: list, gens: list, stages: list, step: int, steps: int) -> tuple:
-    """One step's batches of ``train_many``: per net, ``train``'s draw from its pool and generator, stacked (K, ...)."""
+def _draw_one(pool: tuple, g, n: int, step: int, steps: int) -> tuple:
+    """``train``'s draw of one step's batch from ``pool`` and generator ``g`` in a run of ``n`` stages."""
     import torch
 
     from flowsynth.training import augment
 
-    out = []
-    for (img1, img2, flow, valid), g, n in zip(pools, gens, stages):
-        block = len(img1) // n
-        idx = torch.randint(block, (BATCH,), generator=g) + min((step - 1) * n // steps, n - 1) * block
-        out.append(augment(img1[idx], img2[idx], flow[idx], valid[idx], CROP, g))
+    img1, img2, flow, valid = pool
+    block = len(img1) // n
+    idx = torch.randint(block, (BATCH,), generator=g) + min((step - 1) * n // steps, n - 1) * block
+    return augment(img1[idx], img2[idx], flow[idx], valid[idx], CROP, g)
+
+
+def _draw(pools: list, gens: list, stages: list, step: int, steps: int, drawers=None) -> tuple:
+    """One step's batches of ``train_many``: per net, ``train``'s draw from its pool and generator, stacked (K, ...).
+    ``drawers``: an executor that draws the nets' batches side by side (each net draws from its own generator only,
+    so the batches are the same)."""
+    import torch
+
+    jobs = [(pool, g, n, step, steps) for pool, g, n in zip(pools, gens, stages)]
+    out = list(drawers.map(lambda a: _draw_one(*a), jobs)) if drawers else [_draw_one(*a) for a in jobs]
     return tuple(torch.stack(x) for x in zip(*out))
 
 
@@ -239,7 +249,10 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     batches drawn from its own generator seeded ``seeds[k]`` (``train``'s draws), ``stages[k]`` stages (default 1),
     weights saved to ``saves[k]`` and its curve to ``progresses[k]`` as ``train`` does. Returns ``train``'s result per
     net, with ``at_once`` = K; ``train_s`` is the whole ensemble's, ``step_s`` its training steps' alone (draws,
-    augmentation and the step; no tests). Prints the ensemble's steps/s at each checkpoint."""
+    augmentation and the step; no tests). Prints the ensemble's steps/s at each checkpoint. The next step's batches
+    are drawn (``DRAW_THREADS`` threads, a net's draws from its own generator) while the ensemble steps."""
+    from concurrent.futures import ThreadPoolExecutor
+
     import torch
 
     from flowsynth.ensemble import Ensemble
@@ -260,24 +273,17 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     curves = [[{"step": 0, "train_loss": None, **evaluate(net, tests, device)}] for net in nets]
     losses = []  # per step, the K losses
     step_s = 0.0
-    for step in range(1, steps + 1):
-        t0 = time.perf_counter()  # ens.step returns its losses on the CPU: the device has finished
-        losses.append(ens.step(tuple(x.to(device) for x in _draw(pools, gens, stages, step, steps))).tolist())
-        step_s += time.perf_counter() - t0
-        if step % every == 0 or step == steps:
-            print(f"ensemble of {k} nets: step {step} of {steps}, {step / step_s:.2f} steps/s "
-                  f"({k * step / step_s:.1f} net-steps/s) after {time.perf_counter() - t:.0f} s", flush=True)
-            for i, net in enumerate(ens.nets()):
-                mine = [row[i] for row in losses[-every:]]
-                curves[i].append({"step": step, "train_loss": sum(mine) / len(mine), **evaluate(net, tests, device)})
-                if saves[i]:
-                    Path(saves[i]).parent.mkdir(parents=True, exist_ok=True)
-                    torch.save(net.state_dict(), checkpoint_path(saves[i], step))
-                if progresses[i]:
-                    Path(progresses[i]).parent.mkdir(parents=True, exist_ok=True)
-                    Path(progresses[i] + ".tmp").write_text(json.dumps({"curve": curves[i],
-                                                                        "s": time.perf_counter() - t}))
-                    Path(progresses[i] + ".tmp").replace(progresses[i])
+    with ThreadPoolExecutor(1) as ahead, ThreadPoolExecutor(min(k, DRAW_THREADS)) as drawers:
+        batches = ahead.submit(_draw, pools, gens, stages, 1, steps, drawers)
+        for step in range(1, steps + 1):
+            t0 = time.perf_counter()  # ens.step returns its losses on the CPU: the device has finished
+            batch = batches.result()
+            if step < steps:
+                batches = ahead.submit(_draw, pools, gens, stages, step + 1, steps, drawers)
+            losses.append(ens.step(tuple(x.to(device) for x in batch)).tolist())
+            step_s += time.perf_counter() - t0
+            if step % every == 0 or step == steps:
+                _checkpoint(ens, step, steps, every, losses, curves, tests, device, saves, progresses, t, step_s)
     for net, save in zip(ens.nets(), saves):
         if save:
             torch.save(net.state_dict(), save)
@@ -286,9 +292,30 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
              "at_once": k, "step_s": step_s} for c, s, net in zip(curves, net_seeds, ens.nets())]
 
 
+def _checkpoint(ens, step: int, steps: int, every: int, losses: list, curves: list, tests: dict, device: str,
+                saves: list, progresses: list, t: float, step_s: float) -> None:
+    """``train_many``'s checkpoint at ``step``: each net's test, saved weights and progress file, as ``train``'s."""
+    import torch
+
+    k = len(curves)
+    print(f"ensemble of {k} nets: step {step} of {steps}, {step / step_s:.2f} steps/s "
+          f"({k * step / step_s:.1f} net-steps/s) after {time.perf_counter() - t:.0f} s", flush=True)
+    for i, net in enumerate(ens.nets()):
+        mine = [row[i] for row in losses[-every:]]
+        curves[i].append({"step": step, "train_loss": sum(mine) / len(mine), **evaluate(net, tests, device)})
+        if saves[i]:
+            Path(saves[i]).parent.mkdir(parents=True, exist_ok=True)
+            torch.save(net.state_dict(), checkpoint_path(saves[i], step))
+        if progresses[i]:
+            Path(progresses[i]).parent.mkdir(parents=True, exist_ok=True)
+            Path(progresses[i] + ".tmp").write_text(json.dumps({"curve": curves[i], "s": time.perf_counter() - t}))
+            Path(progresses[i] + ".tmp").replace(progresses[i])
+
+
 def _rate_loop(k: int, steps: int, warmup: int, batched: bool, device: str, threads: int, barrier=None) -> float:
-    """Seconds for ``steps`` steps of ``train_many``'s loop (draw, augment, step) for ``k`` nets at the protocol's
-    shape, on a random uint8 pool at RES, after ``warmup`` steps (and ``barrier``, when given)."""
+    """Seconds for ``steps`` steps of ``train_many``'s loop (draw, augment, step; the draws here in turn with the steps,
+    where ``train_many`` draws ahead in threads) for ``k`` nets at the protocol's shape, on a random uint8 pool at RES,
+    after ``warmup`` steps (and ``barrier``, when given)."""
     import torch
 
     from flowsynth.ensemble import Ensemble
