@@ -175,13 +175,15 @@ def report(out: dict) -> None:
                   **{f"zero {k}": n["zero_flow"].get(k) for k in pairs}} for n in out["nets"]],
                 ["arm", "seed", *(f"swing {k}" for k in pairs), *(f"zero {k}" for k in pairs)])
     print(f"\nthe goal (decides nothing): {out['goal']}")
-    print_table([{"arm": n["arm"], "seed": n["seed"], "pass": n["pass"],
+    word = {True: "yes", False: "no", None: "unknown"}
+    print_table([{"arm": n["arm"], "seed": n["seed"], "pass": word[n["pass"]],
                   "what fails": "; ".join(n["fails"][:3]) + (f" (+{len(n['fails']) - 3})" if len(n["fails"]) > 3
                                                              else ""),
                   "missing": "; ".join(n["missing"][:2])} for n in out["nets"]],
                 ["arm", "seed", "pass", "what fails", "missing"])
     print_table([{"arm": a, "seeds": g["seeds"], "pass": g["pass"], "fail": g["fail"], "unknown": g["unknown"],
-                  f"goal ({GOAL_SEEDS} of {GOAL_OF})": g["met"]} for a, g in out["arms"].items()],
+                  f"goal ({GOAL_SEEDS} of {GOAL_OF})": {True: "met", False: "not met", None: "unknown"}[g["met"]]}
+                 for a, g in out["arms"].items()],
                 ["arm", "seeds", "pass", "fail", "unknown", f"goal ({GOAL_SEEDS} of {GOAL_OF})"])
 
 
