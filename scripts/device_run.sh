@@ -141,6 +141,7 @@ step feed 110 "$PY" benchmarks/device/feed.py "${FEED[@]}" ${FEED_ARGS:-}
 step feed_device 90 "$PY" benchmarks/device/feed.py --source device "${FEED[@]}" ${FEED_ARGS:-}
 # shellcheck disable=SC2086
 step gpu 150 "$PY" benchmarks/device/gpu.py "${GPU[@]}" ${GPU_ARGS:-}
+touch "${GPU_DONE_MARKER:-/tmp/gpu_steps_done}"  # the timings are done: device_extra.sh's training may use the GPU
 step tests 120 "$PY" -m pytest -q -x -rfEs --durations=8 -p no:cacheprovider tests/test_batched.py tests/test_device.py
 [ "${EXTRA_AT:-}" = after_gpu ] && start_extra
 

@@ -142,6 +142,9 @@ def test_device_batches_hold_the_streams_samples():
     one = next(iter(workers))
     for k in keys:
         assert torch.equal(one[k], got[0][k]), k
+    second = list(batches)  # a finite stream's next pass holds new samples, as BouncingThings' next epoch
+    assert [b["index"].tolist() for b in second] == [[5, 6], [7, 8]]
+    assert torch.equal(second[0]["depth"][1], stream.sample(6)["depth"])
 
 
 def test_batch_path_stays_on_the_device(twin, scenes, monkeypatch):  # noqa: F811 (the fixture)

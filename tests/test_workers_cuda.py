@@ -10,6 +10,7 @@ leaves fork once CUDA is initialised. This CPU machine cannot initialise CUDA, s
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -80,6 +81,32 @@ def test_a_worker_forked_after_cuda_refuses_and_the_loader_does_not(monkeypatch)
     assert "fs.datasets.loader" in str(e.value)
     got = _items(fs.datasets.loader(ds, batch_size=None, num_workers=1, timeout=TIMEOUT), 2)
     assert sorted(got) == [0, 1] and torch.equal(got[1]["depth"], ds.sample(1)["depth"])
+
+
+def _render_in_child(q, scene):
+    try:
+        fs.render(scene, ["depth"])
+        q.put("rendered")
+    except fs.ForkError:
+        q.put("ForkError")
+
+
+def test_render_in_a_child_forked_after_cuda_refuses(monkeypatch):
+    """Not only the stream: ``fs.render`` (every render starts at ``resolve_device``) in a user's own forked process
+    after CUDA raises ForkError; the same child without CUDA in its parent renders."""
+    import multiprocessing as mp
+
+    scene = BouncingThings(dataclasses.replace(CFG, motion="kinematic"), outputs=["depth"], seed=1).scene(0)
+    ctx = mp.get_context("fork")
+    got = []
+    for cuda in (False, True):
+        monkeypatch.setattr(parallel, "cuda_initialised", lambda cuda=cuda: cuda)
+        q = ctx.Queue()
+        p = ctx.Process(target=_render_in_child, args=(q, scene))
+        p.start()
+        got.append(q.get(timeout=TIMEOUT))
+        p.join()
+    assert got == ["rendered", "ForkError"]
 
 
 def test_fork_without_cuda_still_renders():
@@ -188,7 +215,8 @@ def test_stream_on_a_cuda_machine(order):
     if not _has_cuda():
         pytest.skip("no CUDA device")
     out = subprocess.run([sys.executable, "-c", CUDA_STREAM, order, "4", "64"], capture_output=True, text=True,
-                         timeout=900, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, check=False)
+                         timeout=900, cwd=ROOT, env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                             filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}, check=False)
     assert out.returncode == 0, out.stderr[-3000:]
     assert not [line for line in (out.stdout + out.stderr).splitlines() if "CUDA error" in line], out.stderr[-3000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])

@@ -12,7 +12,8 @@ crops, 8 updates: protocol 0023's recipe, decision 0023), on pairs of the defaul
 - **live**: each batch is the next one the stream hands over. ``--source stream``: ``fs.datasets.loader`` with
   ``--workers`` K processes rendering on the CPU (forkserver: this process has put the net on the device first, as a
   training script does). ``--source device``: ``fs.datasets.DeviceBatches`` (scenes from K CPU workers, every
-  per-pixel stage once per batch on ``--device``), where the library has it.
+  per-pixel stage once per batch on ``--device``; the clock waits for the batch's render before it counts the step,
+  and the host augmentation copies the batch to the host and back).
 
 Reported per loop, after ``--warmup`` steps (the live loop's also drains the 2 batches per worker prefetched while
 the in-memory loop ran): steps/s; for the live loop the share of its wall time spent waiting in
@@ -89,12 +90,16 @@ def live_batches(source: str, cfg, batch: int, workers: int, device: str, seed: 
 def run_loop(net, opt, sched, next_batch, steps: int, warmup: int, crop, updates: int, device: str, g) -> dict:
     """``warmup`` + ``steps`` training steps on batches from ``next_batch()``; per timed step, the seconds spent
     waiting for the batch and the seconds of the whole step (the loss's read-back synchronises the device)."""
+    import torch
+
     from flowsynth.training import augment, train_step
 
     waits, totals = [], []
     for k in range(warmup + steps):
         t0 = time.perf_counter()
         img1, img2, flow, valid = next_batch()
+        if img1.is_cuda:  # a device batch's launches are queued, not done: its render is time spent waiting
+            torch.cuda.synchronize(img1.device)
         t1 = time.perf_counter()
         aug = augment(img1.cpu(), img2.cpu(), flow.cpu(), valid.cpu(), crop, g)
         train_step(net, tuple(x.to(device) for x in aug), opt, sched, updates)
@@ -133,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     net = raft_small().to(a.device)  # on the device before any worker starts, as a training script does
     from flowsynth.training import one_cycle
 
-    opt, sched = one_cycle(net.parameters(), LR, 2 * (s["warmup"] + s["steps"]))
+    opt, sched = one_cycle(net.parameters(), LR, 2 * (s["warmup"] + s["steps"]) + 2 * s["workers"])  # both loops
     cfg = stream_config(s["res"])
     live = live_batches(a.source, cfg, s["batch"], s["workers"], a.device, a.seed)
 

@@ -21,7 +21,8 @@ Batched rows (issue 52, item 3; ``--batch B``, default 32, 0 skips): ``render_ba
 ``fs.render_batch`` alone on batches of scenes simulated before the clock (the device's ceiling; on CUDA one more batch
 runs under Warp's activity timing: the GPU's busy share and its top kernels), and ``batches of B, K scene workers``
 times ``fs.datasets.DeviceBatches`` end to end (scenes sampled and simulated by K CPU processes while the device
-renders). Each batch is read back once (a sum), so the clock waits for the device.
+renders; K + 1 batches untimed, then at least 2 K timed, so the workers must keep up). Each batch is read back once
+(a sum), so the clock waits for the device.
 
 Where the time goes: one CUDA sample (a CPU sample where there is no CUDA) of each workload under cProfile (the
 host functions with the most cumulative and the most own time, and own time summed per file), and one more under
@@ -40,6 +41,7 @@ average before each measurement (other jobs on the machine show there).
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import shutil
 import statistics
@@ -180,13 +182,15 @@ def time_workers(name: str, device: str, workers: int, n: int) -> dict:
             "load_average": [load, os.getloadavg()[0]]}
 
 
-def time_batches(name: str, device: str, batch: int, workers: int, n: int, warm: int = 2) -> dict:
-    """``fs.datasets.DeviceBatches`` end to end: scenes from ``workers`` CPU processes, every per-pixel stage once per
-    batch of ``batch`` on ``device``. ``warm`` batches first (start-up, kernel loads), then ``n`` batches timed
-    together; each batch's tensors are read back to the host once (``.sum().item()``), so the clock waits for the
-    device."""
+def time_batches(name: str, device: str, batch: int, workers: int, n: int) -> dict:
+    """``fs.datasets.DeviceBatches`` end to end: scenes from ``workers`` CPU processes (each makes a whole batch's
+    scenes), every per-pixel stage once per batch of ``batch`` on ``device``. The first ``workers`` + 1 batches are
+    not timed (start-up, kernel loads, and the first wave, which the workers make all at once), then ``max(n, 2
+    workers)`` batches timed together, so the workers must keep up; each batch's tensors are read back to the host
+    once (``.sum().item()``), so the clock waits for the device."""
     import flowsynth as fs
 
+    warm, n = workers + 1, max(n, 2 * workers)
     outputs, overrides = WORKLOADS[name]
     ds = fs.datasets.DeviceBatches(config(**overrides), outputs=outputs, batch_size=batch, device=device, seed=0,
                                    workers=workers, length=warm + n)
@@ -205,6 +209,16 @@ def time_batches(name: str, device: str, batch: int, workers: int, n: int, warm:
             "samples_per_s": n * batch / dt, "times_s": [dt], "load_average": [load, os.getloadavg()[0]]}
 
 
+@functools.cache
+def _scene_batches(batch: int, count: int) -> list:
+    """``count`` batches of ``batch`` scenes of seed 0, simulated once for every workload and device (the scene does
+    not depend on the outputs, the render mode or the device)."""
+    import flowsynth as fs
+
+    ds = fs.datasets.BouncingThings(config(), outputs=["depth"], seed=0)
+    return [[ds.scene(b * batch + k) for k in range(batch)] for b in range(count)]
+
+
 def batch_render(name: str, device: str, batch: int, n: int, activity: bool = False) -> dict:
     """``fs.render_batch`` alone on ``n`` batches of scenes simulated before the clock (the device's ceiling, no
     physics); with ``activity`` the last batch also runs under Warp's CUDA activity timing (the GPU's busy share)."""
@@ -213,8 +227,7 @@ def batch_render(name: str, device: str, batch: int, n: int, activity: bool = Fa
     from flowsynth.kernels import wp_runtime
 
     outputs, overrides = WORKLOADS[name]
-    ds = fs.datasets.BouncingThings(config(**overrides), outputs=outputs, seed=0)
-    batches = [[ds.scene(b * batch + k) for k in range(batch)] for b in range(n + 1)]
+    batches = _scene_batches(batch, n + 1)
     fs.render_batch(batches[0], outputs, device=device, **overrides)["depth"].sum().item()  # warm: kernels
     times = []
     for scenes in batches[1:]:

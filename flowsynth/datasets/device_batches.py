@@ -26,6 +26,7 @@ from torch.utils.data import Dataset, Sampler, get_worker_info
 from flowsynth.datasets.bouncing import stream_plan
 from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
+from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan
 from flowsynth.scene import Scene, provenance_json
 
@@ -44,6 +45,7 @@ class SceneSet(Dataset):
     def __getitem__(self, i: int):
         from flowsynth.scene import sample_scene
 
+        check_not_forked_from_cuda()  # kinematic scenes reach Warp (culling tables) without Newton's check
         in_worker = get_worker_info() is not None
         if in_worker:
             torch.set_num_threads(1)  # workers share the cores (flowsynth.parallel: one thread each)
@@ -115,6 +117,7 @@ class DeviceBatches:
         self.workers, self.length = int(workers), length
         self.outputs = self.plan.outputs
         self.scenes = SceneSet(cfg, self.seed, self.plan)
+        self._epoch = 0  # passes made over a finite stream
 
     def __len__(self) -> int:
         if self.length is None:
@@ -144,11 +147,13 @@ class DeviceBatches:
         return out
 
     def __iter__(self) -> Iterator[dict]:
+        """Endless, or (``length``) one pass of ``length`` batches; as ``BouncingThings``' epochs, pass e of a finite
+        stream holds batches e ``length`` .. (e + 1) ``length`` - 1: every pass sees new scenes."""
         count = None if self.length is None else self.length * self.batch_size
+        first = self.start + (0 if count is None else self._epoch * count)
         scenes = loader(self.scenes, batch_size=self.batch_size, num_workers=self.workers,
-                        sampler=_Indices(self.start, count), collate_fn=scene_list,
-                        persistent_workers=False)
-        first = self.start
+                        sampler=_Indices(first, count), collate_fn=scene_list, persistent_workers=False)
         for batch in scenes:
             yield self.render(batch, first)
             first += len(batch)
+        self._epoch += 1

@@ -11,7 +11,13 @@ CUDA, forks them. Every worker yields exactly the samples it would under fork (s
 The price of a fresh interpreter: each worker imports torch and flowsynth and loads the compiled kernels from Warp's
 cache once (a few seconds), the dataset is pickled to it, and the script's own work must sit under
 ``if __name__ == "__main__":``, as with any spawned worker. Workers are persistent by default, so a finite stream's
-next epoch does not pay that again.
+next epoch does not pay that again (a loop that breaks off an epoch and iterates again resumes after the batches the
+workers had prefetched: up to 2 a worker are skipped, never repeated).
+
+What is not caught: a parent that only called ``torch.cuda.is_available()`` has started the CUDA driver without
+``torch.cuda.is_initialized()`` saying so (PyTorch's ``PYTORCH_NVML_BASED_CUDA_CHECK=1`` avoids that); its forked
+children are not refused, and Warp there may print one CUDA error line and render on the CPU. torchdata's
+``StatefulDataLoader`` takes ``multiprocessing_context="forkserver"`` the same way.
 """
 
 from __future__ import annotations
