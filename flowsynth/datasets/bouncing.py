@@ -119,8 +119,7 @@ class BouncingThings(IterableDataset):
 
         if not isinstance(i, (int, np.integer)) or i < 0:
             raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
-        check_not_forked_from_cuda()  # a worker forked after CUDA: a ForkError at once, not CUDA errors and 10x slow
-        resolve_device(self.device)  # before the physics: a device Warp does not find fails first
+        resolve_device(self.device)  # first: a ForkError after CUDA, or a device Warp does not find, before physics
         scene = self.scene(i)
         out = render_plan(scene, self.plan, device=self.device)
         out["index"] = torch.tensor(int(i), dtype=torch.int64)
