@@ -1,6 +1,6 @@
 """Exception hierarchy. Every error the library raises on purpose derives from FlowsynthError."""
 
-__all__ = ["AssetError", "ConfigError", "ExportError", "FlowsynthError", "ForkError", "ShapeError", "StorageError"]
+__all__ = ["AssetError", "ConfigError", "DependencyError", "ExportError", "FlowsynthError", "ForkError", "ShapeError", "StorageError"]
 
 
 class FlowsynthError(Exception):
@@ -14,6 +14,11 @@ class ConfigError(FlowsynthError, ValueError):
 class ForkError(FlowsynthError, RuntimeError):
     """This process was forked from one that had initialised CUDA, where Warp cannot run (CUDA does not survive
     ``fork()``); the message says how to start workers instead (``fs.datasets.loader``, forkserver or spawn)."""
+
+
+class DependencyError(FlowsynthError, ImportError):
+    """An optional package that a function needs is not installed; the message says what to install.
+    The CLI exits with status 2."""
 
 
 class AssetError(FlowsynthError, ValueError):
