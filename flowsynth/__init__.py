@@ -7,7 +7,8 @@ no function shares its name with a module: ``fs.render`` comes from the folder `
 """
 
 from flowsynth.caches import clear_caches
-from flowsynth.errors import AssetError, ConfigError, DependencyError, ExportError, FlowsynthError, ForkError, ShapeError, StorageError
+from flowsynth.errors import (AssetError, ConfigError, DependencyError, ExportError, FlowsynthError, ForkError,
+                              ShapeError, StorageError)
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
 from flowsynth.renderer import render, render_batch, render_plan

@@ -1,6 +1,7 @@
 """Exception hierarchy. Every error the library raises on purpose derives from FlowsynthError."""
 
-__all__ = ["AssetError", "ConfigError", "DependencyError", "ExportError", "FlowsynthError", "ForkError", "ShapeError", "StorageError"]
+__all__ = ["AssetError", "ConfigError", "DependencyError", "ExportError", "FlowsynthError", "ForkError", "ShapeError",
+           "StorageError"]
 
 
 class FlowsynthError(Exception):
