@@ -24,9 +24,15 @@ Two ways to run the K nets (``Ensemble(..., batched=...)``):
   rate per tensor, so on a (K, ...) stack it is K AdamWs of the same schedule.
 - a loop (``batched=False``, the reference): K modules, K ``one_cycle`` optimisers, ``train_step`` on each in turn.
 
-Status: equal to K ``train_step`` runs in float64 to 1e-12 (tests/test_ensemble.py); vmap finds a batching rule for
-every op of RAFT-small on torch 2.13 (no fallback warning). On a CPU the batched step is no faster than the loop; its
-speed on a GPU is not yet measured (``python benchmarks/learning --ensemble-rate K --device cuda``).
+Precision (``Ensemble(..., precision=...)``, as ``flowsynth.training.train_step`` takes it): fp32, bf16 (the
+forward pass under autocast, inside the vmapped function in the batched mode) or fp16 (CUDA; dynamic loss scaling).
+In fp16 the loop keeps a gradient scaler per net, as K separate runs do; the batched mode keeps one for the K nets
+(one optimiser), so a step in which any net's gradients overflow is skipped for all K, where separate runs would skip
+it for that net alone.
+
+``step`` returns the K losses as a tensor on the nets' device and does not wait for the device (but in fp16, where
+torch's gradient scaler reads whether the gradients overflowed: one wait a step); the weights stay in the stacked
+tensors until ``copy_to_nets`` copies them into the modules.
 """
 
 from __future__ import annotations
@@ -35,7 +41,8 @@ import torch
 from torch import nn
 
 from flowsynth.errors import ConfigError, ShapeError
-from flowsynth.training import CLIP, one_cycle, sequence_loss, train_step
+from flowsynth.training import CLIP, autocast, check_precision, full_precision, grad_scaler, one_cycle, \
+    sequence_loss, step_loss
 
 __all__ = ["Ensemble", "clip_grad_norms_"]
 
@@ -73,16 +80,22 @@ class Ensemble:
     ``nets``: K modules of one architecture (the same parameter and buffer names, shapes, dtypes and devices), each
     initialised as its own run would be; they are trained in place of K ``train_step`` runs with
     ``one_cycle(net.parameters(), lr, steps, weight_decay, pct_start)`` each. ``updates`` flow updates a step,
-    gradient norm clipped at ``clip`` per net. In the batched mode the weights live in stacked tensors while training
-    and ``nets()`` copies them back into the modules."""
+    gradient norm clipped at ``clip`` per net, the forward pass in ``precision`` (``flowsynth.training.PRECISIONS``).
+    In the batched mode the weights live in stacked tensors while training and ``copy_to_nets()`` copies them back
+    into the modules. Raises ConfigError for no nets, nets of different architectures, running statistics in the
+    batched mode, an unknown precision, or fp16 off CUDA."""
 
     def __init__(self, nets: list[nn.Module], lr: float, steps: int, *, updates: int = 8, clip: float = CLIP,
-                 weight_decay: float = 1e-4, pct_start: float = 0.05, batched: bool = True):
+                 weight_decay: float = 1e-4, pct_start: float = 0.05, batched: bool = True, precision: str = "fp32"):
         if not nets:
             raise ConfigError("Ensemble needs at least one net")
         self.modules, self.updates, self.clip, self.batched = list(nets), updates, clip, batched
+        self.device = next(nets[0].parameters()).device
+        check_precision(precision, self.device)
+        self.precision = precision
         if not batched:
             self.opts = [one_cycle(net.parameters(), lr, steps, weight_decay, pct_start) for net in self.modules]
+            self.scalers = [grad_scaler(precision, self.device) for _ in self.modules]
             return
         first = {n: (p.shape, p.dtype, p.device) for n, p in (*nets[0].named_parameters(), *nets[0].named_buffers())}
         for i, net in enumerate(nets[1:], 1):
@@ -99,37 +112,52 @@ class Ensemble:
         self.params = {n: p.detach() for n, p in params.items()}  # (K, ...) leaves, one per parameter
         self.buffers = {n: b.detach() for n, b in buffers.items()}
         self.opt, self.sched = one_cycle(list(self.params.values()), lr, steps, weight_decay, pct_start)
+        self.scaler = grad_scaler(precision, self.device)
         template = self.modules[0]  # functional_call runs it with each net's weights in place of its own
 
-        def loss(params: dict, buffers: dict, img1, img2, flow, valid):
-            preds = torch.func.functional_call(template, (params, buffers), (img1 * 2 - 1, img2 * 2 - 1),
-                                               {"num_flow_updates": self.updates})
-            return sequence_loss(preds, flow, valid)
+        def loss(params: dict, buffers: dict, scale, img1, img2, flow, valid):
+            with autocast(precision, self.device):
+                preds = torch.func.functional_call(template, (params, buffers), (img1 * 2 - 1, img2 * 2 - 1),
+                                                   {"num_flow_updates": self.updates})
+            value = sequence_loss([full_precision(p) for p in preds], flow, valid)
+            return (value if scale is None else value * scale), value
 
-        self._grads = torch.func.vmap(torch.func.grad_and_value(loss), randomness="error")
+        self._grads = torch.func.vmap(torch.func.grad_and_value(loss, has_aux=True), in_dims=(0, 0, None, 0, 0, 0, 0),
+                                      randomness="error")
 
     def step(self, batch: tuple) -> torch.Tensor:
         """One step of RAFT's recipe for every net: ``batch`` = (img1, img2, flow, valid), (K, B, 3, H, W),
         (K, B, 3, H, W) in [0, 1], (K, B, 2, H, W) [px], (K, B, 1, H, W), on the nets' device; net k trains on row k
-        (augmented as ``train_step``'s batch is). Returns the K losses, (K,) float on the CPU."""
+        (augmented as ``train_step``'s batch is). Returns the K losses, (K,), detached, in the dtype of the loss
+        (float32 for float32 nets, whatever the precision) on the nets' device: the caller synchronises when it reads
+        them (the module docstring says when a step waits)."""
         _check_stack(batch, len(self.modules))
         if not self.batched:
-            return torch.tensor([train_step(net, tuple(x[k] for x in batch), opt, sched, self.updates, self.clip)
-                                 for k, (net, (opt, sched)) in enumerate(zip(self.modules, self.opts))],
-                                dtype=torch.float64)
+            return torch.stack([step_loss(net, tuple(x[k] for x in batch), opt, sched, self.updates, self.clip,
+                                          precision=self.precision, scaler=scaler)
+                                for k, (net, (opt, sched), scaler) in enumerate(zip(self.modules, self.opts,
+                                                                                    self.scalers))])
         self.modules[0].train()
-        grads, losses = self._grads(self.params, self.buffers, *batch)
-        clip_grad_norms_(list(grads.values()), self.clip)
+        scale = None if self.scaler is None else self.scaler.scale(torch.ones((), device=self.device))
+        grads, (_, losses) = self._grads(self.params, self.buffers, scale, *batch)
         for name, p in self.params.items():
             p.grad = grads[name]
-        self.opt.step()
+        if self.scaler is not None:
+            self.scaler.unscale_(self.opt)
+        clip_grad_norms_([p.grad for p in self.params.values()], self.clip)
+        if self.scaler is None:
+            self.opt.step()
+        else:
+            self.scaler.step(self.opt)
+            self.scaler.update()
         self.sched.step()
         self.opt.zero_grad(set_to_none=True)
-        return losses.detach().to("cpu", torch.float64)
+        return losses.detach()
 
     @torch.no_grad()
-    def nets(self) -> list[nn.Module]:
-        """The K modules holding their current weights (in the batched mode, copied from the stacked tensors)."""
+    def copy_to_nets(self) -> list[nn.Module]:
+        """Copy the current weights into the K modules (in the batched mode, from the stacked tensors: a copy of every
+        parameter and buffer, which waits for the device) and return them."""
         if self.batched:
             for k, net in enumerate(self.modules):
                 for name, t in (*net.named_parameters(), *net.named_buffers()):

@@ -14,6 +14,18 @@ The recipe, as in torchvision's ``references/optical_flow`` (RAFT, Teed and Deng
 - augmentation (``augment``): a random crop, flips (left-right 0.5, up-down 0.1; the flow's sign follows), and
   colour jitter of brightness, contrast and saturation (0.4) and hue (0.5 / pi of a turn), the same for both
   frames except with probability 0.2, when each frame draws its own (RAFT's asymmetric jitter).
+
+Precision (``PRECISIONS``, the ``precision`` argument of ``train_step`` and ``flowsynth.ensemble.Ensemble``): the
+weights, the optimiser and the loss stay float32 in every mode; what changes is the net's forward pass.
+
+- ``"fp32"`` (the default): no autocast; the net runs in its own dtype.
+- ``"bf16"``: the forward pass under ``torch.autocast`` to bfloat16, on the CPU or CUDA. bfloat16 keeps float32's
+  exponent range, so no loss scaling is needed.
+- ``"fp16"``: the forward pass under ``torch.autocast`` to float16, with dynamic loss scaling
+  (``torch.amp.GradScaler``: the loss is multiplied before the backward pass, the gradients divided back before the
+  clip, and a step whose gradients overflowed is skipped while the scale backs off). CUDA only.
+
+The net's flow estimates are cast up to float32 (when they come out in a lower precision) before the sequence loss.
 """
 
 from __future__ import annotations
@@ -23,7 +35,7 @@ import math
 import torch
 from torch.nn import functional as F
 
-from flowsynth.errors import ShapeError
+from flowsynth.errors import ConfigError, ShapeError
 
 GAMMA = 0.8  # weight decay of earlier updates in the sequence loss (RAFT)
 MAX_FLOW = 400.0  # [px] larger true flow is left out of the loss (RAFT)
@@ -32,6 +44,41 @@ JITTER = 0.4  # brightness, contrast and saturation factors drawn from [1 - JITT
 HUE = 0.5 / math.pi  # hue shift drawn from [-HUE, HUE] of a full turn (RAFT: ColorJitter(hue=0.5 / 3.14))
 ASYMMETRIC = 0.2  # chance that the two frames draw their jitter separately (RAFT)
 PAD = 8  # RAFT's features are at 1/8 resolution: sides are padded to a multiple of this
+PRECISIONS = ("fp32", "bf16", "fp16")  # training precisions (module docstring)
+AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}  # the forward pass's dtype under autocast
+FP16_DEVICES = ("cuda",)  # device types that train in fp16; CPUs train in bf16, whose range needs no loss scaling
+
+
+def check_precision(precision: str, device: torch.device | str) -> None:
+    """Raise ConfigError unless ``precision`` is one of ``PRECISIONS`` and trains on ``device`` (fp16: CUDA only)."""
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision {precision!r} is not one of {', '.join(PRECISIONS)}")
+    kind = torch.device(device).type
+    if precision == "fp16" and kind not in FP16_DEVICES:
+        raise ConfigError(f"precision 'fp16' trains on CUDA only (its gradient scaler), not on {kind!r}: use 'bf16' "
+                          "or 'fp32' there")
+
+
+def autocast(precision: str, device: torch.device | str):
+    """The context for a forward pass in ``precision`` on ``device``: ``torch.autocast`` to ``AUTOCAST[precision]``,
+    disabled for fp32. Raises ConfigError as ``check_precision``."""
+    check_precision(precision, device)
+    kind = torch.device(device).type
+    return torch.autocast(kind, dtype=AUTOCAST.get(precision, torch.bfloat16), enabled=precision != "fp32")
+
+
+def grad_scaler(precision: str, device: torch.device | str) -> torch.amp.GradScaler | None:
+    """The gradient scaler ``train_step`` needs for ``precision`` on ``device``: a ``torch.amp.GradScaler`` (torch's
+    defaults: initial scale 2 ** 16, halved on an overflow, doubled after 2000 steps without one) for fp16, None
+    otherwise. One scaler serves one optimiser for a whole run; save its ``state_dict`` with the optimiser's. Raises
+    ConfigError as ``check_precision``."""
+    check_precision(precision, device)
+    return torch.amp.GradScaler(torch.device(device).type) if precision == "fp16" else None
+
+
+def full_precision(x: torch.Tensor) -> torch.Tensor:
+    """``x`` as float32 if it is bfloat16 or float16; otherwise ``x`` itself (float32 and float64 pass unchanged)."""
+    return x.float() if x.dtype in (torch.bfloat16, torch.float16) else x
 
 
 def _check_pair(img1: torch.Tensor, img2: torch.Tensor) -> None:
@@ -118,21 +165,44 @@ def one_cycle(params, lr: float, steps: int, weight_decay: float = 1e-4, pct_sta
     return opt, sched
 
 
-def train_step(net, batch: tuple, opt, sched, updates: int = 8, clip: float = CLIP) -> float:
+def train_step(net, batch: tuple, opt, sched, updates: int = 8, clip: float = CLIP, *, precision: str = "fp32",
+               scaler: torch.amp.GradScaler | None = None) -> float:
     """One step of RAFT's recipe on ``batch`` = (img1, img2, flow, valid) (augmented, on the net's device; images in
     [0, 1]): ``updates`` flow updates, the sequence loss, backward, gradient clipping at ``clip``, an optimiser and a
-    scheduler step. Returns the loss."""
+    scheduler step. ``precision``: one of ``PRECISIONS`` (module docstring). ``scaler``: the run's gradient scaler,
+    used when given; fp16 needs one (``grad_scaler("fp16", device)``). Returns the loss (float32 from the net's
+    outputs, whatever the precision). Raises ConfigError for an unknown precision, fp16 off CUDA, or fp16 without a
+    scaler."""
+    return float(step_loss(net, batch, opt, sched, updates, clip, precision=precision, scaler=scaler))
+
+
+def step_loss(net, batch: tuple, opt, sched, updates: int = 8, clip: float = CLIP, *, precision: str = "fp32",
+              scaler: torch.amp.GradScaler | None = None) -> torch.Tensor:
+    """``train_step`` without the wait for the device: the same step, the same arguments and errors; returns the loss
+    as a 0-dim tensor on the batch's device (detached), which the caller reads when it chooses to synchronise (in
+    fp16, torch's gradient scaler waits once a step to read whether the gradients overflowed)."""
     img1, img2, flow, valid = batch
     _check_pair(img1, img2)
+    check_precision(precision, img1.device)
+    if precision == "fp16" and scaler is None:
+        raise ConfigError("precision 'fp16' needs the run's gradient scaler: scaler=grad_scaler('fp16', device)")
     net.train()
-    preds = net(img1 * 2 - 1, img2 * 2 - 1, num_flow_updates=updates)
-    loss = sequence_loss(preds, flow, valid)
+    with autocast(precision, img1.device):
+        preds = net(img1 * 2 - 1, img2 * 2 - 1, num_flow_updates=updates)
+    loss = sequence_loss([full_precision(p) for p in preds], flow, valid)
     opt.zero_grad(set_to_none=True)
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
-    opt.step()
+    if scaler is None:
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+        opt.step()
+    else:
+        scaler.scale(loss).backward()
+        scaler.unscale_(opt)
+        torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+        scaler.step(opt)
+        scaler.update()
     sched.step()
-    return float(loss.detach())
+    return loss.detach()
 
 
 @torch.no_grad()

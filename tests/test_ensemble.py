@@ -139,7 +139,7 @@ def test_three_nets_at_once_equal_three_separate_runs(float64):
     ens = Ensemble(_nets(range(3)), LR, STEPS, updates=UPDATES)
     together = torch.stack([ens.step(b) for b in batches], 1)  # (K, STEPS)
     assert torch.allclose(together, losses, rtol=LOSS_RTOL, atol=0)
-    assert _worst(ens.nets(), alone) < WEIGHTS_ATOL
+    assert _worst(ens.copy_to_nets(), alone) < WEIGHTS_ATOL
     assert _worst(_nets(range(3)), alone) > DISCERNED  # the steps moved the weights well beyond the tolerance
     assert len(set(losses[:, 0].tolist())) == 3  # every net trained on its own batches
 
@@ -164,7 +164,7 @@ def test_each_net_is_clipped_by_its_own_gradient_norm(float64, monkeypatch):
     mutant = Ensemble(_nets(range(3)), LR, STEPS, updates=UPDATES)
     for b in batches:
         mutant.step(b)
-    nets = mutant.nets()
+    nets = mutant.copy_to_nets()
     assert _worst(nets[0:1], alone[0:1]) > DISCERNED and _worst(nets[2:3], alone[2:3]) > DISCERNED
 
 
@@ -226,7 +226,7 @@ def test_the_loop_is_train_step_per_net():
     losses = ens.step(batches[0])
     alone = _nets([4, 5])
     assert losses.tolist() == [x[0] for x in _separate(alone, batches, 1e-2, 1.0)]
-    assert _worst(ens.nets(), alone) == 0.0
+    assert _worst(ens.copy_to_nets(), alone) == 0.0
 
 
 def test_ensemble_refuses_what_it_cannot_batch():

@@ -271,25 +271,27 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     gens = [torch.Generator().manual_seed(s) for s in seeds]
     t = time.perf_counter()
     curves = [[{"step": 0, "train_loss": None, **evaluate(net, tests, device)}] for net in nets]
-    losses = []  # per step, the K losses
-    step_s = 0.0
+    losses = []  # per step, the K losses (device tensors until the next checkpoint reads them)
+    step_s, read = 0.0, 0
     with ThreadPoolExecutor(1) as ahead, ThreadPoolExecutor(min(k, DRAW_THREADS)) as drawers:
         batches = ahead.submit(_draw, pools, gens, stages, 1, steps, drawers)
         for step in range(1, steps + 1):
-            t0 = time.perf_counter()  # ens.step returns its losses on the CPU: the device has finished
+            t0 = time.perf_counter()
             batch = batches.result()
             if step < steps:
                 batches = ahead.submit(_draw, pools, gens, stages, step + 1, steps, drawers)
-            losses.append(ens.step(tuple(x.to(device) for x in batch)).tolist())
+            losses.append(ens.step(tuple(x.to(device) for x in batch)))
+            if step % every == 0 or step == steps:  # the losses are read (the device has finished) at a checkpoint
+                losses[read:], read = torch.stack(losses[read:]).tolist(), len(losses)
             step_s += time.perf_counter() - t0
             if step % every == 0 or step == steps:
                 _checkpoint(ens, step, steps, every, losses, curves, tests, device, saves, progresses, t, step_s)
-    for net, save in zip(ens.nets(), saves):
+    for net, save in zip(ens.copy_to_nets(), saves):
         if save:
             torch.save(net.state_dict(), save)
     train_s = time.perf_counter() - t
     return [{"curve": c, "train_s": train_s, "net_seed": s, "parameters": sum(p.numel() for p in net.parameters()),
-             "at_once": k, "step_s": step_s} for c, s, net in zip(curves, net_seeds, ens.nets())]
+             "at_once": k, "step_s": step_s} for c, s, net in zip(curves, net_seeds, ens.copy_to_nets())]
 
 
 def _checkpoint(ens, step: int, steps: int, every: int, losses: list, curves: list, tests: dict, device: str,
@@ -300,7 +302,7 @@ def _checkpoint(ens, step: int, steps: int, every: int, losses: list, curves: li
     k = len(curves)
     print(f"ensemble of {k} nets: step {step} of {steps}, {step / step_s:.2f} steps/s "
           f"({k * step / step_s:.1f} net-steps/s) after {time.perf_counter() - t:.0f} s", flush=True)
-    for i, net in enumerate(ens.nets()):
+    for i, net in enumerate(ens.copy_to_nets()):
         mine = [row[i] for row in losses[-every:]]
         curves[i].append({"step": step, "train_loss": sum(mine) / len(mine), **evaluate(net, tests, device)})
         if saves[i]:
@@ -335,8 +337,9 @@ def _rate_loop(k: int, steps: int, warmup: int, batched: bool, device: str, thre
             if barrier is not None:
                 barrier.wait()
             t = time.perf_counter()
-        ens.step(tuple(x.to(device) for x in _draw([pool] * k, gens, [1] * k, step, warmup + steps)))
-    return time.perf_counter() - t  # ens.step returns its losses on the CPU: the device has finished
+        losses = ens.step(tuple(x.to(device) for x in _draw([pool] * k, gens, [1] * k, step, warmup + steps)))
+    losses.tolist()  # waits for the device to finish the last step
+    return time.perf_counter() - t
 
 
 def ensemble_rate(k: int = 2, steps: int = 20, warmup: int = 2, device: str = "cpu", threads: int = 2,
