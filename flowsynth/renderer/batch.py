@@ -113,9 +113,9 @@ def render_batch_plan(scenes: Sequence[Scene], plan: Plan, device: str = "cpu",
     if plan.flow_stage:
         out.update(_pairs(scenes, clips, accel, gb, plan, want, B, T, tdev))
     if plan.rgb:
-        from flowsynth.renderer.shading import render_rgb_batch
+        from flowsynth.renderer.shading import render_rgb
 
-        out["rgb"] = frames(wp.to_torch(render_rgb_batch(scenes, accel, gb, plan, device)))
+        out["rgb"] = frames(wp.to_torch(render_rgb(scenes, accel, gb, plan, device)))
     if "K" in want:
         out["K"] = torch.as_tensor(np.stack([s.camera.K for s in scenes]).astype(np.float32), device=tdev)
     if "cam_T_world" in want:

@@ -3,7 +3,7 @@
 In linear radiance, per clip (the models, their defaults and what they are not: docs/rendering.md, Final pass):
 
 1. motion blur: the scene re-shaded with the shutter centred on the frame instant (``FinalPass.shutter``,
-   ``time_samples``; ``flowsynth.renderer.shading.render_radiance`` with ``Plan.shutter_offset = -shutter / 2``);
+   ``time_samples``; ``flowsynth.renderer.shading.shade_radiance`` with ``Plan.shutter_offset = -shutter / 2``);
 2. fog: L' = L exp(-sigma s) + F (1 - exp(-sigma s)), s the ray length of the pixel-centre hit (``distance``);
 3. depth of field: thin-lens circle of confusion per pixel, gathered with occlusion-aware weights
    (``flowsynth.kernels.dof``);
@@ -168,7 +168,7 @@ def render_final(scene, accel, gb, plan: Plan, device: str = "cpu") -> torch.Ten
             every draw.
         device: Warp device of the shading.
     """
-    from flowsynth.renderer.shading import render_radiance, tonemap_frames
+    from flowsynth.renderer.shading import shade_radiance, tonemap_frames
 
     fp = plan.final_pass
     seed = int(scene.render_seed if plan.seed is None else plan.seed)
@@ -176,7 +176,7 @@ def render_final(scene, accel, gb, plan: Plan, device: str = "cpu") -> torch.Ten
     if fp.shutter > 0:
         plan = replace(plan.with_options(shutter=fp.shutter, spp=max(plan.spp, fp.time_samples)),
                        shutter_offset=-0.5 * fp.shutter)
-    radiance = render_radiance(scene, accel, gb, plan, device=device)
+    radiance = shade_radiance([scene], accel, gb, plan, device=device).numpy()  # the draws below compute on the host
     T, H, W = radiance.shape[:3]
     dz = scene.camera.pixel_rays_numpy()[..., 2]
     host = gb.host()  # the final pass's draws, fog, gains and noise compute on the host

@@ -16,7 +16,7 @@ import torch
 
 from flowsynth.options import RenderOptions
 from flowsynth.plan import Plan, make_plan
-from flowsynth.raycast import GBuffer, SceneAccel, cast_gbuffer, resolve_device, scene_arrays
+from flowsynth.raycast import GBuffer, SceneAccel, cast_gbuffer, resolve_device, scene_arrays, to_torch
 from flowsynth.scene import Scene, check_lens_outputs
 
 __all__ = ["HOST_KEYS", "gbuffer_outputs", "render", "render_plan"]
@@ -92,7 +92,7 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
     if plan.rgb:
         from flowsynth.renderer.shading import render_rgb
 
-        out["rgb"] = render_rgb(scene, accel, gb, plan, device=device)
+        out["rgb"] = to_torch(render_rgb([scene], accel, gb, plan, device=device))
     if plan.final:  # the final pass (flowsynth/renderer/finalpass.py): camera effects, the ground truth untouched
         from flowsynth.renderer.finalpass import render_final
 
@@ -145,4 +145,4 @@ def _rgb_right(scene: Scene, right, gb: GBuffer, plan: Plan, device: str) -> tor
     view = copy.copy(scene)
     view.lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
     view.world_T_cam = right.world_T_cam
-    return render_rgb(view, right.accel, right.gb, plan, device=device)
+    return to_torch(render_rgb([view], right.accel, right.gb, plan, device=device))

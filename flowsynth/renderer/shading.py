@@ -1,7 +1,8 @@
 """RGB rendering: materials and lights packed for the shading kernel, motion-blur time slices, tone mapping.
 
-``render_rgb`` is called by ``flowsynth.renderer.pipeline.render_plan`` when "rgb" is requested. The model (render
-modes, material schema, lights, time model, tone mapping, RNG) is documented in docs/rendering.md.
+``render_rgb`` shades and tone-maps B scenes in one launch each (``flowsynth.renderer.batch``; ``fs.render`` is its
+batch of one). The model (render modes, material schema, lights, time model, tone mapping, RNG) is documented in
+docs/rendering.md.
 
 Motion-blur time model: the shutter opens at the frame instant. Frame t integrates times
 t + shutter * (s + 1/2) / S [frame units], s = 0 .. S-1, with S = min(spp, MAX_TIME_SLICES) time slices
@@ -27,11 +28,11 @@ from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
 from flowsynth.parallel import BAND0, launch_image
 from flowsynth.plan import TONEMAPS
-from flowsynth.raycast import SceneAccel, pinhole, to_torch
+from flowsynth.raycast import SceneAccel, pinhole
 
-__all__ = ["MAX_TIME_SLICES", "median_hit_distance", "median_hit_distance_device", "pack_material_batch",
-           "pack_materials", "poses_at", "render_radiance", "render_rgb", "render_rgb_batch", "shade_radiance",
-           "shade_scenes", "shutter_times", "srgb_tables", "tonemap_array", "tonemap_frames", "tonemap_srgb"]
+__all__ = ["MAX_TIME_SLICES", "median_hit_distance", "pack_material_batch", "pack_materials", "poses_at", "render_rgb",
+           "shade_radiance", "shade_scenes", "shutter_times", "srgb_tables", "tonemap_array", "tonemap_frames",
+           "tonemap_srgb"]
 
 # White point of the extended Reinhard operator: linear radiance that maps to 1.
 REINHARD_WHITE = 4.0
@@ -51,21 +52,30 @@ LENS_RAY_PAD = 2
 _SRGB_TABLES: dict = register("shading.srgb_pow_tables", {})
 
 
-def render_rgb(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> torch.Tensor:
-    """Render ``rgb``: (T, 3, H, W) float32 sRGB-encoded colour in [0, 1] (a CPU tensor).
+def render_rgb(scenes, accel: SceneAccel, gb, plan, device: str = "cpu"):
+    """Render ``rgb`` of B scenes together (one scene, or a batch: ``flowsynth.renderer.batch``): one shading launch
+    and one tone-mapping launch.
 
     Args:
-        scene: the scene (objects' ``material`` dicts, ``lights``; empty means defaults).
-        accel: the G-buffer's acceleration structure (one group per frame).
-        gb: the G-buffer of the pixel-centre rays (``flowsynth.raycast.gbuffer.GBuffer``, on ``device``); reused as the
-            primary hit when spp == 1 and shutter == 0.
-        plan: a validated ``flowsynth.plan.Plan``: ``render_mode``, ``spp``, ``shutter``, ``seed``, ``bounces``,
-            ``tonemap``, ``exposure``.
+        scenes: B scenes of one camera and frame count T (objects' ``material`` dicts, ``lights``; empty lights: the
+            defaults, placed from the median hit distance of the scene's frame 0, ``median_hit_distance``).
+        accel: the G-buffer's acceleration structure (one group per frame of the B T).
+        gb: the G-buffer of the pixel-centre rays (``flowsynth.raycast.gbuffer.GBuffer``, on ``device``); reused as
+            the primary hit when spp == 1 and shutter == 0.
+        plan: a validated ``flowsynth.plan.Plan``: ``render_mode``, ``spp``, ``shutter``, ``seed`` (None: each
+            scene's render seed), ``bounces``, ``tonemap``, ``exposure``.
         device: Warp device of the shading and the tone mapping (the G-buffer's).
+
+    Returns:
+        (B T, 3, H, W) float32 Warp array on ``device``, sRGB-encoded colour in [0, 1]; frame b T + t is frame t of
+        scene b.
+
+    Raises:
+        ConfigError: a bad ``tonemap`` or ``exposure``; motion blur (shutter > 0) asked of more than one scene.
     """
     _check_tonemap(plan.tonemap, plan.exposure)
-    radiance = shade_radiance(scene, accel, gb, plan, device=device)
-    return to_torch(tonemap_array(radiance, plan.tonemap, plan.exposure, plan.threads))
+    radiance = shade_radiance(scenes, accel, gb, plan, device=device)
+    return tonemap_array(radiance, plan.tonemap, plan.exposure, plan.threads)
 
 
 def tonemap_frames(radiance: np.ndarray, method: str = "clamp", exposure: float = 1.0,
@@ -105,65 +115,10 @@ def srgb_tables(device: str = "cpu"):
     return tab
 
 
-def median_hit_distance(gb) -> float:
-    """Median ray length [m] of the hit pixels of frame 0 (1 when none): the default lights' scale
-    (``flowsynth.appearance.lights.resolve_lights``), computed on the host (``GBuffer.host()``)."""
-    host = gb.host()
-    hits = host.dist[0][host.item[0] >= 0]
-    return float(np.median(hits)) if hits.size else 1.0
-
-
-def render_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu") -> np.ndarray:
-    """``shade_radiance`` handed to the host: (T, H, W, 3) float32 numpy."""
-    return shade_radiance(scene, accel, gb, plan, device=device).numpy()
-
-
-def shade_radiance(scene, accel: SceneAccel, gb, plan, device: str = "cpu"):
-    """Linear radiance of every pixel, a (T, H, W) vec3 Warp array on ``device``, finite and >= 0 (before tone
-    mapping)."""
-    wp = wp_runtime()
-    T, H, W = scene.num_frames, scene.camera.height, scene.camera.width
-    lights = resolve_lights(scene.lights, scene.world_T_cam[0], median_hit_distance(gb))
-    sky = _sky(lights)
-    if accel.empty:
-        return wp.array(np.broadcast_to(sky.astype(np.float32), (T, H, W, 3)).copy(), dtype=wp.vec3, device=device)
-    spp, shutter = int(plan.spp), float(plan.shutter)
-    slices = min(spp, MAX_TIME_SLICES) if shutter > 0 else 1
-    cam_T_world = scene.cam_T_world
-    if shutter > 0:
-        times = shutter_times(T, shutter, slices).reshape(-1) + plan.shutter_offset  # offset: the final pass
-        world_T_cam = poses_at(scene.world_T_cam, times)
-        cam_T_world = np.linalg.inv(world_T_cam)
-        world_T_obj = np.stack([poses_at(o.poses, times) for o in scene.objects], 1)
-        accel = SceneAccel([o.mesh for o in scene.objects], cam_T_world, world_T_obj, device=device)
-    return shade_scenes([scene], [lights], [cam_T_world], [plan.seed], accel, gb, plan, slices, device)
-
-
-def render_rgb_batch(scenes, accel: SceneAccel, gb, plan, device: str = "cpu"):
-    """``rgb`` of a batch of scenes (``flowsynth.renderer.batch``), without motion blur: a (B T, 3, H, W) float32
-    Warp array on ``device``, frame b T + t that of scene b. One shading launch and one tone-mapping launch; the
-    default lights' scale (the median hit distance of each scene's frame 0) is taken on the device, and only those
-    B numbers come to the host."""
-    _check_tonemap(plan.tonemap, plan.exposure)
-    wp = wp_runtime()
-    T = scenes[0].num_frames
-    lights = []
-    for b, scene in enumerate(scenes):
-        median = median_hit_distance_device(gb, b * T) if not scene.lights else 1.0
-        lights.append(resolve_lights(scene.lights, scene.world_T_cam[0], median))
-    seeds = [int(scene.render_seed) if plan.seed is None else plan.seed for scene in scenes]
-    if accel.empty:
-        H, W = scenes[0].camera.height, scenes[0].camera.width
-        sky = np.stack([np.broadcast_to(_sky(x).astype(np.float32), (T, H, W, 3)) for x in lights])
-        radiance = wp.array(sky.reshape(-1, H, W, 3), dtype=wp.vec3, device=device)
-    else:
-        radiance = shade_scenes(scenes, lights, [s.cam_T_world for s in scenes], seeds, accel, gb, plan, 1, device)
-    return tonemap_array(radiance, plan.tonemap, plan.exposure, plan.threads)
-
-
-def median_hit_distance_device(gb, frame: int) -> float:
-    """``median_hit_distance`` of frame ``frame`` of a G-buffer, computed on its device (numpy's median: the mean of
-    the two middle values in float32 for an even count), 1 when nothing is hit; one number comes to the host."""
+def median_hit_distance(gb, frame: int = 0) -> float:
+    """Median ray length [m] of the hit pixels of frame ``frame`` of G-buffer ``gb`` (1 when none): the default lights'
+    scale (``flowsynth.appearance.lights.resolve_lights``). Computed on the G-buffer's device as numpy's median
+    computes it (the mean of the two middle values in float32 for an even count); one number comes to the host."""
     wp = wp_runtime()
     dist = wp.to_torch(gb.dist)[frame]
     hits = torch.sort(dist[wp.to_torch(gb.item)[frame] >= 0]).values
@@ -172,6 +127,34 @@ def median_hit_distance_device(gb, frame: int) -> float:
         return 1.0
     mid = hits[n // 2] if n % 2 else (hits[n // 2 - 1] + hits[n // 2]) / 2
     return float(mid)
+
+
+def shade_radiance(scenes, accel: SceneAccel, gb, plan, device: str = "cpu"):
+    """Linear radiance of every pixel of B scenes (``render_rgb``'s arguments), before tone mapping: a (B T, H, W)
+    vec3 Warp array on ``device``, finite and >= 0. With motion blur (``plan.shutter`` > 0; one scene only) the scene
+    is cast again at ``min(spp, MAX_TIME_SLICES)`` times per frame (module docstring)."""
+    wp = wp_runtime()
+    B, T = len(scenes), scenes[0].num_frames
+    H, W = scenes[0].camera.height, scenes[0].camera.width
+    lights = [resolve_lights(s.lights, s.world_T_cam[0], median_hit_distance(gb, b * T) if not s.lights else 1.0)
+              for b, s in enumerate(scenes)]
+    if accel.empty:
+        sky = np.stack([np.broadcast_to(_sky(x).astype(np.float32), (T, H, W, 3)) for x in lights])
+        return wp.array(sky.reshape(-1, H, W, 3), dtype=wp.vec3, device=device)
+    seeds = [int(s.render_seed) if plan.seed is None else plan.seed for s in scenes]
+    spp, shutter = int(plan.spp), float(plan.shutter)
+    slices = min(spp, MAX_TIME_SLICES) if shutter > 0 else 1
+    cam_T_worlds = [s.cam_T_world for s in scenes]
+    if shutter > 0:
+        if B != 1:
+            raise ConfigError(f"motion blur (shutter {shutter}) renders one scene at a time, got {B}; render "
+                              "motion-blurred rgb per scene with fs.render")
+        scene = scenes[0]
+        times = shutter_times(T, shutter, slices).reshape(-1) + plan.shutter_offset  # offset: the final pass
+        cam_T_worlds = [np.linalg.inv(poses_at(scene.world_T_cam, times))]
+        world_T_obj = np.stack([poses_at(o.poses, times) for o in scene.objects], 1)
+        accel = SceneAccel([o.mesh for o in scene.objects], cam_T_worlds[0], world_T_obj, device=device)
+    return shade_scenes(scenes, lights, cam_T_worlds, seeds, accel, gb, plan, slices, device)
 
 
 def _sky(lights) -> np.ndarray:
