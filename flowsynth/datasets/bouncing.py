@@ -1,46 +1,24 @@
 """``BouncingThings``: a ``torch.utils.data.IterableDataset`` of generated samples.
 
-Sample i is a pure function of (config, seed, i). The global index stream is split into shards:
-shard g of G = world_size * num_workers, with g = rank * num_workers + worker_id, takes the indices
-i = start + g + G m (m = 0, 1, ...). So the union over shards is every index exactly once, whatever
-the number of workers, ranks or the process start method.
-
-Epochs. With ``length=None`` the stream is endless: an epoch ends when the training loop stops
-reading, and the next ``iter()`` on the same dataset object (num_workers=0, or persistent workers)
-continues after the last sample this shard produced, so no sample repeats. With a finite ``length``
-L, epoch e covers indices [start + e L, start + (e + 1) L): every epoch sees new scenes. The epoch
-counter advances on each ``iter()`` of the same object; with non-persistent workers (fresh copies
-every epoch) call ``set_epoch(e)`` before each epoch, as with ``DistributedSampler``.
-
-Resuming. ``state_dict()`` / ``load_state_dict()`` follow torchdata's ``StatefulDataLoader``
-protocol: each worker's copy reports its own position, and a restored loader continues with exactly
-the samples an uninterrupted run would have produced.
+Sample i is a pure function of (config, seed, i). Sharding over DataLoader workers and ranks, epochs and
+``state_dict`` / ``load_state_dict`` (torchdata's ``StatefulDataLoader`` protocol) are ``IndexStream``'s
+(flowsynth/datasets/stream.py): every index exactly once over the shards, new samples every epoch, and a restored
+loader continues with exactly the samples an uninterrupted run would have produced.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
-import numpy as np
 import torch
-from torch.utils.data import IterableDataset, get_worker_info
 
+from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
 from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.plan import make_plan
 from flowsynth.scene import Scene, provenance_json, sample_seed
 
 __all__ = ["BouncingThings", "sample_seed", "stream_plan"]
-
-
-def _shard() -> tuple[int, int]:
-    """(shard id, number of shards) from torch.distributed rank/world size and the DataLoader worker."""
-    rank, world = 0, 1
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
-        rank, world = torch.distributed.get_rank(), torch.distributed.get_world_size()
-    info = get_worker_info()
-    wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
-    return rank * nw + wid, world * nw
 
 
 def stream_plan(cfg, outputs: Sequence[str], occlusion: str, threads: int | None):
@@ -58,7 +36,7 @@ def stream_plan(cfg, outputs: Sequence[str], occlusion: str, threads: int | None
     return plan
 
 
-class BouncingThings(IterableDataset):
+class BouncingThings(IndexStream):
     """Endless (or ``length``-long per epoch) stream of BouncingThings samples.
 
     Args:
@@ -89,21 +67,10 @@ class BouncingThings(IterableDataset):
         cfg = BouncingThingsConfig() if cfg is None else cfg
         if not isinstance(cfg, BouncingThingsConfig):
             raise ConfigError(f"cfg must be a BouncingThingsConfig, got {type(cfg).__name__}")
-        for name, v, lo in (("seed", seed, 0), ("start", start, 0)):
-            if not isinstance(v, (int, np.integer)) or v < lo:
-                raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
-        if length is not None and (not isinstance(length, (int, np.integer)) or length < 1):
-            raise ConfigError(f"length must be None (endless) or an integer >= 1, got {length!r}")
+        self._init_stream(seed, length, start)
         self.plan = stream_plan(cfg, outputs, occlusion, threads)
-        self.cfg, self.seed, self.length, self.start, self.device = cfg, int(seed), length, int(start), device
+        self.cfg, self.device = cfg, device
         self.outputs = self.plan.outputs
-        self._epoch = 0
-        self._pos = 0  # samples this shard has produced in the current epoch (endless: ever)
-
-    def __len__(self) -> int:
-        if self.length is None:
-            raise TypeError("an endless BouncingThings stream has no len(); pass length=...")
-        return self.length
 
     def scene(self, i: int) -> Scene:
         """The simulated scene behind sample ``i``."""
@@ -117,8 +84,7 @@ class BouncingThings(IterableDataset):
         from flowsynth.raycast import resolve_device
         from flowsynth.renderer import render_plan
 
-        if not isinstance(i, (int, np.integer)) or i < 0:
-            raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
+        i = check_index(i)
         resolve_device(self.device)  # first: a ForkError after CUDA, or a device Warp does not find, before physics
         scene = self.scene(i)
         out = render_plan(scene, self.plan, device=self.device)
@@ -126,41 +92,3 @@ class BouncingThings(IterableDataset):
         out["seed"] = torch.tensor(self.seed, dtype=torch.int64)
         out["provenance"] = provenance_json(scene)
         return out
-
-    # -- iteration ---------------------------------------------------------------------------------
-    def set_epoch(self, epoch: int) -> None:
-        """Start the next ``iter()`` at ``epoch`` (finite length; needed with non-persistent workers)."""
-        self._epoch, self._pos = int(epoch), 0
-
-    def _indices(self, g: int, G: int, epoch: int, pos: int) -> Iterator[int]:
-        m = pos
-        while True:
-            k = g + G * m
-            if self.length is not None and k >= self.length:
-                return
-            base = self.start + (epoch * self.length if self.length is not None else 0)
-            yield base + k, m + 1
-            m += 1
-
-    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
-        if get_worker_info() is not None:
-            torch.set_num_threads(1)
-        g, G = _shard()
-        epoch = self._epoch
-        for i, next_pos in self._indices(g, G, epoch, self._pos):
-            item = self.sample(i)
-            self._pos = next_pos
-            yield item
-        # finite epoch exhausted: the next iter() starts the next epoch
-        self._epoch, self._pos = epoch + 1, 0
-
-    def state_dict(self) -> dict:
-        """This copy's position (per worker under StatefulDataLoader)."""
-        return {"epoch": self._epoch, "pos": self._pos, "seed": self.seed, "start": self.start}
-
-    def load_state_dict(self, state: dict) -> None:
-        """Restore a position saved by ``state_dict``; refuses a state of another seed or start."""
-        if state.get("seed") != self.seed or state.get("start") != self.start:
-            raise ConfigError(f"state was saved with seed={state.get('seed')}, start={state.get('start')}; "
-                              f"this dataset has seed={self.seed}, start={self.start}")
-        self._epoch, self._pos = int(state["epoch"]), int(state["pos"])

@@ -1,0 +1,110 @@
+"""``IndexStream``: iteration, sharding, epochs and resume of a stream whose sample i is a pure function of
+(config, seed, i). ``BouncingThings``, ``Layers`` and ``Mixture`` are ones; each defines ``sample(i)``.
+
+The global index stream is split into shards: shard g of G = world_size * num_workers, with
+g = rank * num_workers + worker_id, takes the indices i = start + g + G m (m = 0, 1, ...). So the union over shards
+is every index exactly once, whatever the number of workers, ranks or the process start method.
+
+Epochs. With ``length=None`` the stream is endless: an epoch ends when the training loop stops reading, and the
+next ``iter()`` on the same dataset object (num_workers=0, or persistent workers) continues after the last sample
+this shard produced, so no sample repeats. With a finite ``length`` L, epoch e covers indices
+[start + e L, start + (e + 1) L): every epoch sees new samples. The epoch counter advances on each ``iter()`` of the
+same object; with non-persistent workers (fresh copies every epoch) call ``set_epoch(e)`` before each epoch, as
+with ``DistributedSampler``.
+
+Resuming. ``state_dict()`` / ``load_state_dict()`` follow torchdata's ``StatefulDataLoader`` protocol: each
+worker's copy reports its own position, and a restored loader continues with exactly the samples an uninterrupted
+run would have produced.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from flowsynth.errors import ConfigError
+
+__all__ = ["IndexStream", "check_index"]
+
+
+def _shard() -> tuple[int, int]:
+    """(shard id, number of shards) from torch.distributed rank/world size and the DataLoader worker."""
+    rank, world = 0, 1
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        rank, world = torch.distributed.get_rank(), torch.distributed.get_world_size()
+    info = get_worker_info()
+    wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
+    return rank * nw + wid, world * nw
+
+
+def check_index(i) -> int:
+    """``i`` as an int; ConfigError unless it is an integer >= 0 (a sample index)."""
+    if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or i < 0:
+        raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
+    return int(i)
+
+
+class IndexStream(IterableDataset):
+    """Base of flowsynth's streams: subclasses call ``_init_stream(seed, length, start)`` in ``__init__`` and define
+    ``sample(i) -> dict``; this class iterates, shards, counts epochs and saves positions (module docstring)."""
+
+    def _init_stream(self, seed: int, length: int | None, start: int) -> None:
+        """Check and keep ``seed`` (>= 0), ``length`` (None or >= 1) and ``start`` (>= 0); ConfigError otherwise."""
+        for name, v in (("seed", seed), ("start", start)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise ConfigError(f"{name} must be an integer >= 0, got {v!r}")
+        if length is not None and (isinstance(length, bool) or not isinstance(length, (int, np.integer))
+                                   or length < 1):
+            raise ConfigError(f"length must be None (endless) or an integer >= 1, got {length!r}")
+        self.seed, self.length, self.start = int(seed), None if length is None else int(length), int(start)
+        self._epoch = 0
+        self._pos = 0  # samples this shard has produced in the current epoch (endless: ever)
+
+    def sample(self, i: int) -> dict:
+        """Sample ``i`` (defined by each stream)."""
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        if self.length is None:
+            raise TypeError(f"an endless {type(self).__name__} stream has no len(); pass length=...")
+        return self.length
+
+    def set_epoch(self, epoch: int) -> None:
+        """Start the next ``iter()`` at ``epoch`` (finite length; needed with non-persistent workers)."""
+        self._epoch, self._pos = int(epoch), 0
+
+    def _indices(self, g: int, G: int, epoch: int, pos: int) -> Iterator[tuple[int, int]]:
+        m = pos
+        while True:
+            k = g + G * m
+            if self.length is not None and k >= self.length:
+                return
+            base = self.start + (epoch * self.length if self.length is not None else 0)
+            yield base + k, m + 1
+            m += 1
+
+    def __iter__(self) -> Iterator[dict]:
+        if get_worker_info() is not None:
+            torch.set_num_threads(1)
+        g, G = _shard()
+        epoch = self._epoch
+        for i, next_pos in self._indices(g, G, epoch, self._pos):
+            item = self.sample(i)
+            self._pos = next_pos
+            yield item
+        # finite epoch exhausted: the next iter() starts the next epoch
+        self._epoch, self._pos = epoch + 1, 0
+
+    def state_dict(self) -> dict:
+        """This copy's position (per worker under StatefulDataLoader)."""
+        return {"epoch": self._epoch, "pos": self._pos, "seed": self.seed, "start": self.start}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore a position saved by ``state_dict``; refuses a state of another seed or start."""
+        if state.get("seed") != self.seed or state.get("start") != self.start:
+            raise ConfigError(f"state was saved with seed={state.get('seed')}, start={state.get('start')}; "
+                              f"this dataset has seed={self.seed}, start={self.start}")
+        self._epoch, self._pos = int(state["epoch"]), int(state["pos"])
