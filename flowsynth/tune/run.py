@@ -1,0 +1,147 @@
+"""``tune``: the generator's knobs fitted to a user's validation pairs, resumable; what ``flowsynth tune`` runs.
+
+Files, beside the preset ``out`` (``PRESET.json``): a folder ``PRESET.tune/`` holding ``state.pt`` (the search and
+its nets, replaced atomically after every checkpoint: the same call continues from it), ``progress.json`` (the curves
+so far), and once done ``report.json``, ``report.md`` and ``curves.png`` (where matplotlib is installed).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from flowsynth.errors import ConfigError
+from flowsynth.io import atomic_path, atomic_write_bytes, write_json
+from flowsynth.tune.halving import TWIN, TWIN_SEED, plan_cost, plan_rungs, rank, search
+from flowsynth.tune.pairs import read_pairs
+from flowsynth.tune.report import markdown, plot, summarize
+from flowsynth.tune.space import draw_candidates, preset_config, training_config
+from flowsynth.tune.trainer import QUICK, RECIPE, EnsembleTrainer, Recipe, render_pool
+
+__all__ = ["DEFAULT_BUDGET", "DEFAULT_CANDIDATES", "tune", "work_dir"]
+
+DEFAULT_CANDIDATES = 8
+DEFAULT_BUDGET = plan_cost(DEFAULT_CANDIDATES, 300)
+"""[net-steps] 10500: 8 candidates halved over rungs ending at steps 300, 600, 1200 and 2400 (the judge's length)."""
+QUICK_CANDIDATES = 2
+RAFT_MIN = 128  # [px] RAFT-small's correlation pyramid needs crops of at least this a side
+
+
+def work_dir(out: str | Path) -> Path:
+    """The folder of a tune's state and report beside its preset ``out``: PRESET.json -> PRESET.tune."""
+    out = Path(out)
+    return out.with_name(out.stem + ".tune")
+
+
+def _fingerprint(pairs: dict) -> str:
+    h = hashlib.sha256()
+    for name, pair in pairs.items():
+        h.update(name.encode())
+        for x in pair:
+            h.update(x.numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def _positive(name: str, value, low: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
+    return value
+
+
+def _load(path: Path, identity: dict) -> dict | None:
+    if not path.is_file():
+        return None
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    if saved["identity"] != identity:
+        diff = sorted(k for k in identity.keys() | saved["identity"].keys()
+                      if identity.get(k) != saved["identity"].get(k))
+        raise ConfigError(f"{path.parent} holds a tune of other settings (they differ in {diff}); run it with "
+                          "its own settings to continue it, or remove the folder (or name another --out) to start")
+    return saved["search"]
+
+
+def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, budget: int | None = None,
+         candidates: int | None = None, seed: int = 0, device: str = "cpu", precision: str = "fp32",
+         workers: int = 0, quick: bool = False, recipe: Recipe | None = None, net: Callable | None = None,
+         pool: Callable = render_pool, log: Callable[[str], None] = print) -> dict:
+    """Fit the generator to the validation pairs in ``val`` by successive halving of nets trained on its settings
+    (docs/tune.md), write the winner's preset to ``out`` and the report beside it (``work_dir(out)``).
+
+    Args:
+        val: a folder of validation pairs (``flowsynth.tune.pairs``: Middlebury, FlyingChairs, KITTI, Sintel).
+        out: the preset file to write (JSON of ``BouncingThingsConfig`` fields: ``BouncingThingsConfig.from_dict``
+            and ``flowsynth export --config`` read it).
+        pairs: only these pairs (names or globs); None: all.
+        budget: training steps over all nets [net-steps: one step of one net on one batch of ``recipe.batch``
+            crops]; None: ``DEFAULT_BUDGET`` (``quick``: the smallest that trains the candidates).
+        candidates: points of the search space tried, the default's among them (None: 8; ``quick``: 2).
+        seed: the tune's seed: the candidates drawn, the nets' weights, pools and batches.
+        device: the torch device the nets train on ("cpu", "cuda", ...); pools render on the CPU.
+        precision: "fp32", "bf16" or "fp16" (CUDA) (``flowsynth.training.PRECISIONS``).
+        workers: processes rendering the pools (0: this one).
+        quick: a tiny recipe (``flowsynth.tune.trainer.QUICK``) to check that a tune runs; its winner means little.
+        recipe: how nets train and test (default ``RECIPE``, the learning judge's; overrides ``quick``'s).
+        net: builds one net (default ``flowsynth.nets.raft_small``); pool: renders a pool (``render_pool``).
+        log: called with a line of progress after every checkpoint.
+
+    Returns:
+        the report (``flowsynth.tune.report.summarize``), with ``"settings"``.
+
+    Raises:
+        ConfigError: no pairs or an unreadable one, a budget too small for the candidates, bad arguments, or a
+            state in the work folder of other settings. DependencyError: torchvision is missing (``net`` None).
+    """
+    from flowsynth.training import check_precision
+
+    recipe = recipe or (QUICK if quick else RECIPE)
+    candidates = _positive("candidates", QUICK_CANDIDATES if quick and candidates is None else
+                           candidates or DEFAULT_CANDIDATES, 2)
+    seed, workers = _positive("seed", seed, 0), _positive("workers", workers, 0)
+    check_precision(precision, torch.device(device))
+    keys = draw_candidates(candidates, seed)
+    if budget is None:
+        budget = plan_cost(candidates, 2) if quick else DEFAULT_BUDGET
+    rungs = plan_rungs(candidates, _positive("budget", budget))
+    layout, val_pairs = read_pairs(val, pairs)
+    if net is None:
+        from flowsynth.nets import raft_small
+
+        raft_small()  # DependencyError now, before any work, where torchvision is missing
+        if min(recipe.crop) < RAFT_MIN:
+            raise ConfigError(f"RAFT-small trains on crops of at least {RAFT_MIN} px a side; got {recipe.crop}")
+    out, work = Path(out), work_dir(out)
+    identity = {"layout": layout, "pairs": list(val_pairs),
+                "fingerprint": _fingerprint(val_pairs), "budget": budget, "candidates": keys, "seed": seed,
+                "recipe": recipe.to_dict(), "precision": precision}
+    work.mkdir(parents=True, exist_ok=True)
+    state = _load(work / "state.pt", identity)
+    settings = {k: (training_config(k, recipe.res), seed) for k in keys}
+    settings[keys[0] + TWIN] = (training_config(keys[0], recipe.res), seed + TWIN_SEED)
+
+    def save(st: dict) -> None:
+        with atomic_path(work / "state.pt") as tmp:
+            torch.save({"identity": identity, "search": st}, tmp)
+        write_json(work / "progress.json", {k: v for k, v in st.items() if k != "trainer"})
+        rung = min(st["rung"], len(rungs) - 1)
+        now = {k: c[-1]["mean"] for k, c in st["curves"].items() if c[-1]["step"] == st["step"]}
+        best = min(now, key=lambda k: (rank(now[k]), k))
+        log(f"tune: rung {rung + 1} of {len(rungs)}, step {st['step']} of {rungs[-1].end}: best now "
+            f"{'diverged' if now[best] is None else f'{now[best]:.3f} px'} ({best})")
+
+    log(f"tune: {len(val_pairs)} {layout} pairs, {candidates} candidates, {len(rungs)} rungs ending at steps "
+        f"{[r.end for r in rungs]}, budget {budget} net-steps" + (", continuing" if state else ""))
+    if state is None or "winner" not in state:
+        trainer = EnsembleTrainer(settings, val_pairs, recipe, rungs[-1].end, device=device, precision=precision,
+                                  workers=workers, net=net, pool=pool)
+        state = search(trainer, keys, rungs, state, save)
+    summary = {**summarize(state, keys, rungs), "settings": {**identity, "val": str(val)}}
+    write_json(work / "report.json", summary)
+    atomic_write_bytes(work / "report.md", markdown(summary).encode())
+    plot(summary, work / "curves.png")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(out, preset_config(summary["winner"]).to_dict())
+    return summary
+
