@@ -1,4 +1,4 @@
-"""The ``flowsynth`` command: ``flowsynth export``, ``flowsynth preview`` and ``flowsynth stats``.
+"""The ``flowsynth`` command: ``flowsynth export``, ``flowsynth preview``, ``flowsynth stats`` and ``flowsynth tune``.
 
 Every BouncingThingsConfig field is also a flag (``--num-frames 8``, ``--object-size 0.3,1.0``,
 ``--texture-dir none``); flags override values from ``--config FILE`` (JSON, TOML or YAML), which override
@@ -151,6 +151,7 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--dis", action="store_true",
                     help="also compare OpenCV DIS flow with zero flow (needs opencv) [flag, default off]")
     st.add_argument("--json", default=None, help="also write the statistics to this JSON file [default: none]")
+    _tune_parser(sub, _sub_kw)
     for sp in (ex, pv, st):
         sp.add_argument("--preset", default="default",
                         help="named config to start from: default, chairs, things (BouncingThingsConfig.preset) "
@@ -160,6 +161,49 @@ def _parser() -> argparse.ArgumentParser:
                              "[default: none]")
         add_config_flags(sp)
     return p
+
+
+def _tune_parser(sub, sub_kw: dict) -> None:
+    from flowsynth.training import PRECISIONS
+    from flowsynth.tune import DEFAULT_BUDGET, DEFAULT_CANDIDATES, RECIPE
+
+    tn = sub.add_parser("tune", help="fit the generator's knobs to your validation pairs (docs/tune.md; resumable)",
+                        **sub_kw, usage="flowsynth tune --val DIR --out PRESET.json [options]")
+    tn.add_argument("--val", required=True,
+                    help="folder of validation pairs with true flow: Middlebury (NAME/frame10.png, frame11.png, "
+                         "flow10.flo), FlyingChairs (*_img1.ppm, *_img2.ppm, *_flow.flo), KITTI (image_2/, "
+                         "flow_occ/) or Sintel (clean|final/SCENE/, flow/SCENE/) [required]")
+    tn.add_argument("--out", required=True,
+                    help="the preset file to write, JSON of config fields (flowsynth export --config PRESET.json "
+                         "reads it); state and report go to PRESET.tune/ beside it; re-running resumes [required]")
+    tn.add_argument("--pairs", default=None, help="comma-separated names (or globs) of the pairs to tune on "
+                                                  "[default: all]")
+    tn.add_argument("--budget", type=integer, default=None,
+                    help=f"training steps over all nets (one step: one net, one batch of {RECIPE.batch} crops) "
+                         f"[int, default {DEFAULT_BUDGET}; --quick: the smallest that trains the candidates]")
+    tn.add_argument("--candidates", type=integer, default=None,
+                    help=f"points of the search space tried, the default among them [int, default "
+                         f"{DEFAULT_CANDIDATES}; --quick: 2]")
+    tn.add_argument("--pool", type=integer, default=None,
+                    help=f"training pairs rendered per net [int, default {RECIPE.pool}; --quick: 4]")
+    tn.add_argument("--seed", type=integer, default=0,
+                    help="candidates drawn, nets, pools and batches [int, default 0]")
+    tn.add_argument("--device", default="cpu", help="torch device the nets train on (cpu, cuda, ...) [default cpu]")
+    tn.add_argument("--precision", choices=PRECISIONS, default="fp32",
+                    help="training precision; fp16 needs CUDA [default fp32]")
+    tn.add_argument("--workers", type=integer, default=0,
+                    help="processes rendering the training pools [int, default 0: this one]")
+    tn.add_argument("--quick", action="store_true",
+                    help="a tiny recipe that checks a tune runs; its winner means little [flag, default off]")
+
+
+def _tune(args) -> None:
+    from flowsynth.tune import tune, work_dir
+
+    rep = tune(args.val, args.out, pairs=None if args.pairs is None else [p for p in args.pairs.split(",") if p],
+               budget=args.budget, candidates=args.candidates, pool=args.pool, seed=args.seed, device=args.device,
+               precision=args.precision, workers=args.workers, quick=args.quick)
+    print(f"wrote {args.out} ({rep['winner']}); {rep['verdict']}; report: {work_dir(args.out) / 'report.md'}")
 
 
 def _preview(args, cfg) -> None:
@@ -230,8 +274,10 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help (0) or a flag that does not parse (2); argparse printed why
         return e.code if isinstance(e.code, int) else 2
     try:
-        cfg = build_config(args)
-        if args.command == "export" and args.dry_run:
+        cfg = None if args.command == "tune" else build_config(args)
+        if args.command == "tune":
+            _tune(args)
+        elif args.command == "export" and args.dry_run:
             _dry_run(args, cfg)
         elif args.command == "export":
             _export(args, cfg)

@@ -7,6 +7,7 @@ so far), and once done ``report.json``, ``report.md`` and ``curves.png`` (where 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from collections.abc import Callable
 from pathlib import Path
@@ -51,6 +52,16 @@ def _positive(name: str, value, low: int = 1) -> int:
     return value
 
 
+def _device(name: str) -> torch.device:
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError) as e:
+        raise ConfigError(f"device {name!r} is not a torch device name (cpu, cuda, cuda:1, ...): {e}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device {name!r}: torch finds no CUDA device here; use --device cpu")
+    return dev
+
+
 def _load(path: Path, identity: dict) -> dict | None:
     if not path.is_file():
         return None
@@ -65,8 +76,8 @@ def _load(path: Path, identity: dict) -> dict | None:
 
 def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, budget: int | None = None,
          candidates: int | None = None, seed: int = 0, device: str = "cpu", precision: str = "fp32",
-         workers: int = 0, quick: bool = False, recipe: Recipe | None = None, net: Callable | None = None,
-         pool: Callable = render_pool, log: Callable[[str], None] = print) -> dict:
+         workers: int = 0, quick: bool = False, pool: int | None = None, recipe: Recipe | None = None,
+         net: Callable | None = None, render: Callable = render_pool, log: Callable[[str], None] = print) -> dict:
     """Fit the generator to the validation pairs in ``val`` by successive halving of nets trained on its settings
     (docs/tune.md), write the winner's preset to ``out`` and the report beside it (``work_dir(out)``).
 
@@ -83,8 +94,9 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         precision: "fp32", "bf16" or "fp16" (CUDA) (``flowsynth.training.PRECISIONS``).
         workers: processes rendering the pools (0: this one).
         quick: a tiny recipe (``flowsynth.tune.trainer.QUICK``) to check that a tune runs; its winner means little.
-        recipe: how nets train and test (default ``RECIPE``, the learning judge's; overrides ``quick``'s).
-        net: builds one net (default ``flowsynth.nets.raft_small``); pool: renders a pool (``render_pool``).
+        pool: training pairs rendered per net (None: the recipe's).
+        recipe: how nets train and test (default ``RECIPE``, the learning judge's; ``quick``: ``QUICK``).
+        net: builds one net (default ``flowsynth.nets.raft_small``); render: renders a pool (``render_pool``).
         log: called with a line of progress after every checkpoint.
 
     Returns:
@@ -97,10 +109,12 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
     from flowsynth.training import check_precision
 
     recipe = recipe or (QUICK if quick else RECIPE)
+    if pool is not None:
+        recipe = dataclasses.replace(recipe, pool=pool)
     candidates = _positive("candidates", QUICK_CANDIDATES if quick and candidates is None else
                            candidates or DEFAULT_CANDIDATES, 2)
     seed, workers = _positive("seed", seed, 0), _positive("workers", workers, 0)
-    check_precision(precision, torch.device(device))
+    check_precision(precision, _device(device))
     keys = draw_candidates(candidates, seed)
     if budget is None:
         budget = plan_cost(candidates, 2) if quick else DEFAULT_BUDGET
@@ -135,7 +149,7 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         f"{[r.end for r in rungs]}, budget {budget} net-steps" + (", continuing" if state else ""))
     if state is None or "winner" not in state:
         trainer = EnsembleTrainer(settings, val_pairs, recipe, rungs[-1].end, device=device, precision=precision,
-                                  workers=workers, net=net, pool=pool)
+                                  workers=workers, net=net, render=render)
         state = search(trainer, keys, rungs, state, save)
     summary = {**summarize(state, keys, rungs), "settings": {**identity, "val": str(val)}}
     write_json(work / "report.json", summary)

@@ -98,19 +98,19 @@ class EnsembleTrainer:
     ``settings``: {key: (config, seed)}, every net a search may ask for: its pool is ``render_pool(config, seed,
     recipe.pool)``, its weights are the net's initialisation under ``torch.manual_seed(seed)`` and its batches come
     from a generator seeded ``seed``. ``pairs``: {name: ``Pair``}. ``steps``: the schedule's length (the plan's last
-    step). ``net``: builds one net (``flowsynth.nets.raft_small``: RAFT-small with random weights). ``pool``: the
+    step). ``net``: builds one net (``flowsynth.nets.raft_small``: RAFT-small with random weights). ``render``: the
     function that renders a pool (``render_pool``'s signature). Implements ``flowsynth.tune.halving.Trainer``."""
 
     def __init__(self, settings: dict[str, tuple], pairs: dict[str, Pair], recipe: Recipe, steps: int, *,
                  device: str = "cpu", precision: str = "fp32", workers: int = 0, net: Callable | None = None,
-                 pool: Callable = render_pool):
+                 render: Callable = render_pool):
         from flowsynth.nets import raft_small
 
         if not pairs:
             raise ConfigError("a trainer needs at least one validation pair")
         self.settings, self.recipe, self.steps = dict(settings), recipe, steps
         self.device, self.precision, self.workers = torch.device(device), precision, workers
-        self.net, self.render = net or raft_small, pool
+        self.net, self.render = net or raft_small, render
         self.pairs = {k: Pair(*(x.to(self.device) for x in p)) for k, p in pairs.items()}
         self.step, self.keys, self.ens = 0, [], None
         self.nets: dict[str, dict] = {}  # key -> the net's own state, while it is not in self.ens
