@@ -2,7 +2,7 @@
 
 Both run flowsynth in a fixed pool of Ray actors, one CPU each. An actor pays the setup once in
 ``__init__`` (imports, dataset, mesh caches; Warp kernels load from the node's cache, or compile, at its
-first sample) and renders with one thread (``flowsynth.parallel.set_worker_process``), like a
+first sample) and renders with one thread (``flowsynth.processes.set_worker_process``), like a
 DataLoader or export worker process: actors x threads never exceed the CPUs Ray was given.
 
 ``ray_dataset`` is a Ray Data pipeline (``ray.data.ActorPoolStrategy``). It starts from
@@ -79,7 +79,7 @@ class SampleRenderer:
         import torch
 
         from flowsynth.datasets import BouncingThings
-        from flowsynth.parallel import set_worker_process
+        from flowsynth.processes import set_worker_process
 
         set_worker_process()
         torch.set_num_threads(1)

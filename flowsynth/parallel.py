@@ -27,14 +27,14 @@ steps, so the shape changes no bit (tests/test_batched.py runs the GPU's shape o
 from __future__ import annotations
 
 import os
-import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-from flowsynth.errors import ConfigError, ForkError
+from flowsynth.errors import ConfigError
+from flowsynth.processes import is_worker_process
 
-__all__ = ["BAND0", "BANDS_PER_THREAD", "check_not_forked_from_cuda", "cuda_initialised", "default_threads",
-           "forked_from_cuda", "launch_bands", "resolve_threads", "set_worker_process", "worker_context"]
+__all__ = ["BAND0", "BANDS_PER_THREAD", "default_threads", "launch_bands", "launch_image", "pixel_threads",
+           "resolve_threads"]
 
 # Bands per thread of a cut launch (more bands balance uneven rows; each band costs one more launch).
 BANDS_PER_THREAD = 4
@@ -54,21 +54,15 @@ class _Band0:
 
 BAND0 = _Band0()
 
-_worker_process = False
 _pools: dict[int, ThreadPoolExecutor] = {}
 _pool_lock = threading.Lock()
 _loaded: set = set()
 
 
-def set_worker_process() -> None:
-    """Mark this process as one of several worker processes (export workers): threads default to 1."""
-    global _worker_process
-    _worker_process = True
-
-
 def default_threads() -> int:
-    """Threads of a launch when none is asked for: 1 inside worker processes, else every allowed core."""
-    if _worker_process:
+    """Threads of a launch when none is asked for: 1 inside worker processes (``flowsynth.processes``' mark, or a
+    DataLoader worker), else every core this process may run on."""
+    if is_worker_process():
         return 1
     try:
         from torch.utils.data import get_worker_info
@@ -104,72 +98,8 @@ def _forget_pool() -> None:
     _pool_lock = threading.Lock()
 
 
-# -- processes and CUDA ------------------------------------------------------------------------------------
-# CUDA does not survive fork(): a child forked from a process that initialised CUDA (torch on a GPU, or Warp, which
-# initialises the CUDA driver when it starts on a machine with one) inherits a driver state it cannot use. Warp
-# calls there print "Warp CUDA error 3: initialization error" and run about 10x slow (seen on an H200;
-# docs/architecture.md, Workers and CUDA).
-_cuda_at_fork = False  # in the parent, just before a fork: whether it had initialised CUDA
-_forked_from_cuda = False  # in a child: whether a process it was forked from had (inherited down the generations)
-
-
-def cuda_initialised() -> bool:
-    """Whether this process has initialised CUDA: torch (``torch.cuda.is_initialized()``) or Warp (its runtime
-    found CUDA devices, so the driver is initialised). Looks only at modules already imported; imports nothing."""
-    torch = sys.modules.get("torch")
-    if torch is not None and torch.cuda.is_initialized():
-        return True
-    context = sys.modules.get("warp._src.context") or sys.modules.get("warp.context")
-    runtime = getattr(context, "runtime", None)
-    return bool(getattr(runtime, "cuda_devices", None))
-
-
-def _before_fork() -> None:
-    global _cuda_at_fork
-    _cuda_at_fork = cuda_initialised()
-
-
-def _after_fork_in_child() -> None:
-    global _forked_from_cuda
-    _forked_from_cuda = _forked_from_cuda or _cuda_at_fork
-    _forget_pool()
-
-
-def forked_from_cuda() -> bool:
-    """Whether this process was forked (at any generation) from a process that had initialised CUDA."""
-    return _forked_from_cuda
-
-
-def check_not_forked_from_cuda() -> None:
-    """Raise ``ForkError`` in a process forked from one that had initialised CUDA, before any Warp call there prints
-    CUDA errors and runs slow; the message says what to do instead."""
-    if _forked_from_cuda:
-        raise ForkError(
-            "this process was forked from one that had initialised CUDA (torch on a GPU, or Warp), and CUDA does not "
-            "survive fork(): Warp would print 'CUDA error 3' and render about 10x slow here. Start the workers with "
-            "forkserver or spawn: fs.datasets.loader(dataset, batch_size=..., num_workers=K) does, or pass "
-            "multiprocessing_context='forkserver' to torch's DataLoader (with the script's work under "
-            "if __name__ == '__main__':)")
-
-
-def worker_context(fork_ok: bool | None = None):
-    """The ``multiprocessing`` context for worker processes that render on the CPU: ``fork`` (workers inherit the
-    loaded modules: fastest to start) while this process has not initialised CUDA and the platform forks, else
-    ``forkserver`` (a fresh interpreter that never saw CUDA forks the workers), else ``spawn``. ``fork_ok``: False
-    rules fork out even without CUDA now (a loader whose workers may start after CUDA does); None: decide from
-    ``cuda_initialised()`` now."""
-    import multiprocessing as mp
-
-    methods = mp.get_all_start_methods()
-    if fork_ok is None:
-        fork_ok = not cuda_initialised() and not _forked_from_cuda
-    if fork_ok and "fork" in methods:
-        return mp.get_context("fork")
-    return mp.get_context("forkserver" if "forkserver" in methods else "spawn")
-
-
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(before=_before_fork, after_in_child=_after_fork_in_child)
+    os.register_at_fork(after_in_child=_forget_pool)
 
 
 def launch_bands(kernel, dim: tuple[int, ...], axis: int, inputs: list, outputs: list, device: str,

@@ -134,13 +134,13 @@ def _done(out: Path) -> int:
 @pytest.mark.ray
 def test_ray_export_from_a_driver_with_cuda_writes_the_local_bytes(cluster, tmp_path, monkeypatch):
     """Issue 52: Ray's actors are processes the raylet starts, not forks of the driver, so a driver that initialised
-    CUDA (made to say so here: flowsynth.parallel.cuda_initialised) still exports through them, byte for byte as
+    CUDA (made to say so here: flowsynth.processes.cuda_initialised) still exports through them, byte for byte as
     one local process writes (a forked worker would raise ForkError)."""
-    from flowsynth import parallel
+    from flowsynth import processes
     from flowsynth.export import export_dataset
 
     export_dataset(CFG, tmp_path / "local", 3, seed=2, outputs=OUTS.split(","), progress=False)
-    monkeypatch.setattr(parallel, "cuda_initialised", lambda: True)
+    monkeypatch.setattr(processes, "cuda_initialised", lambda: True)
     export_dataset(CFG, tmp_path / "ray", 3, seed=2, outputs=OUTS.split(","), engine="ray", workers=2, progress=False)
     _same_export(tmp_path / "ray", tmp_path / "local")
 

@@ -1,7 +1,7 @@
 """A stream that survives CUDA (issue 52, item 1).
 
 CUDA does not survive fork(). flowsynth notes, at every fork, whether the parent had initialised CUDA (torch, or
-Warp's runtime with CUDA devices: ``flowsynth.parallel.cuda_initialised``); a stream in such a forked child raises
+Warp's runtime with CUDA devices: ``flowsynth.processes.cuda_initialised``); a stream in such a forked child raises
 ``ForkError`` at its first sample. ``fs.datasets.loader`` starts its workers with forkserver instead, and ``export``
 leaves fork once CUDA is initialised. This CPU machine cannot initialise CUDA, so the CPU tests make
 ``cuda_initialised`` answer True in the parent (the fork hook reads it there) and check what the children do;
@@ -22,7 +22,7 @@ import torch
 from torch.utils.data import DataLoader
 
 import flowsynth as fs
-from flowsynth import parallel
+from flowsynth import processes
 from flowsynth.datasets.bouncing import BouncingThings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,7 +74,7 @@ def test_spawned_and_forkserver_workers_yield_the_fork_samples(fork_samples, how
 def test_a_worker_forked_after_cuda_refuses_and_the_loader_does_not(monkeypatch):
     """With CUDA initialised in the parent, a plain (fork) DataLoader's worker raises ForkError at its first sample,
     with what to do; ``fs.datasets.loader``'s workers (forkserver: a fresh interpreter forks them) render."""
-    monkeypatch.setattr(parallel, "cuda_initialised", lambda: True)
+    monkeypatch.setattr(processes, "cuda_initialised", lambda: True)
     ds = BouncingThings(CFG, outputs=["depth"], seed=1, length=2)
     with pytest.raises(fs.ForkError, match="forkserver") as e:
         next(iter(DataLoader(ds, batch_size=None, num_workers=1, multiprocessing_context="fork", timeout=TIMEOUT)))
@@ -100,7 +100,7 @@ def test_render_in_a_child_forked_after_cuda_refuses(monkeypatch):
     ctx = mp.get_context("fork")
     got = []
     for cuda in (False, True):
-        monkeypatch.setattr(parallel, "cuda_initialised", lambda cuda=cuda: cuda)
+        monkeypatch.setattr(processes, "cuda_initialised", lambda cuda=cuda: cuda)
         q = ctx.Queue()
         p = ctx.Process(target=_render_in_child, args=(q, scene))
         p.start()
@@ -129,20 +129,20 @@ def test_cuda_initialised_reads_torch_and_warp(monkeypatch):
     from flowsynth.kernels import wp_runtime
 
     wp_runtime()  # Warp's runtime exists; on this machine it found no CUDA device
-    assert parallel.cuda_initialised() is False
+    assert processes.cuda_initialised() is False
     monkeypatch.setattr(torch.cuda, "is_initialized", lambda: True)
-    assert parallel.cuda_initialised() is True
+    assert processes.cuda_initialised() is True
     monkeypatch.undo()
     runtime = sys.modules["warp._src.context"].runtime
     monkeypatch.setattr(runtime, "cuda_devices", [object()])
-    assert parallel.cuda_initialised() is True
+    assert processes.cuda_initialised() is True
 
 
 def test_worker_context_leaves_fork_once_cuda_is_initialised(monkeypatch):
-    assert parallel.worker_context().get_start_method() == "fork"
-    assert parallel.worker_context(fork_ok=False).get_start_method() == "forkserver"
-    monkeypatch.setattr(parallel, "cuda_initialised", lambda: True)
-    assert parallel.worker_context().get_start_method() == "forkserver"
+    assert processes.worker_context().get_start_method() == "fork"
+    assert processes.worker_context(fork_ok=False).get_start_method() == "forkserver"
+    monkeypatch.setattr(processes, "cuda_initialised", lambda: True)
+    assert processes.worker_context().get_start_method() == "forkserver"
 
 
 def test_export_workers_after_cuda_write_what_one_process_writes(tmp_path, monkeypatch):
@@ -153,7 +153,7 @@ def test_export_workers_after_cuda_write_what_one_process_writes(tmp_path, monke
     cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
                                max_objects=3)
     b = export_dataset(cfg, tmp_path / "b", 3, outputs=["depth", "flow_fw"], workers=1, progress=False)
-    monkeypatch.setattr(parallel, "cuda_initialised", lambda: True)
+    monkeypatch.setattr(processes, "cuda_initialised", lambda: True)
     a = export_dataset(cfg, tmp_path / "a", 3, outputs=["depth", "flow_fw"], workers=2, progress=False)
     ma, mb = (json.loads((r / "manifest.json").read_text())["samples"] for r in (a, b))
     assert ma == mb and len(ma) == 3
@@ -165,7 +165,7 @@ import json, sys, time
 import torch
 from torch.utils.data import DataLoader
 import flowsynth as fs
-from flowsynth.parallel import cuda_initialised
+from flowsynth.processes import cuda_initialised
 
 def rate(ds, n, workers):
     '''samples/s of n samples after 2 batches per worker (start-up and the batches prefetched meanwhile left out)'''

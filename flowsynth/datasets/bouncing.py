@@ -14,7 +14,6 @@ import torch
 
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
-from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.plan import make_plan
 from flowsynth.scene import Scene, provenance_json, sample_seed
 
@@ -76,7 +75,6 @@ class BouncingThings(IndexStream):
         """The simulated scene behind sample ``i``."""
         from flowsynth.scene import sample_scene
 
-        check_not_forked_from_cuda()
         return sample_scene(self.cfg, self.seed, int(i))
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:

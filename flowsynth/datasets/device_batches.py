@@ -26,7 +26,6 @@ from torch.utils.data import Dataset, Sampler, get_worker_info
 from flowsynth.datasets.bouncing import stream_plan
 from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
-from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan
 from flowsynth.scene import Scene, provenance_json
 
@@ -45,7 +44,6 @@ class SceneSet(Dataset):
     def __getitem__(self, i: int):
         from flowsynth.scene import sample_scene
 
-        check_not_forked_from_cuda()  # kinematic scenes reach Warp (culling tables) without Newton's check
         in_worker = get_worker_info() is not None
         if in_worker:
             torch.set_num_threads(1)  # workers share the cores (flowsynth.parallel: one thread each)

@@ -25,7 +25,7 @@ from __future__ import annotations
 from torch.utils.data import DataLoader, Dataset
 
 from flowsynth.errors import ConfigError
-from flowsynth.parallel import worker_context
+from flowsynth.processes import worker_context
 
 __all__ = ["loader"]
 

@@ -59,7 +59,7 @@ from tqdm import tqdm
 from flowsynth.errors import ConfigError, ExportError, StorageError
 from flowsynth.export.writer import ExportWriter, run_job
 from flowsynth.io import file_records, layouts
-from flowsynth.parallel import worker_context
+from flowsynth.processes import worker_context
 
 __all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export_dataset"]
 
@@ -390,7 +390,7 @@ def _run(todo: list[range], root, writer: ExportWriter, workers, progress, ident
 def _mp_context():
     """fork where the platform has it and this process has not initialised CUDA (workers inherit the loaded Warp
     modules instead of importing them again), else forkserver or spawn: CUDA does not survive fork()
-    (``flowsynth.parallel.worker_context``)."""
+    (``flowsynth.processes.worker_context``)."""
     return worker_context()
 
 

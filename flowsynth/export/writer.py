@@ -69,7 +69,7 @@ class ExportWriter:
         """Build the dataset now (it is built on first use otherwise); returns self.
 
         ``worker_process``: this process is one of several workers (a pool process, a Ray actor):
-        launches use one thread (``flowsynth.parallel.set_worker_process``), and so does torch.
+        launches use one thread (``flowsynth.processes.set_worker_process``), and so does torch.
         """
         import torch
 
@@ -77,7 +77,7 @@ class ExportWriter:
         from flowsynth.stats import cheap_stats_outputs
 
         if worker_process:
-            from flowsynth.parallel import set_worker_process
+            from flowsynth.processes import set_worker_process
 
             set_worker_process()
         torch.set_num_threads(1)

@@ -1,12 +1,14 @@
 """Warp kernels, one family per module (``raycast``, ``blas``, ``reproject``, ``shade``, ``texture``, ``tonemap``,
 ``dof``; ``specialise`` builds their variants), each imported on first use, so ``import flowsynth`` compiles nothing.
-Only Warp and numpy here: nothing in this folder imports flowsynth's torch-facing pipeline."""
+Only Warp and numpy here, and of flowsynth only the fork guard (``flowsynth.processes``)."""
 from __future__ import annotations
 
 import functools
 import os
 import sys
 import tempfile
+
+from flowsynth.processes import check_not_forked_from_cuda
 
 # The kernel families are exported by name and imported where they are used (``from flowsynth.kernels.raycast import
 # primary_kernel``, inside the launcher): importing one imports Warp.
@@ -21,13 +23,20 @@ RENDER_MODES = ("flat", "direct", "path")
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 
 
-@functools.cache
 def wp_runtime():
-    """Import and initialise Warp once per process (quietly); returns the ``warp`` module.
+    """The ``warp`` module, imported and initialised once per process (quietly): where flowsynth reaches Warp.
 
-    Warp's own "no CUDA driver" notice is dropped; anything else Warp prints while initialising
-    reaches stderr unchanged.
+    Raises ``ForkError`` (every call, before Warp is touched) in a process forked from one that had initialised CUDA,
+    where Warp cannot run (``flowsynth.processes.check_not_forked_from_cuda``). Warp's own "no CUDA driver" notice is
+    dropped; anything else Warp prints while initialising reaches stderr unchanged.
     """
+    check_not_forked_from_cuda()
+    return _initialised_warp()
+
+
+@functools.cache
+def _initialised_warp():
+    """Import and initialise Warp once per process (quietly); returns the ``warp`` module."""
     import warp as wp
 
     if hasattr(wp, "LOG_WARNING"):

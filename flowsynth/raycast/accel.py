@@ -16,7 +16,6 @@ import trimesh
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.kernels import wp_runtime
-from flowsynth.parallel import check_not_forked_from_cuda
 from flowsynth.raycast.blas import atlas, corner_normals
 from flowsynth.raycast.culling import (FLAT_REL, MESH_CACHE_SIZE, culling_struct, culling_tables, hull_points,
                                        join_culling)
@@ -37,8 +36,8 @@ BOX_PAD_REL = 1e-4
 def resolve_device(device) -> str:
     """The Warp device ``device`` names ("cpu", "cuda", "cuda:1", or a ``warp.Device``) as Warp's alias
     ("cpu", "cuda:0", ...). Raises ConfigError naming the device and the devices Warp finds when it has none such
-    (e.g. "cuda" on a machine without a CUDA driver)."""
-    check_not_forked_from_cuda()  # every render starts here: a ForkError, not Warp's CUDA errors at 10x slow
+    (e.g. "cuda" on a machine without a CUDA driver), and ForkError in a process forked after CUDA (``wp_runtime``):
+    every render starts here."""
     wp = wp_runtime()
     try:
         return wp.get_device(device).alias

@@ -24,7 +24,7 @@ import numpy as np
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
 from flowsynth.kernels import wp_runtime
-from flowsynth.parallel import check_not_forked_from_cuda
+from flowsynth.processes import check_not_forked_from_cuda
 from flowsynth.scene.assets import Asset, unit_hull
 from flowsynth.scene.config import BouncingThingsConfig
 from flowsynth.scene.trajectory import (InitialState, Trajectory, pose_matrices, quat_to_rotation,
@@ -136,10 +136,14 @@ def choose_substeps(cfg: BouncingThingsConfig, sizes: Sequence[float]) -> int:
 
 def simulate_physics(cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
                      num_frames: int, *, substeps: int | None = None) -> Trajectory:
-    """Rigid-body dynamics with Newton (XPBD, Warp CPU). See the module docstring and docs/scenes.md."""
+    """Rigid-body dynamics with Newton (XPBD, Warp CPU). See the module docstring and docs/scenes.md.
+
+    Raises ForkError in a process forked from one that had initialised CUDA (``flowsynth.processes``): the Newton
+    entry, whether the clip builds a model, reuses a cached one or flies free."""
     N = len(assets)
     if N == 0:
         return simulate_static(initial, num_frames)
+    check_not_forked_from_cuda()
     sizes = [a.size for a in assets]
     n_sub = int(substeps or cfg.substeps or choose_substeps(cfg, sizes))
     n_sub += n_sub % 2  # even, as when substeps ran in captured pairs: the same substeps as before
@@ -368,7 +372,6 @@ class NewtonScene:
 
     def __init__(self, cfg: BouncingThingsConfig, assets: Sequence[Asset], initial: InitialState,
                  substeps: int, contact_max: int | None = None, device: str = "cpu", colliders: bool = True) -> None:
-        check_not_forked_from_cuda()  # Warp cannot run in a child forked after CUDA: a ForkError says what to do
         wp_runtime()  # quiet Warp initialisation before Newton's import initialises it loudly
         import newton
         import warp as wp
