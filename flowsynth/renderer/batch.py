@@ -24,7 +24,7 @@ import torch
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.kernels import wp_runtime
 from flowsynth.options import RenderOptions
-from flowsynth.plan import GAP_KEYS, Plan, gap_key, make_plan, split_gap_key
+from flowsynth.plan import GAP_KEYS, Plan, make_plan, split_gap_key
 from flowsynth.raycast import SceneAccel, cast_gbuffer, resolve_device, scene_arrays
 from flowsynth.scene import Scene, check_lens_outputs
 
@@ -111,7 +111,9 @@ def render_batch_plan(scenes: Sequence[Scene], plan: Plan, device: str = "cpu",
             out["motion"] = (wp.to_torch(moved).view(torch.bool)[:, None].reshape(B, T - 1, 1, H, W) if T > 1
                              else torch.zeros((B, 0, 1, H, W), dtype=torch.bool, device=tdev))
     if plan.flow_stage:
-        out.update(_pairs(scenes, clips, accel, gb, plan, want, B, T, tdev))
+        from flowsynth.truth import flow_outputs
+
+        out.update(flow_outputs(camera, clips, accel, gb, plan))
     if plan.rgb:
         from flowsynth.renderer.shading import render_rgb
 
@@ -121,58 +123,6 @@ def render_batch_plan(scenes: Sequence[Scene], plan: Plan, device: str = "cpu",
     if "cam_T_world" in want:
         out["cam_T_world"] = torch.as_tensor(np.stack([c for _, c, _ in clips]).astype(np.float32), device=tdev)
     return {k: out[k] for k in plan.outputs}
-
-
-def _pairs(scenes, clips, accel, gb, plan: Plan, want: set, B: int, T: int, tdev) -> dict[str, torch.Tensor]:
-    """The flow family of every (direction, gap k) of ``plan.pair_jobs``: one pair-kernel launch over the B (T - k)
-    pairs of the batch each (``flowsynth.truth.flow.pair_arrays``)."""
-    from flowsynth.truth import pair_arrays
-
-    wp = wp_runtime()
-    camera = scenes[0].camera
-    H, W = camera.height, camera.width
-    cam_T_obj = [np.matmul(c[:, None], w) for _, c, w in clips]  # (T, N_b, 4, 4) per scene, as fs.render
-    items = np.concatenate([m.reshape(-1, 4, 4) for m in cam_T_obj])
-    out: dict[str, torch.Tensor] = {}
-    for name, k in plan.pair_jobs:
-        P = max(T - k, 0)
-        key = {kind: gap_key(f"{kind}_{name}", k) for kind in ("flow", "valid", "occ", "oof", "scene_flow")}
-        if not want & set(key.values()):
-            continue
-        src0, step = (0, k) if name == "fw" else (k, -k)
-        pair_src = (np.arange(B)[:, None] * T + src0 + np.arange(P)[None, :]).reshape(-1)
-        sf = None
-        if key["scene_flow"] in want:  # per source item: cam_T_world[s] (world_T_obj[s + step] - world_T_obj[s])
-            sf = []
-            for _, c, w in clips:
-                rows = np.zeros((T,) + w.shape[1:])
-                src = np.arange(P) + src0
-                rows[src] = np.matmul(c[src][:, None], w[src + step] - w[src])
-                sf.append(rows.reshape(-1, 4, 4))
-            sf = np.concatenate(sf)
-        if P == 0 or gb.num_instances == 0:
-            res = _zero_pairs(key, want, plan, B, P, H, W, tdev)
-        else:
-            got = pair_arrays(gb, items, camera.K, pair_src, step, accel=accel, camera=camera,
-                              flow=key["flow"] in want, occlusion=plan.occlusion if key["occ"] in want else None,
-                              scene_flow_items=sf, lens=camera, threads=plan.threads)
-            res = {}
-            for kind, arr in got.items():
-                x = wp.to_torch(arr)
-                x = x.view(torch.bool)[:, None] if kind in ("valid", "oof", "occ") else x
-                res[key[kind]] = x.reshape(B, P, *x.shape[1:])
-        out.update({k2: v for k2, v in res.items() if k2 in want})
-    return out
-
-
-def _zero_pairs(key: dict, want: set, plan: Plan, B: int, P: int, H: int, W: int, tdev) -> dict[str, torch.Tensor]:
-    """The pair outputs where there are no pairs or nothing to hit: zeros (False), as ``fs.render`` gives."""
-    res = {}
-    for kind, c, dtype in (("flow", 2, torch.float32), ("valid", 1, torch.bool), ("oof", 1, torch.bool),
-                           ("occ", 1, torch.bool), ("scene_flow", 3, torch.float32)):
-        if key[kind] in want:
-            res[key[kind]] = torch.zeros((B, P, c, H, W), dtype=dtype, device=tdev)
-    return res
 
 
 def batch_tables(scene: Scene, plan: Plan, threads: int | None = 1) -> dict:

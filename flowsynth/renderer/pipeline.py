@@ -71,9 +71,13 @@ def render_plan(scene: Scene, plan: Plan, device: str = "cpu") -> dict[str, torc
     out: dict[str, torch.Tensor] = {}
     out.update(gbuffer_outputs(scene, gb, plan, world_T_obj))
     if plan.flow_stage:
-        from flowsynth.truth import flow_outputs
+        from flowsynth.truth import flow_outputs, world_points
 
-        out.update(flow_outputs(scene, accel, gb, plan, world_T_obj, cam_T_world))
+        clip = (meshes, cam_T_world, world_T_obj)
+        out.update({k: v[0] for k, v in flow_outputs(scene.camera, [clip], accel, gb, plan).items()})
+        if "motion" in plan.outputs:
+            moved = world_points(gb, world_T_obj, moved=True, threads=plan.threads)[1]
+            out["motion"] = torch.from_numpy(moved[:, None])
     if plan.stereo:
         from flowsynth.truth import right_view, stereo_outputs
 

@@ -89,20 +89,10 @@ def reproject_pixels(gb, cam_T_obj: np.ndarray, K: np.ndarray, src0: int, step: 
         ``dc`` (P, 1, H, W) float64, ``scene_flow`` (P, 3, H, W) float32 when asked; 0 where not hit (flow and dc
         also where not valid).
     """
-    F, H, W = gb.shape
+    F = gb.shape[0]
+    P = max(P, 0)
     want_dc = fB is not None
     want_sf = scene_flow_T is not None
-    if P <= 0 or gb.num_instances == 0:  # (a G-buffer without hits needs no shortcut: the kernel writes 0 at misses)
-        res = {"valid": np.zeros((P, 1, H, W), bool), "oof": np.zeros((P, 1, H, W), bool)}
-        if flow:
-            res["flow"] = np.zeros((P, 2, H, W), np.float32)
-        if occlusion is not None:
-            res["occ"] = np.zeros((P, 1, H, W), bool)
-        if want_dc:
-            res["dc"] = np.zeros((P, 1, H, W))
-        if want_sf:
-            res["scene_flow"] = np.zeros((P, 3, H, W), np.float32)
-        return res
     N = cam_T_obj.shape[1]
     sfM = None
     if want_sf:  # per source item: frame src0 + t's rows hold pair t's transforms
@@ -133,7 +123,8 @@ def pair_arrays(gb, cam_T_obj_items: np.ndarray, K: np.ndarray, pair_src: np.nda
     4, 4) float64 target view from each item's object in its frame (``SceneAccel``'s item order);
     ``scene_flow_items``: (items, 4, 4) float64 scene-flow transform of each source item, or None. Other arguments
     as ``reproject_pixels``'. Returns Warp arrays: ``valid``, ``oof`` (P, H, W) uint8, and as asked ``flow`` (P, 2,
-    H, W) float32, ``occ`` (P, H, W) uint8, ``dc`` (P, H, W) float64, ``scene_flow`` (P, 3, H, W) float32.
+    H, W) float32, ``occ`` (P, H, W) uint8, ``dc`` (P, H, W) float64, ``scene_flow`` (P, 3, H, W) float32; zeros
+    (False) where there is no pair or nothing to hit (no launch then).
     """
     from flowsynth.kernels.raycast import Culling, Instances, TileLists
     from flowsynth.kernels.reproject import (LENS_CODES, OCC_DEPTH, OCC_EXACT, OCC_NONE, PairOcclusion, PairSource,
@@ -146,6 +137,13 @@ def pair_arrays(gb, cam_T_obj_items: np.ndarray, K: np.ndarray, pair_src: np.nda
     occ_mode = {None: OCC_NONE, "exact": OCC_EXACT, "depth": OCC_DEPTH}[occlusion]
     wp = wp_runtime()
     dev = gb.device
+    shape = (P, H, W)
+    kinds = {"valid": (shape, wp.uint8), "oof": (shape, wp.uint8), "occ": (shape, wp.uint8),
+             "flow": ((P, 2, H, W), wp.float32), "dc": (shape, wp.float64), "scene_flow": ((P, 3, H, W), wp.float32)}
+    asked = [k for k, on in (("valid", True), ("oof", True), ("flow", flow), ("occ", occ_mode != OCC_NONE),
+                             ("dc", want_dc), ("scene_flow", want_sf)) if on]
+    if P == 0 or gb.num_instances == 0:  # nothing to reproject (a clip without objects has no culling tables)
+        return {k: wp.zeros(*kinds[k], device=dev) for k in asked}
     item, point, face = gb.item, gb.point, gb.face  # the G-buffer's own arrays, on its device
     M = wp.array(np.ascontiguousarray(cam_T_obj_items, np.float64), dtype=wp.mat44d, device=dev)
     inst, tiles, cull = Instances(), TileLists(), Culling()
@@ -156,12 +154,7 @@ def pair_arrays(gb, cam_T_obj_items: np.ndarray, K: np.ndarray, pair_src: np.nda
     dist = gb.dist if occ_mode == OCC_DEPTH else wp.empty(one, wp.float32, dev)
     dz = wp.array(np.ascontiguousarray(camera.pixel_rays_numpy()[..., 2]) if occ_mode == OCC_DEPTH
                   else np.zeros((1, 1)), dtype=wp.float64, device=dev)
-    shape = (P, H, W)
-    out = {"valid": wp.empty(shape, wp.uint8, dev), "oof": wp.empty(shape, wp.uint8, dev),
-           "occ": wp.empty(shape if occ_mode != OCC_NONE else one, wp.uint8, dev),
-           "flow": wp.empty((P, 2, H, W) if flow else (1, 1, 1, 1), wp.float32, dev),
-           "dc": wp.empty(shape if want_dc else one, wp.float64, dev),
-           "scene_flow": wp.empty((P, 3, H, W) if want_sf else (1, 1, 1, 1), wp.float32, dev)}
+    out = {k: wp.empty(s if k in asked else (1,) * len(s), d, dev) for k, (s, d) in kinds.items()}  # else a dummy
     sfM = wp.array(np.ascontiguousarray(scene_flow_items, np.float64) if want_sf else np.zeros((1, 4, 4)),
                    dtype=wp.mat44d, device=dev)
     model = 0 if lens is None else LENS_CODES[lens.model]
@@ -183,46 +176,68 @@ def pair_arrays(gb, cam_T_obj_items: np.ndarray, K: np.ndarray, pair_src: np.nda
     occl = PairOcclusion()
     occl.inst, occl.tiles, occl.cull, occl.rel_tol = inst, tiles, cull, VISIBILITY_REL_TOL
     occl.dz, occl.depth_tol = dz, DEPTH_TEST_REL_TOL
-    if P > 0:
-        launch_image(lambda per_pixel: pair_kernel(flow, occ_mode, want_dc, want_sf, model, per_pixel), shape,
-                     [src, tgt, occl, BAND0], [out[k] for k in ("valid", "oof", "occ", "flow", "dc", "scene_flow")],
-                     dev, threads)
-    return {k: v for k, v in out.items() if k in ("valid", "oof") or (k == "flow" and flow)
-            or (k == "occ" and occ_mode != OCC_NONE) or (k == "dc" and want_dc) or (k == "scene_flow" and want_sf)}
+    launch_image(lambda per_pixel: pair_kernel(flow, occ_mode, want_dc, want_sf, model, per_pixel), shape,
+                 [src, tgt, occl, BAND0], [out[k] for k in ("valid", "oof", "occ", "flow", "dc", "scene_flow")],
+                 dev, threads)
+    return {k: out[k] for k in asked}
 
 
-def flow_outputs(scene, accel, gb, plan, world_T_obj: np.ndarray, cam_T_world: np.ndarray) -> dict:
-    """Every flow-family key the plan asks for: per (direction, gap k) of ``plan.pair_jobs``, tensors of shape
-    (max(T-k, 0), C, H, W) whose index t is the pair (t, t+k); ``motion`` (T-1, 1, H, W); and stereo's
-    ``disparity_change`` when asked for beside a key of the fw gap-1 pass (same pairs, same kernel launch)."""
-    T, H, W = gb.shape
+def flow_outputs(camera, clips, accel, gb, plan) -> dict[str, torch.Tensor]:
+    """Every flow-family key ``plan`` asks for, of B clips cast together (one scene, or a batch:
+    ``flowsynth.renderer.batch``), as tensors on the G-buffer's device: one pair-kernel launch per (direction, gap k)
+    of ``plan.pair_jobs`` over the B (T - k) pairs.
+
+    Args:
+        camera: the clips' camera (``fs.Camera``: K, size, lens model).
+        clips: B ``flowsynth.raycast.scene_arrays`` (meshes, cam_T_world (T, 4, 4), world_T_obj (T, N_b, 4, 4)
+            float64), in the order of ``accel``.
+        accel, gb: their ``SceneAccel`` (``SceneAccel.batch`` of the clips) and G-buffer (with ``point``).
+        plan: the plan (``pair_jobs``, ``occlusion``, ``threads``, ``stereo_baseline``).
+
+    Returns:
+        Per (direction, gap k), each requested key of ``flow``, ``valid``, ``occ``, ``oof``, ``scene_flow`` (named by
+        ``gap_key``): (B, P, C, H, W), P = max(T - k, 0), index t the pair (t, t + k); flow float32 [px] (C = 2),
+        scene flow float32 [m] (C = 3), masks bool (C = 1). With ``disparity_change`` asked beside a key of the fw
+        gap-1 pass, also that (B, T - 1, 1, H, W) float32 [px] from the same launch (flowsynth/truth/stereo.py
+        computes it otherwise).
+    """
+    wp = wp_runtime()
+    B = len(clips)
+    T, H, W = gb.shape[0] // B, camera.height, camera.width
     want = set(plan.outputs)
+    cam_T_obj = [np.matmul(c[:, None], w) for _, c, w in clips]  # (T, N_b, 4, 4) per clip, once per frame and object
+    items = np.concatenate([m.reshape(-1, 4, 4) for m in cam_T_obj])
     out: dict[str, torch.Tensor] = {}
-    cam_T_obj = np.matmul(cam_T_world[:, None], world_T_obj)  # (T, N, 4, 4), once per frame and object
     for name, k in plan.pair_jobs:
         P = max(T - k, 0)  # pairs (t, t+k); none when the clip is not longer than the gap
         key = {kind: gap_key(f"{kind}_{name}", k) for kind in ("flow", "valid", "occ", "oof", "scene_flow")}
-        src0, step = (0, k) if name == "fw" else (k, -k)
         if not want & set(key.values()):
             continue
-        sfT = None
-        if key["scene_flow"] in want:  # cam_T_world[s] (world_T_obj[s + step] - world_T_obj[s]) per (pair, object)
-            src = np.arange(P) + src0
-            sfT = np.matmul(cam_T_world[src][:, None], world_T_obj[src + step] - world_T_obj[src])
-        # stereo's disparity change maps the pairs (t, t + 1) of the left view too: it rides on the fw gap-1
-        # pass when that pass runs anyway (flowsynth/truth/stereo.py computes it otherwise)
-        fB = (scene.camera.fx * plan.stereo_baseline
-              if (name, k) == ("fw", 1) and "disparity_change" in want else None)
-        res = reproject_pixels(gb, cam_T_obj, scene.camera.K, src0, step, P, accel=accel, camera=scene.camera,
-                               flow=key["flow"] in want, occlusion=plan.occlusion if key["occ"] in want else None,
-                               fB=fB, scene_flow_T=sfT, lens=scene.camera, threads=plan.threads)
-        for kind in ("flow", "valid", "oof", "occ", "scene_flow"):
-            if kind in res:
-                out[key[kind]] = torch.from_numpy(res[kind])
-        if "dc" in res:
-            out["disparity_change"] = torch.from_numpy(res["dc"].astype(np.float32))
-    if "motion" in want:
-        out["motion"] = torch.from_numpy(world_points(gb, world_T_obj, moved=True, threads=plan.threads)[1][:, None])
+        src0, step = (0, k) if name == "fw" else (k, -k)
+        pair_src = (np.arange(B)[:, None] * T + src0 + np.arange(P)[None, :]).reshape(-1)
+        sf = None
+        if key["scene_flow"] in want:  # per source item: cam_T_world[s] (world_T_obj[s + step] - world_T_obj[s])
+            sf = []
+            for _, c, w in clips:
+                rows = np.zeros((T,) + w.shape[1:])
+                src = np.arange(P) + src0
+                rows[src] = np.matmul(c[src][:, None], w[src + step] - w[src])
+                sf.append(rows.reshape(-1, 4, 4))
+            sf = np.concatenate(sf)
+        # stereo's disparity change maps the pairs (t, t + 1) of the left view too: it rides on the fw gap-1 pass
+        # when that pass runs anyway
+        fB = camera.fx * plan.stereo_baseline if (name, k) == ("fw", 1) and "disparity_change" in want else None
+        got = pair_arrays(gb, items, camera.K, pair_src, step, accel=accel, camera=camera, flow=key["flow"] in want,
+                          occlusion=plan.occlusion if key["occ"] in want else None, fB=fB, scene_flow_items=sf,
+                          lens=camera, threads=plan.threads)
+        for kind, arr in got.items():
+            x = wp.to_torch(arr)
+            if kind in ("valid", "oof", "occ"):
+                x = x.view(torch.bool)[:, None]
+            if kind == "dc":
+                out["disparity_change"] = x.to(torch.float32)[:, None].reshape(B, P, 1, H, W)
+            else:
+                out[key[kind]] = x.reshape(B, P, *x.shape[1:])
     return {k: v for k, v in out.items() if k in want}
 
 
@@ -249,8 +264,6 @@ def world_points(gb, world_T_obj: np.ndarray, *, moved: bool, threads: int | Non
     the ``motion`` flags (T-1, H, W) bool of frames 0 .. T-2 (else None): ``world_point_arrays`` of one clip
     (``world_T_obj`` (T, N, 4, 4)) handed to the host."""
     T, H, W = gb.shape
-    if gb.num_instances == 0:  # (no hit needs no shortcut: the kernel writes 0 at every miss)
-        return np.zeros((T, H, W, 3)), (np.zeros((T - 1, H, W), bool) if moved else None)
     world, flags = world_point_arrays(gb, np.asarray(world_T_obj).reshape(-1, 4, 4), T, moved=moved, threads=threads)
     if not moved:
         return world.numpy(), None
