@@ -10,13 +10,16 @@ colour-jittered and trained on by ``flowsynth.training.train_step``: the step th
 schedule and step) is written atomically every ``--save-every`` steps and at the end, and the same command resumes
 from it. With ``--eval DIR`` (NAME/frame10.png, frame11.png, flow10.flo for each pair, as Middlebury ships them),
 ``--sintel ROOT`` or ``--kitti ROOT`` (read by torchvision's dataset classes), the end-point error (EPE) on those
-real pairs is printed before and after training.
+real pairs is printed before and after training. ``--precision bf16`` trains under bfloat16 autocast (CPU or CUDA),
+``--precision fp16`` under float16 autocast with a gradient scaler (CUDA); ``--channels-last`` keeps the net and the
+images in channels_last memory (``flowsynth.training``'s module docstring; ``benchmarks/speed/precision.py`` times
+both).
 
 The workers come from ``fs.datasets.loader``, a DataLoader whose workers start with forkserver: the net is on the GPU
 before they start, and CUDA does not survive fork() (a forked worker would raise ``fs.ForkError``).
 
-Exit codes: 0 done; 2 bad arguments (argparse: a step count, batch, worker count, size or rate out of range); 3 an
-evaluation folder holds no pairs.
+Exit codes: 0 done; 2 bad arguments (argparse: a step count, batch, worker count, size or rate out of range, an
+unknown precision or fp16 off CUDA); 3 an evaluation folder holds no pairs.
 """
 
 from __future__ import annotations
@@ -31,14 +34,15 @@ import numpy as np
 import torch
 
 import flowsynth as fs
-from flowsynth.training import augment, epe, one_cycle, predict, train_step
+from flowsynth.errors import ConfigError
+from flowsynth.training import PRECISIONS, augment, check_precision, epe, grad_scaler, one_cycle, predict, train_step
 
 EXIT_NO_PAIRS = 3
 
 
 def build_raft():
-    """torchvision's RAFT-small with random weights."""
-    from torchvision.models.optical_flow import raft_small
+    """torchvision's RAFT-small with random weights (``flowsynth.nets.raft_small``)."""
+    from flowsynth.nets import raft_small
 
     return raft_small(weights=None)
 
@@ -91,26 +95,31 @@ def evaluate(net, pairs: list[tuple], device: str) -> dict:
     return {**out, "mean": float(np.mean(list(out.values())))} if out else {}
 
 
-def save_checkpoint(path: Path, net, opt, sched, step: int) -> None:
-    """Write the checkpoint to a temporary file beside ``path``, then rename it: a crash leaves the last one whole."""
+def save_checkpoint(path: Path, net, opt, sched, step: int, scaler=None) -> None:
+    """Write the checkpoint to a temporary file beside ``path``, then rename it: a crash leaves the last one whole.
+    ``scaler``: fp16's gradient scaler, saved with the rest (None otherwise)."""
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                "step": step}, tmp)
+                "scaler": None if scaler is None else scaler.state_dict(), "step": step}, tmp)
     os.replace(tmp, path)
 
 
 def train(steps: int = 2400, *, width: int = 256, height: int = 192, crop: tuple[int, int] = (128, 160),
           batch: int = 6, lr: float = 4e-4, workers: int = 2, seed: int = 0, device: str = "cpu",
           checkpoint: str | None = None, save_every: int = 200, pairs: list | None = None,
-          progress: bool = True) -> dict:
-    """Train RAFT-small for ``steps`` steps on the stream (resuming from ``checkpoint`` when it exists); returns the
-    EPE on ``pairs`` before ("before", from the start or the resumed net) and after ("after"), the losses of the
-    steps run here, and the step reached."""
+          progress: bool = True, precision: str = "fp32", channels_last: bool = False) -> dict:
+    """Train RAFT-small for ``steps`` steps on the stream (resuming from ``checkpoint`` when it exists) in
+    ``precision`` (``flowsynth.training.PRECISIONS``), net and batches in channels_last memory if ``channels_last``;
+    returns the EPE on ``pairs`` before ("before", from the start or the resumed net) and after ("after"), the losses
+    of the steps run here, and the step reached. Raises ConfigError for an unknown precision or fp16 off CUDA."""
     from tqdm import tqdm
 
+    check_precision(precision, device)
+    memory = torch.channels_last if channels_last else torch.contiguous_format
     torch.manual_seed(seed)
-    net = build_raft().to(device)
+    net = build_raft().to(device, memory_format=memory)
     opt, sched = one_cycle(net.parameters(), lr, steps)
+    scaler = grad_scaler(precision, device)
     start = 0
     ckpt = Path(checkpoint) if checkpoint else None
     if ckpt is not None and ckpt.is_file():
@@ -118,6 +127,8 @@ def train(steps: int = 2400, *, width: int = 256, height: int = 192, crop: tuple
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
+        if scaler is not None and state.get("scaler") is not None:
+            scaler.load_state_dict(state["scaler"])
         start = int(state["step"])
         print(f"resumed from {ckpt} at step {start}")
     pairs = pairs or []
@@ -131,11 +142,12 @@ def train(steps: int = 2400, *, width: int = 256, height: int = 192, crop: tuple
     for step in range(start + 1, steps + 1):
         img1, img2, flow, valid = next(batches)
         aug = augment(img1, img2, flow, valid, crop, g)
-        losses.append(train_step(net, tuple(x.to(device) for x in aug), opt, sched))
+        losses.append(train_step(net, tuple(x.to(device, memory_format=memory) for x in aug), opt, sched,
+                                 precision=precision, scaler=scaler))
         bar.update(1)
         bar.set_postfix(loss=f"{losses[-1]:.3f}")
         if ckpt is not None and (step % save_every == 0 or step == steps):
-            save_checkpoint(ckpt, net, opt, sched, step)
+            save_checkpoint(ckpt, net, opt, sched, step, scaler)
     bar.close()
     after = evaluate(net, pairs, device)
     if after:
@@ -161,6 +173,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sintel", default=None, metavar="ROOT", help="a Sintel root (torchvision.datasets.Sintel)")
     p.add_argument("--kitti", default=None, metavar="ROOT", help="a KITTI 2015 root (torchvision.datasets.KittiFlow)")
     p.add_argument("--eval-limit", type=int, default=20, help="Sintel / KITTI pairs to evaluate on")
+    p.add_argument("--precision", choices=PRECISIONS, default="fp32",
+                   help="fp32; bf16 (autocast, CPU or CUDA); fp16 (autocast and a gradient scaler, CUDA only)")
+    p.add_argument("--channels-last", action="store_true", help="the net and its batches in channels_last memory")
     a = p.parse_args(argv)
     for name, lo in (("steps", 1), ("batch", 1), ("workers", 0), ("save_every", 1), ("eval_limit", 1),
                      ("width", 128), ("height", 128), ("seed", 0)):
@@ -170,6 +185,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--lr {a.lr}: must be above 0")
     if min(a.crop) < 128 or a.crop[0] > a.height or a.crop[1] > a.width:
         p.error(f"--crop {a.crop}: at least 128 px a side and within --height x --width")
+    try:
+        check_precision(a.precision, a.device)
+    except (ConfigError, RuntimeError) as e:  # RuntimeError: torch cannot parse --device
+        p.error(f"--precision {a.precision} on --device {a.device}: {e}")
     pairs = []
     if a.eval:
         pairs += middlebury_pairs(a.eval)
@@ -181,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return EXIT_NO_PAIRS
     train(a.steps, width=a.width, height=a.height, crop=tuple(a.crop), batch=a.batch, lr=a.lr, workers=a.workers,
-          seed=a.seed, device=a.device, checkpoint=a.checkpoint, save_every=a.save_every, pairs=pairs)
+          seed=a.seed, device=a.device, checkpoint=a.checkpoint, save_every=a.save_every, pairs=pairs,
+          precision=a.precision, channels_last=a.channels_last)
     return 0
 
 

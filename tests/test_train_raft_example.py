@@ -83,13 +83,26 @@ def test_no_pairs_is_exit_code_3(example, tmp_path):
 
 @pytest.mark.parametrize("args", [["--steps", "-5"], ["--steps", "0"], ["--batch", "0"], ["--workers", "-1"],
                                   ["--lr", "0"], ["--lr", "nan"], ["--save-every", "0"], ["--width", "64"],
-                                  ["--seed", "-1"], ["--eval-limit", "0"], ["--crop", "64", "64"]])
+                                  ["--seed", "-1"], ["--eval-limit", "0"], ["--crop", "64", "64"],
+                                  ["--precision", "fp8"], ["--precision", "fp16", "--device", "cpu"]])
 def test_bad_arguments_exit_2_before_any_work(example, args, capsys):
     """As in the CLI: a bad argument is exit status 2 with a message naming it, before a net is built."""
     with pytest.raises(SystemExit) as e:
         example.main(args)
     assert e.value.code == 2
     assert args[0] in capsys.readouterr().err
+
+
+def test_bf16_channels_last_trains(example, tmp_path):
+    """--precision bf16 --channels-last: a finite loss, the net's convolution weights in channels_last memory, and a
+    checkpoint that records no gradient scaler (bf16 needs none)."""
+    ckpt = tmp_path / "raft.pt"
+    out = example.train(1, width=160, height=128, crop=(128, 128), batch=1, workers=0, checkpoint=str(ckpt),
+                        progress=False, precision="bf16", channels_last=True)
+    assert len(out["losses"]) == 1 and np.isfinite(out["losses"][0])
+    conv = out["net"].feature_encoder.convnormrelu[0].weight
+    assert conv.is_contiguous(memory_format=torch.channels_last) and not conv.is_contiguous()
+    assert torch.load(ckpt)["scaler"] is None and torch.load(ckpt)["step"] == 1
 
 
 def test_stream_workers_start_without_fork(example, monkeypatch):
