@@ -1,4 +1,4 @@
-"""Batches on the device (issue 52, item 3): ``fs.render_batch`` and ``fs.datasets.DeviceBatches``.
+"""Batches on the device (issue 52, item 3): ``fs.render_batch`` (``fs.datasets.DeviceBatches``: test_device_batches).
 
 On the CPU a batch of B scenes gives, scene by scene, exactly what B single renders give (``torch.equal``): every
 kernel computes each pixel from the same inputs in the same steps, whether it runs over one clip or over the batch's
@@ -119,34 +119,6 @@ def test_batch_walking_the_bvh(scenes, monkeypatch, walk):
                                 render_mode="direct")
 
 
-def test_device_batches_hold_the_streams_samples():
-    """Batch i of DeviceBatches is samples start + i B .. of BouncingThings (scenes made in this process, and by one
-    forkserver worker)."""
-    cfg = dataclasses.replace(CFG, num_frames=2, flow_gaps=(1,))
-    keys = ["depth", "flow_fw", "occ_fw", "rgb"]
-    stream = fs.datasets.BouncingThings(cfg, outputs=keys, seed=2)
-    batches = fs.datasets.DeviceBatches(cfg, keys, batch_size=2, seed=2, start=1, length=2)
-    assert len(batches) == 2 and list(batches.indices(1)) == [3, 4]
-    got = list(batches)
-    assert len(got) == 2
-    for i, batch in enumerate(got):
-        for b in range(2):
-            ref = stream.sample(1 + 2 * i + b)
-            assert batch["provenance"][b] == ref["provenance"]
-            for k in [*keys, "K", "cam_T_world", "index", "seed"]:
-                assert torch.equal(batch[k][b], ref[k]), (i, b, k)
-    again = batches.batch(1)
-    for k in keys:
-        assert torch.equal(again[k], got[1][k]), k
-    workers = fs.datasets.DeviceBatches(cfg, keys, batch_size=2, seed=2, start=1, length=1, workers=1)
-    one = next(iter(workers))
-    for k in keys:
-        assert torch.equal(one[k], got[0][k]), k
-    second = list(batches)  # a finite stream's next pass holds new samples, as BouncingThings' next epoch
-    assert [b["index"].tolist() for b in second] == [[5, 6], [7, 8]]
-    assert torch.equal(second[0]["depth"][1], stream.sample(6)["depth"])
-
-
 def test_batch_path_stays_on_the_device(twin, scenes, monkeypatch):  # noqa: F811 (the fixture)
     """On ``cpu:twin``: every array allocated and every launch on the device asked for, no G-buffer handed to the
     host, no Warp array read into numpy (pixels never leave the device; only the face planes of a mesh not seen
@@ -185,15 +157,3 @@ def test_bad_batches_say_what_to_do(scenes):
         fs.render_batch(scenes, ["rgb"], shutter=0.5)
     with pytest.raises(ConfigError, match=r"device 'cuda:7' is not available"):
         fs.render_batch(scenes, ["depth"], device="cuda:7")
-    for kwargs, match in ((dict(batch_size=0), "batch_size must be an integer >= 1"),
-                          (dict(batch_size=2, workers=-1), "workers must be"),
-                          (dict(batch_size=2, length=0), "length must be"),
-                          (dict(batch_size=2, device="gpu"), "device 'gpu' is not available")):
-        with pytest.raises(ConfigError, match=match):
-            fs.datasets.DeviceBatches(CFG, ["depth"], **kwargs)
-    with pytest.raises(ConfigError, match="does not render"):
-        fs.datasets.DeviceBatches(CFG, ["tracks"], batch_size=2)
-    with pytest.raises(ConfigError, match="camera_dist_max"):
-        lens = dataclasses.replace(CFG, camera_model="brown_conrady", camera_dist=(-0.1, 0.0, 0.0, 0.0),
-                                   camera_dist_max=(0.1, 0.0, 0.0, 0.0))
-        fs.datasets.DeviceBatches(lens, ["depth"], batch_size=2)

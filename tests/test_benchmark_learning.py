@@ -12,7 +12,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from learning import cli, raft, sets, summary
+from learning import cli, protocol, sets, summary
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -41,9 +41,36 @@ def test_too_few_steps_and_a_bad_set_are_usage_errors():
         assert r.returncode == 2 and message in r.stderr, (args, r.stderr[-500:])
 
 
+def test_one_reading_at_a_time_and_none_with_training_flags(monkeypatch, capsys):
+    """The readings are one mutually exclusive group: two of them, or one with a flag only a training run reads, exit
+    2 before anything runs; one reading runs alone, and no reading trains. Nothing runs for real: every reading and
+    the run are stand-ins that record their call."""
+    called = []
+    for name in cli.READINGS:
+        monkeypatch.setitem(cli.READINGS, name, lambda args, name=name: called.append(name))
+    monkeypatch.setattr(cli, "run", lambda args: called.append("run"))
+    for args, message in ((["--summarize", "--screen"], "argument --screen: not allowed with argument --summarize"),
+                          (["--ensemble-rate", "2", "--diagnose"], "not allowed with argument --ensemble-rate"),
+                          (["--figures", "F", "--plot", "P"], "not allowed with argument --figures"),
+                          (["--screen", "--quick"], "--screen trains nothing: drop --quick"),
+                          (["--diagnose-checkpoints", "--at-once", "--ensemble"], "drop --at-once, --ensemble"),
+                          (["--stats", "--train-after", "F"], "drop --train-after"),
+                          (["--ensemble-rate", "0"], "give at least 1 net")):
+        with pytest.raises(SystemExit) as e:
+            cli.main(args)
+        assert e.value.code == 2 and message in capsys.readouterr().err, args
+    assert called == []
+    for args, want in ((["--summarize"], "summarize"), (["--diagnose-checkpoints", "--device", "cuda"],
+                                                        "diagnose_checkpoints"),
+                       (["--ensemble-rate", "1", "--steps", "5"], "ensemble_rate"), (["--plot", "P"], "plot"),
+                       (["--quick", "--ensemble"], "run")):
+        cli.main(args)
+        assert called.pop() == want and called == [], args
+
+
 def test_with_means_adds_the_middlebury_mean():
-    assert raft.with_means({"stereo": 2.0, "mb_A": 1.0, "mb_B": 3.0})["middlebury"] == 2.0
-    assert "middlebury" not in raft.with_means({"stereo": 2.0})
+    assert protocol.with_means({"stereo": 2.0, "mb_A": 1.0, "mb_B": 3.0})["middlebury"] == 2.0
+    assert "middlebury" not in protocol.with_means({"stereo": 2.0})
 
 
 def _write_flo_by_hand(path: Path, flow) -> None:

@@ -60,7 +60,7 @@ def benchmark_files() -> list[Path]:
 
 
 def module_name(path: Path) -> str | None:
-    """The dotted name of a module of a package under benchmarks/ (``learning.raft``, ``learning`` for its
+    """The dotted name of a module of a package under benchmarks/ (``learning.runs``, ``learning`` for its
     ``__init__.py``), with benchmarks/ on the path; None for a script outside a package."""
     if not (path.parent / "__init__.py").is_file():
         return None
@@ -80,7 +80,7 @@ def is_script(source: str) -> bool:
 
 def test_benchmark_files_are_found():
     names = {str(p.relative_to(BENCH)) for p in benchmark_files()}
-    assert {"run.py", "speed/hashes.py", "accuracy/physics.py", "_common.py", "learning/raft.py"} <= names
+    assert {"run.py", "speed/hashes.py", "accuracy/physics.py", "_common.py", "learning/protocol.py"} <= names
     assert is_script((BENCH / "run.py").read_text()) and not is_script((BENCH / "_common.py").read_text())
     assert all(len(list(BENCH.rglob(n))) == 1 for n in NOT_HERE)
 
@@ -192,7 +192,8 @@ def test_as_ci_hides_every_bench_only_module(tmp_path):
 
 # The learning package's import order (issue 53: before it, learning.py and learning_raft.py imported each other): a
 # module imports only modules before it, so there is no circle; the scripts come last.
-LEARNING_ORDER = ("sets", "raft", "summary", "diagnose", "checkpoints", "cli", "__main__", "magnitudes")
+LEARNING_ORDER = ("sets", "protocol", "pools", "trainers", "runs", "ensemble_rate", "summary", "diagnose",
+                  "checkpoints", "cli", "__main__", "magnitudes")
 
 
 def package_imports(source: str, package: str) -> set[str]:

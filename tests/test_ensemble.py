@@ -1,7 +1,7 @@
 """flowsynth.ensemble against the single-net path: K RAFT-small nets trained at once (vmap over stacked weights) equal
 K separate runs of ``training.train_step`` with ``one_cycle`` (same init, same batches); each net is clipped by its
-own gradient norm, and a joint clip (the mutant) would be caught; ``learning.raft.train_many`` equals ``train`` per
-net.
+own gradient norm, and a joint clip (the mutant) would be caught; ``learning.trainers.train_many`` equals ``train``
+per net.
 
 The comparisons run in float64. Adam divides each gradient element by its own running magnitude plus eps (1e-8). In
 float32 the biases of the convolutions before RAFT's InstanceNorm, whose true gradient is zero, get gradients of
@@ -24,11 +24,12 @@ import torch
 
 from flowsynth.ensemble import Ensemble, clip_grad_norms_
 from flowsynth.errors import ConfigError, ShapeError
+from flowsynth.nets import raft_small
 from flowsynth.training import one_cycle, train_step
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from learning import raft
+from learning import trainers
 
 # Measured in float64: weights within 5e-13 (the largest in the biases before InstanceNorm, noise over eps), losses
 # within 3e-16 relative. A joint clip or no clip moves weights by ~1e-2 in these runs; DISCERNED is what a test
@@ -53,7 +54,7 @@ def one_thread():
 @pytest.fixture
 def float64(monkeypatch):
     """Default dtype float64, and torchvision RAFT's coordinate grid in it."""
-    raft.raft_small()  # installs the shims before torchvision's model module is imported
+    raft_small()  # installs the shim before torchvision's model module is imported
     import torchvision.models.optical_flow.raft as tv_raft
 
     grid = tv_raft.make_coords_grid
@@ -68,7 +69,7 @@ def _nets(seeds) -> list:
     out = []
     for s in seeds:
         torch.manual_seed(s)
-        out.append(raft.raft_small())
+        out.append(raft_small())
     return out
 
 
@@ -174,12 +175,12 @@ def test_train_many_is_train_per_net(float64, monkeypatch, tmp_path):
     ``evaluate`` is a function of the weights, so each checkpoint's entry shows the weights it saw."""
     import flowsynth.training
 
-    monkeypatch.setattr(raft, "BATCH", 1)
-    monkeypatch.setattr(raft, "CROP", (H, W))
-    monkeypatch.setattr(raft, "UPDATES", UPDATES)
+    monkeypatch.setattr(trainers, "BATCH", 1)
+    monkeypatch.setattr(trainers, "CROP", (H, W))
+    monkeypatch.setattr(trainers, "UPDATES", UPDATES)
     crop = flowsynth.training.augment
     monkeypatch.setattr(flowsynth.training, "augment", lambda *a: tuple(x.double() for x in crop(*a)))
-    monkeypatch.setattr(raft, "evaluate", lambda net, tests, device: {
+    monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: {
         "weights": float(sum(p.detach().sum() for p in net.parameters()))})
     g = torch.Generator().manual_seed(2)
     pools = [(torch.randint(256, (4, 3, H + 8, W + 16), dtype=torch.uint8, generator=g),
@@ -188,10 +189,10 @@ def test_train_many_is_train_per_net(float64, monkeypatch, tmp_path):
              for _ in range(2)]
     seeds, net_seeds, stages = [3, 4], [5, 6], [1, 2]
     saves = [str(tmp_path / f"many{i}.pt") for i in range(2)]
-    many = raft.train_many(pools, {}, 3, seeds, net_seeds, 2, saves=saves, stages=stages)
+    many = trainers.train_many(pools, {}, 3, seeds, net_seeds, 2, saves=saves, stages=stages)
     for i in range(2):
-        one = raft.train(pools[i], {}, 3, seeds[i], net_seeds[i], 2, save=str(tmp_path / f"one{i}.pt"),
-                         stages=stages[i])
+        one = trainers.train(pools[i], {}, 3, seeds[i], net_seeds[i], 2, save=str(tmp_path / f"one{i}.pt"),
+                             stages=stages[i])
         assert [c["step"] for c in many[i]["curve"]] == [c["step"] for c in one["curve"]] == [0, 2, 3]
         for a, b in zip(many[i]["curve"][1:], one["curve"][1:]):
             assert a["train_loss"] == pytest.approx(b["train_loss"], rel=LOSS_RTOL)

@@ -1,4 +1,4 @@
-"""The RAFT judge's ``--ensemble`` (issue 53, item 3): ``raft.run`` and its ``--at-once`` path with every net of every
+"""The RAFT judge's ``--ensemble``: ``runs.run`` and its ``--at-once`` path with every net of every
 seed and arm trained at once in one process (``train_many``) write the results file of the nets trained one by one
 (``train``): the same layout, the same curves, checkpoints and saved weights, and ``"trainer"`` saying which ran. And
 the pools render through ``fs.datasets.loader`` (forkserver workers) into the pairs the fork DataLoader gave.
@@ -21,7 +21,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import _common
-from learning import raft
+from flowsynth.nets import raft_small
+from learning import pools, protocol, runs, trainers
 
 WEIGHTS_ATOL, LOSS_RTOL = 1e-11, 1e-10  # tests/test_ensemble.py's, measured there in float64
 H = W = 128
@@ -32,7 +33,7 @@ ENSEMBLE_ONLY = {"at_once", "step_s"}  # what train_many's results add to train'
 def float64(monkeypatch):
     """Default dtype float64, torchvision RAFT's coordinate grid in it, and one torch thread (as tests/test_ensemble.py
     runs)."""
-    raft.raft_small()  # installs the shims before torchvision's model module is imported
+    raft_small()  # installs the shim before torchvision's model module is imported
     import torchvision.models.optical_flow.raft as tv_raft
 
     grid = tv_raft.make_coords_grid
@@ -51,16 +52,16 @@ def tiny(float64, monkeypatch, tmp_path):
     import flowsynth as fs
     import flowsynth.training
 
-    monkeypatch.setattr(raft, "BATCH", 1)
-    monkeypatch.setattr(raft, "CROP", (H, W))
-    monkeypatch.setattr(raft, "UPDATES", 2)
+    monkeypatch.setattr(trainers, "BATCH", 1)
+    monkeypatch.setattr(trainers, "CROP", (H, W))
+    monkeypatch.setattr(trainers, "UPDATES", 2)
     crop = flowsynth.training.augment
     monkeypatch.setattr(flowsynth.training, "augment", lambda *a: tuple(x.double() for x in crop(*a)))
-    monkeypatch.setattr(raft, "evaluate", lambda net, tests, device: raft.with_means({
+    monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: protocol.with_means({
         "stereo": float(sum(p.detach().sum() for p in net.parameters())),
         "mb_A": float(sum(p.detach().abs().sum() for p in net.parameters()))}))
-    monkeypatch.setattr(raft, "judge_sets", lambda middlebury: {})
-    monkeypatch.setattr(raft, "zero_flow", lambda tests: {"stereo": 17.0, "mb_A": 4.0, "middlebury": 4.0})
+    monkeypatch.setattr(runs, "judge_sets", lambda middlebury: {})
+    monkeypatch.setattr(runs, "zero_flow", lambda tests: {"stereo": 17.0, "mb_A": 4.0, "middlebury": 4.0})
 
     def pool(seed):
         g = torch.Generator().manual_seed(seed)
@@ -72,9 +73,9 @@ def tiny(float64, monkeypatch, tmp_path):
         arms = {a: pool(10 * seed + k) for k, a in enumerate(names)}
         return arms, {"mean_flow": {a: 3.0 for a in names}}, fs.BouncingThingsConfig()
 
-    monkeypatch.setattr(raft, "build_arms", build_arms)
-    monkeypatch.setattr(raft, "CACHE", tmp_path / "cache")
-    monkeypatch.setattr(raft, "RESULTS_DIR", tmp_path)  # progress files
+    monkeypatch.setattr(runs, "build_arms", build_arms)
+    monkeypatch.setattr(runs, "CACHE", tmp_path / "cache")
+    monkeypatch.setattr(runs, "RESULTS_DIR", tmp_path)  # progress files
     monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)  # write_json
     return tmp_path
 
@@ -95,8 +96,8 @@ def _keys(x, path=""):
 
 @pytest.mark.parametrize("at_once", [False, True])
 def test_ensemble_run_writes_the_runs_of_nets_trained_one_by_one(tiny, at_once):
-    raft.run(_args("one"))
-    raft.run(_args("many", ensemble=True, at_once=at_once))
+    runs.run(_args("one"))
+    runs.run(_args("many", ensemble=True, at_once=at_once))
     one, many = (json.loads((tiny / f"learning_raft_{t}.json").read_text()) for t in ("one", "many"))
     assert (one["trainer"], many["trainer"]) == ("in turn", "ensemble")
     assert one["complete"] and many["complete"] and [r["seed"] for r in many["runs"]] == [0, 1]
@@ -130,16 +131,16 @@ def test_pool_through_the_forkserver_loader_is_the_fork_pool(monkeypatch):
 
     import flowsynth as fs
 
-    monkeypatch.setattr(raft, "RES", (48, 32))
+    monkeypatch.setattr(pools, "RES", (48, 32))
     made = []
 
     def fork_loader(ds, batch_size, num_workers, **kwargs):
         made.append(kwargs)
         return DataLoader(ds, batch_size=batch_size, num_workers=num_workers, multiprocessing_context="fork")
 
-    new, cfg = raft.flowsynth_pool(5, 3, 2)
+    new, cfg = pools.flowsynth_pool(5, 3, 2)
     monkeypatch.setattr(fs.datasets, "loader", fork_loader)
-    old, _ = raft.flowsynth_pool(5, 3, 2)
+    old, _ = pools.flowsynth_pool(5, 3, 2)
     assert made and (cfg.width, cfg.height) == (48, 32)
     for a, b in zip(new, old):
         assert a.dtype == b.dtype and torch.equal(a, b)

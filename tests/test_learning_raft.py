@@ -1,6 +1,7 @@
-"""The RAFT judge (benchmarks/learning/raft.py) and its readings (summary.py). Its small-motion diagnostic
-(``learning.sets.small_motion_pair``): exact affine flow between a photograph and its moved copy, checked against
-brightness constancy on a smooth analytic image and against the affine field's own algebra."""
+"""The RAFT judge's pools and trainers (benchmarks/learning/pools.py, trainers.py) and its readings
+(summary.py). Its small-motion diagnostic (``learning.sets.small_motion_pair``): exact affine flow between a
+photograph and its moved copy, checked against brightness constancy on a smooth analytic image and against the
+affine field's own algebra."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from scipy.ndimage import map_coordinates
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from learning import raft, sets, summary
+from learning import pools, protocol, sets, summary, trainers
 from learning.sets import small_motion_pair, small_motion_pairs
 
 
@@ -100,7 +101,7 @@ def test_mixture_and_final_pass_arms(monkeypatch):
     import torch
 
 
-    arms, info, _ = raft.build_arms(["flowsynth", "mixture", "flowsynth_final", "chairs2d"], 0, 0, {}, n=4)
+    arms, info, _ = pools.build_arms(["flowsynth", "mixture", "flowsynth_final", "chairs2d"], 0, 0, {}, n=4)
     fs, mix, fin, chairs = (arms[k] for k in ("flowsynth", "mixture", "flowsynth_final", "chairs2d"))
     for a, f, c in zip(mix, fs, chairs):
         assert torch.equal(a[:2], f[:2]) and torch.equal(a[2:], c[:2])
@@ -114,6 +115,7 @@ def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
     generator's plain draws over the whole pool, as before stages existed. The pool's images carry their index."""
     import torch
 
+    import flowsynth.ensemble
     import flowsynth.training
 
     seen = []
@@ -122,20 +124,20 @@ def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
         seen.append(i1[:, 0, 0, 0].tolist())
         return i1, i2, f, v
 
-    monkeypatch.setattr(raft, "evaluate", lambda net, tests, device: {})
+    monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: {})
     monkeypatch.setattr(flowsynth.training, "augment", augment)
-    monkeypatch.setattr(flowsynth.training, "train_step", lambda net, batch, opt, sched, updates: 0.0)
+    monkeypatch.setattr(flowsynth.ensemble, "step_loss", lambda net, batch, opt, sched, *a, **k: torch.zeros(()))
     pool = (torch.arange(8, dtype=torch.uint8)[:, None, None, None].expand(8, 3, 4, 4), torch.zeros(8, 3, 4, 4),
             torch.zeros(8, 2, 4, 4), torch.ones(8, 1, 4, 4, dtype=torch.bool))
-    raft.train(pool, {}, 10, 3, 3, 5, stages=2)
+    trainers.train(pool, {}, 10, 3, 3, 5, stages=2)
     assert all(0 <= i < 4 for b in seen[:5] for i in b) and all(4 <= i < 8 for b in seen[5:] for i in b)
     assert len(seen) == 10 and len({i for b in seen for i in b}) > 4
     seen.clear()
-    raft.train(pool, {}, 10, 3, 3, 5)
+    trainers.train(pool, {}, 10, 3, 3, 5)
     g = torch.Generator().manual_seed(3)
-    assert seen == [torch.randint(8, (raft.BATCH,), generator=g).tolist() for _ in range(10)]
-    arms, _, _ = raft.build_arms(["curriculum", "chairs2d", "flowsynth"], 0, 0, {}, n=4)
-    assert raft.STAGES["curriculum"] == 2
+    assert seen == [torch.randint(8, (protocol.BATCH,), generator=g).tolist() for _ in range(10)]
+    arms, _, _ = pools.build_arms(["curriculum", "chairs2d", "flowsynth"], 0, 0, {}, n=4)
+    assert protocol.STAGES["curriculum"] == 2
     assert all(torch.equal(c, torch.cat([a, f])) for c, a, f in zip(arms["curriculum"], arms["chairs2d"],
                                                                       arms["flowsynth"]))
 
@@ -145,23 +147,25 @@ def test_train_keeps_every_checkpoints_weights(tmp_path, monkeypatch):
     step adds 1 to one weight, so checkpoint s holds the initial weight + s)."""
     import torch
 
+    import flowsynth.ensemble
     import flowsynth.training
+    from flowsynth.nets import raft_small
 
-    def step(net, batch, opt, sched, updates):
+    def step(net, batch, opt, sched, *args, **kwargs):
         next(net.parameters()).data.add_(1.0)
-        return 0.0
+        return torch.zeros(())
 
-    monkeypatch.setattr(raft, "evaluate", lambda net, tests, device: {})
+    monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: {})
     monkeypatch.setattr(flowsynth.training, "augment", lambda i1, i2, f, v, crop, g: (i1, i2, f, v))
-    monkeypatch.setattr(flowsynth.training, "train_step", step)
+    monkeypatch.setattr(flowsynth.ensemble, "step_loss", step)
     pool = tuple(torch.zeros(4, c, 4, 4) for c in (3, 3, 2, 1))
     torch.manual_seed(7)
-    first = next(raft.raft_small().parameters()).detach().clone()
+    first = next(raft_small().parameters()).detach().clone()
     save = str(tmp_path / "net.pt")
-    raft.train(pool, {}, 10, 3, 7, 4, save=save)
+    trainers.train(pool, {}, 10, 3, 7, 4, save=save)
     name = next(iter(torch.load(save)))
     for s in (4, 8, 10):
-        weights = torch.load(raft.checkpoint_path(save, s))
+        weights = torch.load(protocol.checkpoint_path(save, s))
         assert torch.allclose(weights[name], first + s, rtol=0, atol=1e-5)
     assert torch.equal(torch.load(save)[name], weights[name])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["net.pt", "net_step10.pt", "net_step4.pt", "net_step8.pt"]

@@ -78,8 +78,7 @@ def live_batches(source: str, cfg, batch: int, workers: int, device: str, seed: 
     if source == "device":
         if not hasattr(fs.datasets, "DeviceBatches"):
             raise SystemExit("--source device: this flowsynth has no fs.datasets.DeviceBatches")
-        for b in fs.datasets.DeviceBatches(cfg, outputs=OUTPUTS, batch_size=batch, device=device, seed=seed,
-                                           workers=workers):
+        for b in fs.datasets.DeviceBatches(cfg, OUTPUTS, batch, workers, device=device, seed=seed):
             yield pairs(b)
         return
     ds = fs.datasets.BouncingThings(cfg, outputs=OUTPUTS, seed=seed)

@@ -192,8 +192,8 @@ def time_batches(name: str, device: str, batch: int, workers: int, n: int) -> di
 
     warm, n = workers + 1, max(n, 2 * workers)
     outputs, overrides = WORKLOADS[name]
-    ds = fs.datasets.DeviceBatches(config(**overrides), outputs=outputs, batch_size=batch, device=device, seed=0,
-                                   workers=workers, length=warm + n)
+    ds = fs.datasets.DeviceBatches(config(**overrides), outputs, batch, workers, device=device, seed=0,
+                                   length=(warm + n) * batch)
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     it = iter(ds)

@@ -1,6 +1,6 @@
-"""The RAFT judge's nets checkpoint by checkpoint (issue 53, item 5; ``--diagnose-checkpoints``): a net that does not
+"""The RAFT judge's nets checkpoint by checkpoint (``--diagnose-checkpoints``): a net that does not
 invent motion. For the runs in the results files of a glob and each tested checkpoint's saved weights
-(``raft.checkpoint_path``: TAG_ARM_sSEED_stepN.pt beside the final TAG_ARM_sSEED.pt), per (arm, seed, checkpoint):
+(``protocol.checkpoint_path``: TAG_ARM_sSEED_stepN.pt beside the final TAG_ARM_sSEED.pt), per (arm, seed, checkpoint):
 
 - the motion the net invents on each still photograph of the small-motion diagnostic (``sets.small_motion_pairs`` at
   0 px: Motorcycle's left view and frame 1 of each Middlebury pair): its mean over the photographs and the worst;
@@ -8,7 +8,7 @@ invent motion. For the runs in the results files of a glob and each tested check
   swing), and zero flow's EPE on each pair.
 
 Then the goal (``GOAL``), reported beside rule 5 of docs/decisions/0023 and deciding nothing. Weights that were not
-kept (runs before issue 53 kept only the final net) are reported missing, and a goal that needs them is unknown.
+kept (older runs kept only the final net; decision 0023) are reported missing, and a goal that needs them is unknown.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from _common import RESULTS_DIR, print_table, pyplot, save_figure
 
-from .raft import CACHE, JUDGED, NET, TEST_UPDATES, checkpoint_path, raft_small
+from .protocol import CACHE, JUDGED, NET, TEST_UPDATES, checkpoint_path, net_stem, results_tag
 from .sets import middlebury_pairs, small_motion_pairs
 
 GOAL_INVENTED = 1.0  # [px] the most a net may invent on a still photograph (mean EPE over its valid pixels)
@@ -44,6 +44,7 @@ def invented_motion(path: str, stills: dict, device: str = "cpu") -> dict:
     """{photograph: the mean |flow| [px] the net saved at ``path`` predicts on its still pair} (its EPE there)."""
     import torch
 
+    from flowsynth.nets import raft_small
     from flowsynth.training import predict
 
     net = raft_small()
@@ -106,14 +107,13 @@ def arm_goal(goals: dict) -> dict:
 
 
 def _runs(pattern: str):
-    """(file, weights tag, arm label, its JSON, one seed's run) for every run of this judge in the results/ files
-    matching ``pattern`` (unfinished files' finished seeds included). A --set run's flowsynth arm is labelled by its
-    changes, as ``--screen`` labels it."""
+    """(file, its tag (``protocol.results_tag``), its JSON, one seed's run) for every run of this judge in the
+    results/ files matching ``pattern`` (unfinished files' finished seeds included)."""
     for f in sorted(RESULTS_DIR.glob(pattern)):
         d = json.loads(f.read_text())
         if d.get("net") != NET or "runs" not in d:
             continue
-        tag = f.stem.removeprefix("learning_raft").removeprefix("_") or "default"
+        tag = results_tag(f.stem)
         for r in d["runs"]:
             yield f, tag, d, r
 
@@ -122,7 +122,8 @@ def diagnose_checkpoints(pattern: str, middlebury_dir: str | None, device: str =
                          weights: str | Path | None = None) -> dict:
     """The module docstring's report for the runs of the results/ files matching ``pattern``, their checkpoints'
     weights under ``weights`` (default .cache/learning_raft). Returns {"rows": one per (arm, seed, checkpoint),
-    "nets": one per (arm, seed) with its goal, "arms": ``arm_goal`` per arm}; an arm's seed twice is an error."""
+    "nets": one per (arm, seed) with its goal, "arms": ``arm_goal`` per arm}; an arm's seed twice is an error. A --set
+    run's flowsynth arm is labelled by its changes, as ``--screen`` labels it."""
     stills = still_pairs(middlebury_dir)
     folder = Path(weights) if weights else CACHE
     rows, nets, seen = [], [], {}
@@ -139,7 +140,7 @@ def diagnose_checkpoints(pattern: str, middlebury_dir: str | None, device: str =
             curve, invented = res["curve"], {}
             delta = {k: {s: x for s, _, x in changes(curve, k)} for k in pairs}
             for c in curve[1:]:
-                path = checkpoint_path(str(folder / f"{tag}_{arm}_s{seed}.pt"), c["step"])
+                path = checkpoint_path(str(folder / f"{net_stem(tag, arm, seed)}.pt"), c["step"])
                 photos = invented_motion(path, stills, device) if Path(path).exists() else None
                 invented[c["step"]] = photos
                 worst = max(photos, key=photos.get) if photos else None

@@ -1,5 +1,6 @@
-"""The learning benchmark's command line: does a flow network trained on flowsynth work on real flow? The RAFT judge
-(``raft``; protocol and rules pre-registered in docs/decisions/0023-raft-judge.md) trains, pools and diagnoses.
+"""The learning benchmark's command line: does a flow network trained on flowsynth work on real flow?
+The RAFT judge (``protocol``; protocol and rules pre-registered in docs/decisions/0023-raft-judge.md) trains, pools and
+diagnoses.
 
     python benchmarks/learning [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400] [--middlebury DIR]
                                [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2] [--at-once] [--ensemble]
@@ -7,14 +8,16 @@
     python benchmarks/learning --screen [--files 'learning_raft_s0*.json']       # rule 4 for every lever of seed 0
     python benchmarks/learning --diagnose --nets A.pt,B.pt [--middlebury DIR]   # where the saved nets fail
     python benchmarks/learning --diagnose-checkpoints [--files 'learning_raft_l*.json'] [--middlebury DIR]  # every
-                               # checkpoint's invented motion and swings, and the goal of issue 53 (item 5)
+                               # checkpoint's invented motion and swings, and the goal (``checkpoints.GOAL``)
     python benchmarks/learning --figures NAME --nets A.pt [--middlebury DIR]    # their predicted flow
     python benchmarks/learning --plot NAME | --stats [--set FIELD=JSON]
     python benchmarks/learning --ensemble-rate 2 [--steps 20] [--device cuda]  # K nets in one process vs K processes
 
-Writes results/learning_raft[_TAG].json after every seed (``raft.run``), and the readings beside it:
+Without a reading (``--summarize`` ... ``--ensemble-rate``: at most one, ``READINGS``) a run trains the nets
+(``runs.run``) and writes results/learning_raft[_TAG].json after every seed; the readings write beside it:
 learning_raft_summary_*, learning_raft_screens*, learning_raft_diagnose*, learning_raft_stats* (``summary``,
-``diagnose``), learning_raft_diagnose_checkpoints* (``checkpoints``).
+``diagnose``), learning_raft_diagnose_checkpoints* (``checkpoints``), learning_raft_ensemble_rate* (``ensemble_rate``).
+Two readings, or a reading with a flag that only a training run reads (``TRAINING_ONLY``), are usage errors (exit 2).
 """
 
 from __future__ import annotations
@@ -26,12 +29,72 @@ from _common import print_table, write_json
 
 from .checkpoints import diagnose_checkpoints, plot_invented, report
 from .diagnose import diagnose, figures, pool_stats
-from .raft import ARMS, EVERY, POOL, STEPS, ensemble_rate, run
+from .ensemble_rate import ensemble_rate
+from .protocol import ARMS, EVERY, POOL, STEPS, results_name
+from .runs import run
 from .summary import plot_judge_curves, plot_summary, screen, summarize
 
+TRAINING_ONLY = ("quick", "at_once", "ensemble", "train_after")  # flags a reading refuses
 
-def main(argv: list[str] | None = None) -> None:
-    """Parse ``argv`` (default: the process's arguments) and run what it asks for (the module docstring)."""
+
+def _summarize(args) -> None:
+    out = summarize(args.files, args.arm, args.against)
+    name = results_name(f"summary_{args.arm}_{args.against}", args.tag)
+    write_json(name, out)
+    print(f"plot: {plot_summary(out, name) or 'none (matplotlib is in the bench extra)'}")
+
+
+def _screen(args) -> None:
+    rows = screen(args.files)
+    print_table(rows, list(rows[0])) if rows else print("--screen: no lever in the files")
+    write_json(results_name("screens", args.tag), {"files": args.files, "rows": rows})
+
+
+def _plot(args) -> None:
+    for path in plot_judge_curves(args.plot, args.files):
+        print(f"wrote {path}")
+
+
+def _stats(args) -> None:
+    rows = pool_stats(args.arms.split(","), args.pool or 64, args.workers, args.overrides, args.middlebury)
+    print_table(rows, list(rows[0]))
+    write_json(results_name("stats", args.tag), {"pairs": args.pool or 64, "rows": rows})
+
+
+def _diagnose(args) -> None:
+    rows = diagnose([n for n in args.nets.split(",") if n], args.middlebury)
+    print_table(rows, list(rows[0]))
+    write_json(results_name("diagnose", args.tag), {"rows": rows})
+
+
+def _diagnose_checkpoints(args) -> None:
+    out = diagnose_checkpoints(args.files, args.middlebury, args.device, args.weights)
+    report(out)
+    name = results_name("diagnose_checkpoints", args.tag)
+    write_json(name, out)
+    print(f"plot: {plot_invented(out, name) or 'none (no weights, or matplotlib is not installed)'}")
+
+
+def _figures(args) -> None:
+    for path in figures(args.figures, args.middlebury, [n for n in args.nets.split(",") if n]):
+        print(f"wrote {path}")
+
+
+def _ensemble_rate(args) -> None:
+    ensemble_rate(args.ensemble_rate, args.steps or 20, device=args.device, threads=args.threads, tag=args.tag)
+
+
+READINGS = {"summarize": _summarize, "screen": _screen, "plot": _plot, "stats": _stats, "diagnose": _diagnose,
+            "diagnose_checkpoints": _diagnose_checkpoints, "figures": _figures, "ensemble_rate": _ensemble_rate}
+
+
+def _given(value) -> bool:
+    """Whether an option's parsed ``value`` says it was given: not its default None or False (0 is a value)."""
+    return value is not None and value is not False
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line's parser (the module docstring)."""
     p = argparse.ArgumentParser(prog="python benchmarks/learning", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="a smoke run: 12 pairs an arm, 20 steps, tests every 10")
     p.add_argument("--seeds", default="0")
@@ -57,31 +120,41 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
                    help="a lever: the flowsynth arms' config with this field changed (repeatable); use with --tag")
     p.add_argument("--tag", default="", help="results/learning_raft_TAG.json")
-    p.add_argument("--summarize", action="store_true", help="train nothing: pool the seeds of --files")
     p.add_argument("--files", default="learning_raft*.json", help="--summarize: results/ files to pool (a glob)")
     p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm")
     p.add_argument("--against", default="chairs2d_photos", help="--summarize: the denominator arm")
-    p.add_argument("--screen", action="store_true", help="train nothing: rule 4 for every lever of seed 0 in the "
-                   "--files results, against the default and its control (results/learning_raft_screens.json)")
-    p.add_argument("--figures", default=None, metavar="NAME",
-                   help="train nothing: results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
     p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
-    p.add_argument("--plot", default=None, metavar="NAME", help="train nothing: results/NAME_JUDGE.png, the learning "
-                   "curves of every arm and seed in the --files results")
-    p.add_argument("--stats", action="store_true", help="train nothing: flow-magnitude and texture statistics of "
-                   "--arms' pools, a lever's with --set (--pool pairs, default 64), beside the real judges")
-    p.add_argument("--diagnose", action="store_true", help="train nothing: per net of --nets and real pair, the EPE "
-                   "on smooth or textured pixels with small or large true motion (results/learning_raft_diagnose"
-                   "[_TAG].json)")
-    p.add_argument("--diagnose-checkpoints", action="store_true", help="train nothing: per arm, seed and tested "
-                   "checkpoint of the --files runs, the motion its saved net invents on the five still photographs, "
-                   "each real pair's EPE swing and zero flow's, and the goal of issue 53 (item 5), deciding nothing "
-                   "(--middlebury, --device, --weights; results/learning_raft_diagnose_checkpoints[_TAG].json, .png)")
     p.add_argument("--weights", default=None, metavar="DIR", help="--diagnose-checkpoints: the folder of the runs' "
                    "saved weights (default .cache/learning_raft)")
-    p.add_argument("--ensemble-rate", type=int, default=None, metavar="K", help="train nothing: steps/s of K nets "
-                   "at the protocol's shape in one process (batched, and a loop) against K processes (--steps timed "
-                   "steps, default 20; --threads, --device; results/learning_raft_ensemble_rate[_TAG].json)")
+    readings = p.add_argument_group("readings", "each trains nothing; at most one, and none of --quick, --at-once, "
+                                    "--ensemble, --train-after with it").add_mutually_exclusive_group()
+    readings.add_argument("--summarize", action="store_true", help="pool the seeds of --files")
+    readings.add_argument("--screen", action="store_true", help="rule 4 for every lever of seed 0 in the --files "
+                          "results, against the default and its control (results/learning_raft_screens.json)")
+    readings.add_argument("--plot", default=None, metavar="NAME", help="results/NAME_JUDGE.png, the learning curves "
+                          "of every arm and seed in the --files results")
+    readings.add_argument("--stats", action="store_true", help="flow-magnitude and texture statistics of --arms' "
+                          "pools, a lever's with --set (--pool pairs, default 64), beside the real judges")
+    readings.add_argument("--diagnose", action="store_true", help="per net of --nets and real pair, the EPE on "
+                          "smooth or textured pixels with small or large true motion "
+                          "(results/learning_raft_diagnose[_TAG].json)")
+    readings.add_argument("--diagnose-checkpoints", action="store_true", help="per arm, seed and tested checkpoint "
+                          "of the --files runs, the motion its saved net invents on the five still photographs, each "
+                          "real pair's EPE swing and zero flow's, and whether the nets reach the goal of a net that "
+                          "does not invent motion, deciding nothing (--middlebury, --device, --weights; "
+                          "results/learning_raft_diagnose_checkpoints[_TAG].json, .png)")
+    readings.add_argument("--figures", default=None, metavar="NAME",
+                          help="results/NAME_PAIR.png per real pair, the nets in --nets against the truth")
+    readings.add_argument("--ensemble-rate", type=int, default=None, metavar="K", help="steps/s of K nets at the "
+                          "protocol's shape in one process (batched, and a loop) against K processes (--steps timed "
+                          "steps, default 20; --threads, --device; results/learning_raft_ensemble_rate[_TAG].json)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Parse ``argv`` (default: the process's arguments) and run what it asks for (the module docstring). Usage errors
+    exit 2 with argparse's message."""
+    p = parser()
     args = p.parse_args(argv)
     args.overrides = {}
     for item in args.set:
@@ -92,46 +165,14 @@ def main(argv: list[str] | None = None) -> None:
             args.overrides[key] = json.loads(value)
         except json.JSONDecodeError:
             p.error(f"--set {item!r}: the value must be JSON, e.g. num_objects=[2,8]")
-    if args.summarize:
-        out = summarize(args.files, args.arm, args.against)
-        name = f"learning_raft_summary_{args.arm}_{args.against}" + (f"_{args.tag}" if args.tag else "")
-        write_json(name, out)
-        print(f"plot: {plot_summary(out, name) or 'none (matplotlib is in the bench extra)'}")
-        return
-    if args.screen:
-        rows = screen(args.files)
-        print_table(rows, list(rows[0])) if rows else print("--screen: no lever in the files")
-        write_json("learning_raft_screens" + (f"_{args.tag}" if args.tag else ""), {"files": args.files, "rows": rows})
-        return
-    if args.plot:
-        for path in plot_judge_curves(args.plot, args.files):
-            print(f"wrote {path}")
-        return
-    if args.stats:
-        rows = pool_stats(args.arms.split(","), args.pool or 64, args.workers, args.overrides, args.middlebury)
-        print_table(rows, list(rows[0]))
-        write_json("learning_raft_stats" + (f"_{args.tag}" if args.tag else ""), {"pairs": args.pool or 64,
-                                                                                   "rows": rows})
-        return
-    if args.diagnose:
-        rows = diagnose([n for n in args.nets.split(",") if n], args.middlebury)
-        print_table(rows, list(rows[0]))
-        write_json("learning_raft_diagnose" + (f"_{args.tag}" if args.tag else ""), {"rows": rows})
-        return
-    if args.diagnose_checkpoints:
-        out = diagnose_checkpoints(args.files, args.middlebury, args.device, args.weights)
-        report(out)
-        name = "learning_raft_diagnose_checkpoints" + (f"_{args.tag}" if args.tag else "")
-        write_json(name, out)
-        print(f"plot: {plot_invented(out, name) or 'none (no weights, or matplotlib is not installed)'}")
-        return
-    if args.figures:
-        for path in figures(args.figures, args.middlebury, [n for n in args.nets.split(",") if n]):
-            print(f"wrote {path}")
-        return
-    if args.ensemble_rate:
-        ensemble_rate(args.ensemble_rate, args.steps or 20, device=args.device, threads=args.threads, tag=args.tag)
-        return
+    reading = next((m for m in READINGS if _given(getattr(args, m))), None)
+    if reading:
+        training = [f"--{f.replace('_', '-')}" for f in TRAINING_ONLY if _given(getattr(args, f))]
+        if training:
+            p.error(f"--{reading.replace('_', '-')} trains nothing: drop {', '.join(training)}")
+        if args.ensemble_rate is not None and args.ensemble_rate < 1:
+            p.error(f"--ensemble-rate {args.ensemble_rate}: give at least 1 net")
+        return READINGS[reading](args)
     if args.steps is not None and args.steps < 20:
         p.error(f"--steps {args.steps}: give at least 20 steps")
     if args.quick:

@@ -9,7 +9,8 @@ from pathlib import Path
 
 from _common import RESULTS_DIR
 
-from .raft import TEST_UPDATES, build_arms, judge_sets, raft_small
+from .pools import build_arms
+from .protocol import TEST_UPDATES, judge_sets
 from .sets import small_motion_pairs
 
 SMOOTH = 0.02  # a pixel is "smooth" when the mean |grey-level gradient| over its 9x9 window is below this (of 1)
@@ -52,6 +53,7 @@ def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
     most 0, 1 and 3 px; on a still pair the EPE is the motion the net invents)."""
     import torch
 
+    from flowsynth.nets import raft_small
     from flowsynth.training import predict
 
     tests = judge_sets(middlebury_dir)
@@ -87,6 +89,7 @@ def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
     import matplotlib.pyplot as plt
     import torch
 
+    from flowsynth.nets import raft_small
     from flowsynth.training import predict
     from flowsynth.viz import flow_to_color
 

@@ -2,16 +2,16 @@
 
     python benchmarks/learning/magnitudes.py [--num 12] [--middlebury DIR] [--set FIELD=JSON ...] [--quick]
 
-Issue 38, item 4: real video holds still and slow regions beside fast ones. This script puts side by side, as
+Real video holds still and slow regions beside fast ones. This script puts side by side, as
 histograms of |flow| on log-spaced bins and as shares of Sintel's s0-10 / s10-40 / s40+ partition (the bands the
 Sintel benchmark scores separately; the benchmark does not publish each band's pixel share, so the shares here
 are measured, never quoted):
 
-- "default": the default config at 512x384 (the size issue 12 measures at), frame pairs, over valid pixels;
+- "default": the default config at 512x384 (the size ``flow_px`` is given at), frame pairs, over valid pixels;
 - "candidate": the default with ``--set`` fields changed (and ``--flow-px``), when given;
-- "chairs2d": the learning benchmark's 2D baseline (``learning.raft.build_arms``' "chairs2d" arm, 64 pairs of seed 0)
-  at the judge's 256x192, its motion scaled to the flowsynth pool's mean as the judge does, flow multiplied by 2 (the
-  512x384 scale; until issue 53 the retired ncc-v2 judge's 128x96 baseline, multiplied by 4);
+- "chairs2d": the learning benchmark's 2D baseline (``learning.pools.build_arms``' "chairs2d" arm, 64 pairs of seed 0)
+  at the judge's 256x192, its motion scaled to the flowsynth pool's mean as the judge does, flow multiplied by
+  ``protocol.SCALE`` (the 512x384 scale);
 - "middlebury": the ground truth of the pairs under ``--middlebury`` at their own size (420x380 to 640x480,
   about the 512x384 scale), known pixels.
 
@@ -30,7 +30,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common and the learning package
 
 from _common import RESULTS_DIR, machine_info, print_table, write_json
-from learning import raft
+from learning.pools import build_arms
+from learning.protocol import SCALE
 from learning.sets import middlebury_pairs
 
 BINS = (0.0, 0.01) + tuple(float(x) for x in __import__("numpy").geomspace(0.02, 1000.0, 48))
@@ -121,9 +122,9 @@ def main() -> None:
         mags["candidate"] = flowsynth_magnitudes(fs.BouncingThingsConfig.from_dict(
             {**overrides, "width": size[0], "height": size[1], "num_frames": 2}), n)
     # the 2D baseline as the learning benchmark makes it, at its 256x192, matched to its flowsynth pool's mean there
-    chairs = raft.build_arms(["chairs2d"], 0, 0, {}, 64)[0]["chairs2d"]
+    chairs = build_arms(["chairs2d"], 0, 0, {}, 64)[0]["chairs2d"]
     mags["chairs2d"] = (torch.linalg.vector_norm(chairs[2], dim=1)[chairs[3][:, 0]].numpy().astype(np.float64)
-                        * raft.SCALE)
+                        * SCALE)
     mb = middlebury_pairs(args.middlebury)
     if mb:
         mags["middlebury"] = np.concatenate([torch.linalg.vector_norm(v[2][0], dim=0)[v[3][0, 0] > 0.5].numpy()

@@ -12,7 +12,7 @@ import zlib
 from pathlib import Path
 
 MIDDLEBURY = ("Dimetrodon", "Grove2", "Urban2", "Venus")  # the pairs looked for under --middlebury (any subset)
-# issue 46: the photo-textured arms take every photograph that ships with scikit-image (none needs a download; most
+# the photo-textured arms take every photograph that ships with scikit-image (none needs a download; most
 # are grey), as FlyingChairs textures its chairs with photographs; none is a judge's image
 NATURAL_PHOTOS = ("astronaut", "brick", "camera", "cat", "cell", "chelsea", "clock", "coffee", "coins", "grass",
                   "gravel", "hubble_deep_field", "immunohistochemistry", "moon", "page", "retina", "rocket", "text")
@@ -32,8 +32,8 @@ def _affine(rng, shift_px: float, rot: float, zoom: float, size: tuple[int, int]
 
 
 def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0):
-    """n FlyingChairs-style pairs from ``sources`` (m, 3, h, w) images (any size; 128x96 until issue 46, shape sizes
-    and shifts scale with w / 128): a background and 2-5 shapes, each under its own random affine map; flow exact
+    """n FlyingChairs-style pairs from ``sources`` (m, 3, h, w) images (any size; shape sizes and shifts, set
+    at 128 px wide, scale with w / 128): a background and 2-5 shapes, each under its own random affine map; flow exact
     for every pixel of frame 0 (all valid, as in FlyingChairs).
     ``motion_scale`` multiplies every shift, rotation and log-zoom range."""
     import cv2
@@ -43,7 +43,7 @@ def chairs2d_pairs(n: int, seed: int, sources, motion_scale: float = 1.0):
     rng = np.random.default_rng(seed)
     src = sources.permute(0, 2, 3, 1).numpy()
     H, W = src.shape[1:3]
-    k = W / 128  # issue 12's shapes and shifts were set at 128 px wide
+    k = W / 128  # the shapes and shifts below are set at 128 px wide
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
     grid = np.stack([xs, ys, np.ones_like(xs)], -1)  # (H, W, 3)
     out = [[], [], [], []]
@@ -255,7 +255,7 @@ def small_motion_pair(img, seed: int, magnitude: float) -> tuple:
 
 
 def small_motion_pairs(middlebury: dict, seed: int = 0, magnitudes: tuple = SMALL_MOTION) -> dict:
-    """The small-motion diagnostic (issue 46): each real photograph the judges use (Motorcycle's left view at half
+    """The small-motion diagnostic: each real photograph the judges use (Motorcycle's left view at half
     resolution, frame 1 of each pair in ``middlebury``: middlebury_pairs' dict) moved by ``small_motion_pair`` at
     each of ``magnitudes``: {"sm_NAME_M": (img1, img2, flow, valid)}, each photograph's motion drawn from ``seed``
     and its name. No net trains on these photographs."""

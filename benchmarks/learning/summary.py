@@ -9,7 +9,7 @@ import json
 
 from _common import RESULTS_DIR, plot_curves, print_table, pyplot, save_figure
 
-from .raft import JUDGED, JUDGES, NET, score
+from .protocol import JUDGED, JUDGES, NET, score
 
 
 def _complete_runs(pattern: str, who: str):

@@ -1,12 +1,14 @@
 """``DeviceBatches``: the BouncingThings stream in batches of B samples, rendered together on one device.
 
-Batch i holds samples start + i B .. start + i B + B - 1 of ``BouncingThings(cfg, outputs, seed=seed)``: the same
-scenes (scene sampling and physics run on the CPU whatever the device, so a sample's scene does not depend on it) and,
-on the CPU, the same bits. The scenes come from ``workers`` CPU processes (a ``flowsynth.datasets.loader`` DataLoader
-over ``SceneSet``: forkserver workers, which survive a parent that has initialised CUDA), while this process renders
-each batch with ``fs.render_batch``: every per-pixel stage once per batch, the tensors left on the device.
+``DeviceBatches(cfg, outputs, batch_size, num_workers, seed=..., length=...)`` yields what
+``loader(BouncingThings(cfg, outputs, seed=..., length=...), batch_size, num_workers)`` yields, epoch for epoch: the
+same samples in the same batches (on the CPU the same bits; scene sampling and physics run on the CPU whatever the
+device, so a sample's scene does not depend on it), with the tensors on ``device``. The scenes come from
+``num_workers`` CPU processes (``flowsynth.datasets.loader`` over ``SceneSet``: forkserver workers, which survive a
+parent that has initialised CUDA), while this process renders each batch with ``fs.render_batch``: every per-pixel
+stage once per batch.
 
-    batches = fs.datasets.DeviceBatches(cfg, ["depth", "flow_fw", "occ_fw"], batch_size=16, device="cuda", workers=8)
+    batches = fs.datasets.DeviceBatches(cfg, ["depth", "flow_fw", "occ_fw"], 16, 8, device="cuda")
     for batch in batches:              # batch["flow_fw"]: (16, T-1, 2, H, W) float32 on the GPU
         ...
 
@@ -53,15 +55,14 @@ class SceneSet(Dataset):
         return scene, batch_tables(scene, self.plan, threads=1 if in_worker else self.plan.threads)
 
 
-class _Indices(Sampler):
-    """start, start + 1, ... (``count`` of them, or endless)."""
+class _From(Sampler):
+    """first, first + 1, ... without end."""
 
-    def __init__(self, start: int, count: int | None) -> None:
-        self.start, self.count = start, count
+    def __init__(self, first: int) -> None:
+        self.first = first
 
     def __iter__(self) -> Iterator[int]:
-        it = itertools.count(self.start)
-        return it if self.count is None else itertools.islice(it, self.count)
+        return itertools.count(self.first)
 
 
 def scene_list(scenes: list) -> list:
@@ -69,8 +70,14 @@ def scene_list(scenes: list) -> list:
     return list(scenes)
 
 
+def _count(name: str, v, lo: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+        raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
+    return int(v)
+
+
 class DeviceBatches:
-    """Batches of ``batch_size`` BouncingThings samples as tensors on ``device`` (batch i: samples start + i B ..).
+    """Batches of ``batch_size`` BouncingThings samples as tensors on ``device``.
 
     Args:
         cfg: scene and rendering configuration (defaults when None); one camera for every sample (no
@@ -78,64 +85,131 @@ class DeviceBatches:
         outputs: keys ``fs.render_batch`` renders (``flowsynth.renderer.BATCH_KEYS``); ``K`` and ``cam_T_world`` are
             always added, as in ``BouncingThings``.
         batch_size: B >= 1 samples per batch.
-        device: Warp device of the renderer ("cpu", "cuda", "cuda:1", ...); the tensors live there.
-        seed: dataset seed (>= 0); start: first sample index (>= 0).
-        workers: CPU processes sampling and simulating scenes (0: in this process, between batches).
-        length: batches per pass, or None for an endless stream.
-        occlusion, threads: as ``BouncingThings``' (threads of this process's launches).
+        num_workers: CPU processes sampling and simulating the scenes (0: in this process, before each batch).
+        seed: dataset seed (>= 0).
+        length: samples per epoch, or None for an endless stream (as ``BouncingThings``' ``length``).
+        start: first sample index (>= 0).
+        occlusion, device, threads: as ``BouncingThings``' (``device``: the Warp device the batches are rendered and
+            left on; ``threads``: of this process's launches).
+
+    Raises:
+        ConfigError: bad arguments, an output ``render_batch`` does not render, a config with a lens per sample or
+        motion-blurred rgb, a device Warp does not find.
+
+    Epoch e of a finite stream holds samples start + e L .. start + (e + 1) L - 1 (L = ``length``), in ``len()`` =
+    ceil(L / B) batches of B in order, the last one short when B does not divide L: what a DataLoader with
+    ``batch_size`` B yields over ``BouncingThings(..., length=L)``'s epoch e. An endless stream holds start, start + 1,
+    ... in batches of B. Either way each sample is yielded once: an epoch broken off (the loop stopped reading)
+    resumes at the next ``iter()`` with the first sample not yet yielded, a finite epoch read to its end is followed
+    by the next epoch, and an endless stream continues where it stopped. ``set_epoch`` and ``load_state_dict``
+    move the position; the scene workers start at the first ``iter()`` and stay while the position follows on (their
+    prefetched scenes are kept for the next batches), else restart at the new position.
 
     Each batch is a dict: every output (B, ...) (per-frame keys (B, T, C, H, W), per-pair (B, T-1, C, H, W), ``K``
     (B, 3, 3), ``cam_T_world`` (B, T, 4, 4)), ``index`` and ``seed`` (B,) int64, all on ``device``, and
     ``provenance``, the B samples' scene descriptions (JSON strings), as ``BouncingThings.sample`` gives them.
     """
 
-    def __init__(self, cfg=None, outputs: Sequence[str] = ("rgb", "flow_fw"), batch_size: int = 8, *,
-                 device: str = "cpu", seed: int = 0, start: int = 0, workers: int = 0, length: int | None = None,
-                 occlusion: str = "exact", threads: int | None = None) -> None:
+    def __init__(self, cfg=None, outputs: Sequence[str] = ("rgb", "flow_fw"), batch_size: int = 8,
+                 num_workers: int = 0, *, seed: int = 0, length: int | None = None, start: int = 0,
+                 occlusion: str = "exact", device: str = "cpu", threads: int | None = None) -> None:
         from flowsynth.raycast import resolve_device
         from flowsynth.scene import BouncingThingsConfig
 
         cfg = BouncingThingsConfig() if cfg is None else cfg
         if not isinstance(cfg, BouncingThingsConfig):
             raise ConfigError(f"cfg must be a BouncingThingsConfig, got {type(cfg).__name__}")
-        for name, v, lo in (("batch_size", batch_size, 1), ("seed", seed, 0), ("start", start, 0),
-                            ("workers", workers, 0)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
-        if length is not None and (isinstance(length, bool) or not isinstance(length, (int, np.integer))
-                                   or length < 1):
-            raise ConfigError(f"length must be None (endless) or an integer >= 1 (batches), got {length!r}")
+        self.batch_size, self.num_workers = _count("batch_size", batch_size, 1), _count("num_workers", num_workers, 0)
+        self.seed, self.start = _count("seed", seed, 0), _count("start", start, 0)
+        if length is not None:
+            length = _count("length (samples per epoch; None: endless)", length, 1)
         if cfg.camera_dist_max is not None:
             raise ConfigError("camera_dist_max draws a lens per sample, and a batch needs one camera: leave "
                               "camera_dist_max None, or stream with BouncingThings")
         self.plan = stream_plan(cfg, outputs, occlusion, threads)
         check_batch_plan(self.plan)
         self.device = resolve_device(device)  # here: the scenes' workers start by forkserver, never by fork
-        self.cfg, self.batch_size, self.seed, self.start = cfg, int(batch_size), int(seed), int(start)
-        self.workers, self.length = int(workers), length
-        self.outputs = self.plan.outputs
+        self.cfg, self.length, self.outputs = cfg, length, self.plan.outputs
         self.scenes = SceneSet(cfg, self.seed, self.plan)
-        self._epoch = 0  # passes made over a finite stream
+        self._epoch, self._pos = 0, 0  # the next sample to yield: position _pos of epoch _epoch
+        self._source = None  # the scene workers' iterator (a DataLoader's), and the scenes taken from it not yet used
+        self._held: list = []
+        self._next = None  # the index of the scene the source gives next (None: no source)
 
     def __len__(self) -> int:
+        """Batches per epoch: ceil(length / batch_size). TypeError for an endless stream."""
         if self.length is None:
-            raise TypeError("an endless DeviceBatches stream has no len(); pass length=...")
-        return self.length
+            raise TypeError("an endless DeviceBatches stream has no len(); pass length=... (samples per epoch)")
+        return -(-self.length // self.batch_size)
 
-    def indices(self, i: int) -> range:
-        """The sample indices of batch ``i``."""
-        first = self.start + int(i) * self.batch_size
-        return range(first, first + self.batch_size)
+    # -- position ----------------------------------------------------------------------------------
+    def set_epoch(self, epoch: int) -> None:
+        """Start the next ``iter()`` at the beginning of ``epoch`` (>= 0). ConfigError for an endless stream, which
+        has no epochs: it continues where it stopped."""
+        if self.length is None:
+            raise ConfigError("set_epoch needs a finite stream (length=...): an endless stream has no epochs and "
+                              "continues where it stopped")
+        self._epoch, self._pos = _count("epoch", epoch, 0), 0
 
-    def batch(self, i: int) -> dict:
-        """Batch ``i``, its scenes made in this process: exactly the batch the stream yields at position i."""
-        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or i < 0:
-            raise ConfigError(f"batch index must be an integer >= 0, got {i!r}")
-        return self.render([self.scenes[k] for k in self.indices(i)], self.indices(i).start)
+    def state_dict(self) -> dict:
+        """The position: {"epoch", "pos" (samples of the epoch already yielded), "seed", "start"}, the keys of
+        ``BouncingThings.state_dict`` (one shard: no workers, no ranks), so either stream resumes from the other's
+        state. It does not depend on ``batch_size``."""
+        return {"epoch": self._epoch, "pos": self._pos, "seed": self.seed, "start": self.start}
 
-    def render(self, items: list[tuple[Scene, dict]], first: int) -> dict:
-        """Render the batch of ``items`` (``SceneSet``'s (scene, tables)), samples ``first`` .. ``first`` + B - 1, on
-        the device."""
+    def load_state_dict(self, state: dict) -> None:
+        """Resume from a position saved by ``state_dict`` (or by a single-shard ``BouncingThings``). ConfigError for
+        a state of another seed or start, a missing key, or a position outside the epoch."""
+        missing = [k for k in ("epoch", "pos", "seed", "start") if k not in state]
+        if missing:
+            raise ConfigError(f"state misses {missing}: pass what DeviceBatches.state_dict() returned")
+        if state["seed"] != self.seed or state["start"] != self.start:
+            raise ConfigError(f"state was saved with seed={state['seed']}, start={state['start']}; this stream has "
+                              f"seed={self.seed}, start={self.start}")
+        epoch, pos = _count("state's epoch", state["epoch"], 0), _count("state's pos", state["pos"], 0)
+        if self.length is not None and pos > self.length:
+            raise ConfigError(f"state's pos {pos} is past the epoch's {self.length} samples (length)")
+        self._epoch, self._pos = epoch, pos
+
+    def _first(self) -> int:
+        """The index of the next sample to yield."""
+        return self.start + (self._epoch * self.length if self.length is not None else 0) + self._pos
+
+    # -- iteration ---------------------------------------------------------------------------------
+    def __iter__(self) -> Iterator[dict]:
+        if self.length is not None and self._pos >= self.length:  # the last epoch was read to its end
+            self._epoch, self._pos = self._epoch + 1, 0
+        while self.length is None or self._pos < self.length:
+            n = self.batch_size if self.length is None else min(self.batch_size, self.length - self._pos)
+            first = self._first()
+            out = self._render(self._take(first, n), first)
+            self._pos += n
+            yield out
+        self._epoch, self._pos = self._epoch + 1, 0
+
+    def _take(self, first: int, n: int) -> list:
+        """Scenes ``first`` .. ``first`` + n - 1 (with their tables), from the scene workers."""
+        if self._next != first:  # a new position (the first iter(), set_epoch, load_state_dict): start the workers
+            self.close()
+            self._source = iter(loader(self.scenes, batch_size=self.batch_size, num_workers=self.num_workers,
+                                       sampler=_From(first), collate_fn=scene_list, persistent_workers=False))
+            self._next = first
+        self._next, items = None, []  # None until the scenes are taken (an error leaves no position)
+        while len(items) < n:
+            if not self._held:
+                self._held = next(self._source)
+            k = min(n - len(items), len(self._held))
+            items += self._held[:k]
+            self._held = self._held[k:]
+        self._next = first + n
+        return items
+
+    def close(self) -> None:
+        """Stop the scene workers (and drop their prefetched scenes); the next ``iter()`` starts them again."""
+        self._source, self._held, self._next = None, [], None
+
+    def _render(self, items: list[tuple[Scene, dict]], first: int) -> dict:
+        """The batch of ``items`` (``SceneSet``'s (scene, tables)), samples ``first`` .., rendered on the device."""
         scenes = [scene for scene, _ in items]
         out = render_batch_plan(scenes, self.plan, device=self.device, prepared=[t for _, t in items])
         like = out[self.plan.outputs[0]]
@@ -143,15 +217,3 @@ class DeviceBatches:
         out["seed"] = torch.full((len(scenes),), self.seed, dtype=torch.int64, device=like.device)
         out["provenance"] = [provenance_json(s) for s in scenes]
         return out
-
-    def __iter__(self) -> Iterator[dict]:
-        """Endless, or (``length``) one pass of ``length`` batches; as ``BouncingThings``' epochs, pass e of a finite
-        stream holds batches e ``length`` .. (e + 1) ``length`` - 1: every pass sees new scenes."""
-        count = None if self.length is None else self.length * self.batch_size
-        first = self.start + (0 if count is None else self._epoch * count)
-        scenes = loader(self.scenes, batch_size=self.batch_size, num_workers=self.workers,
-                        sampler=_Indices(first, count), collate_fn=scene_list, persistent_workers=False)
-        for batch in scenes:
-            yield self.render(batch, first)
-            first += len(batch)
-        self._epoch += 1

@@ -1,0 +1,172 @@
+"""The RAFT judge's training pools: one function per arm of ``protocol.ARMS`` (``ARM_POOLS``), each making its arm's
+pool for one seed, and ``build_arms``, which makes the pools of a run's arms. A pool is (img1, img2, flow, valid):
+uint8 (n, 3, h, w) images, float32 (n, 2, h, w) flow [px] and bool (n, 1, h, w) valid, at ``protocol.RES``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .protocol import POOL, RES, SCALE
+from .sets import NATURAL_PHOTOS, chairs2d_pairs, natural_folder, photo_folder, photo_sources
+
+CHAIRS2D_ARMS = ("chairs2d", "mixture", "curriculum")  # the arms made from the chairs2d pool
+
+
+def _u8(x):
+    import torch
+
+    return (x * 255).round().clamp(0, 255).to(torch.uint8)
+
+
+def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = None, image: str = "rgb"):
+    """n flowsynth pairs at RES: (img1, img2 uint8 (n, 3, h, w), flow (n, 2, h, w), valid (n, 1, h, w) bool), and the
+    config. ``overrides``: config fields of a lever (not the size); ``image``: the output the images come from
+    ("rgb", or "rgb_final": the final pass). The ``workers`` render through ``fs.datasets.loader`` (forkserver), so a
+    process that has initialised CUDA renders its pools at the CPU rate; the pairs are those of any start method."""
+    import torch
+
+    import flowsynth as fs
+
+    base = fs.BouncingThingsConfig.from_dict(overrides or {})
+    cfg = dataclasses.replace(base, width=RES[0], height=RES[1], num_frames=2,
+                              flow_px=tuple(x / SCALE for x in base.flow_px))
+    ds = fs.datasets.BouncingThings(cfg, outputs=[image, "flow_fw", "valid_fw"], seed=seed, length=n)
+    w, h = RES
+    img1, img2 = torch.empty(n, 3, h, w, dtype=torch.uint8), torch.empty(n, 3, h, w, dtype=torch.uint8)
+    flow, valid = torch.empty(n, 2, h, w), torch.empty(n, 1, h, w, dtype=torch.bool)
+    o = 0
+    for b in fs.datasets.loader(ds, batch_size=16, num_workers=workers, persistent_workers=False):
+        k = len(b[image])
+        img1[o:o + k], img2[o:o + k] = _u8(b[image][:, 0]), _u8(b[image][:, 1])
+        flow[o:o + k], valid[o:o + k] = b["flow_fw"][:, 0], b["valid_fw"][:, 0]
+        o += k
+    return (img1, img2, flow, valid), cfg
+
+
+def mean_flow(data) -> float:
+    """Mean |flow| [px] over the valid pixels of an (img1, img2, flow, valid) set."""
+    import torch
+
+    return float(torch.linalg.vector_norm(data[2], dim=1)[data[3][:, 0] > 0.5].mean())
+
+
+def baseline_pool(n: int, seed: int, sources, target_flow: float):
+    """n chairs2d pairs from ``sources`` (float (m, 3, h, w) in [0, 1]) whose mean |flow| matches ``target_flow``
+    [px] (the motion scale measured on 64 pilot pairs of seed + 1): (the pool, the motion scale)."""
+    pilot = chairs2d_pairs(64, seed + 1, sources)
+    scale = target_flow / mean_flow(pilot)
+    img1, img2, flow, valid = chairs2d_pairs(n, seed, sources, scale)
+    return (_u8(img1), _u8(img2), flow, valid > 0.5), scale
+
+
+@dataclasses.dataclass
+class SeedPools:
+    """What the arms of one seed share: ``n`` pairs an arm, the flowsynth ``pool`` (its first ``n`` pairs of
+    ``rendered``, which holds n / 2 more, the chairs2d pool's textures, when an arm of CHAIRS2D_ARMS is built), its
+    mean |flow| ``target`` [px] (the baselines' motion is scaled to it), and ``info``, the facts recorded for the
+    results (motion scales). ``chairs2d()`` makes the chairs2d pool on first use."""
+
+    n: int
+    seed: int
+    workers: int
+    overrides: dict
+    rendered: tuple
+    info: dict
+    chairs: tuple | None = None
+
+    @property
+    def pool(self) -> tuple:
+        return tuple(x[:self.n] for x in self.rendered)
+
+    @property
+    def target(self) -> float:
+        return self.info["flowsynth_mean_flow"]
+
+    def chairs2d(self) -> tuple:
+        """The chairs2d pool (n pairs textured with the flowsynth frames not trained on), made once for the arms of
+        CHAIRS2D_ARMS: a pure function of n and the seed."""
+        if self.chairs is None:
+            textures = self.rendered[0][self.n:].float() / 255
+            self.chairs, self.info["chairs2d_motion_scale"] = baseline_pool(self.n, self.seed, textures, self.target)
+        return self.chairs
+
+
+def flowsynth(s: SeedPools) -> tuple:
+    """The flowsynth pool: the config under test (with the run's ``--set`` changes)."""
+    return s.pool
+
+
+def control(s: SeedPools) -> tuple:
+    """The flowsynth pool again (the control differs in its net seed: ``protocol.CONTROL_SEED``)."""
+    return s.pool
+
+
+def chairs2d(s: SeedPools) -> tuple:
+    """The 2D baseline textured with flowsynth frames not trained on."""
+    return s.chairs2d()
+
+
+def mixture(s: SeedPools) -> tuple:
+    """Half the flowsynth pool, then half the chairs2d pool."""
+    import torch
+
+    n = s.n
+    return tuple(torch.cat([f[:n // 2], c[:n - n // 2]]) for f, c in zip(s.pool, s.chairs2d()))
+
+
+def curriculum(s: SeedPools) -> tuple:
+    """The chairs2d pool, then the flowsynth pool: the two blocks of ``protocol.STAGES``, in order."""
+    import torch
+
+    return tuple(torch.cat([c, f]) for c, f in zip(s.chairs2d(), s.pool))
+
+
+def flowsynth_final(s: SeedPools) -> tuple:
+    """The flowsynth pool's samples with the final pass (``rgb_final``) as the images."""
+    return flowsynth_pool(s.n, s.seed, s.workers, s.overrides, image="rgb_final")[0]
+
+
+def chairs2d_photos(s: SeedPools) -> tuple:
+    """The 2D baseline textured with crops of NATURAL_PHOTOS."""
+    sources = photo_sources(max(s.n // 2, 8), s.seed, RES, NATURAL_PHOTOS)
+    pool, s.info["chairs2d_photos_motion_scale"] = baseline_pool(s.n, s.seed, sources, s.target)
+    return pool
+
+
+def flowsynth_photos(s: SeedPools) -> tuple:
+    """The flowsynth config with NATURAL_PHOTOS as every texture."""
+    return _textured(s, photo_folder(NATURAL_PHOTOS))
+
+
+def flowsynth_natural(s: SeedPools) -> tuple:
+    """The flowsynth config with file-free textures of natural statistics (``sets.natural_folder``) as every
+    texture."""
+    return _textured(s, natural_folder())
+
+
+def _textured(s: SeedPools, folder) -> tuple:
+    return flowsynth_pool(s.n, s.seed, s.workers, {**s.overrides, "texture_dir": str(folder),
+                                                   "texture_families": ["image"]})[0]
+
+
+ARM_POOLS = {f.__name__: f for f in (flowsynth, chairs2d_photos, chairs2d, flowsynth_photos, flowsynth_natural,
+                                     flowsynth_final, mixture, curriculum, control)}  # protocol.ARMS' makers
+
+
+def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL) -> tuple[dict, dict, object]:
+    """The pools (``n`` pairs each) of the arms ``names`` (of ``protocol.ARMS``) for ``seed``: ({arm: pool}, info,
+    the flowsynth config). ``info``: the flowsynth pool's mean |flow| [px], the baselines' motion scales, and per arm
+    its mean |flow| [px] and the share of valid pixels moving less than 0.5 px ("still_share")."""
+    import torch
+
+    extra = n // 2 if set(CHAIRS2D_ARMS) & set(names) else 0
+    rendered, cfg = flowsynth_pool(n + extra, seed, workers, overrides)
+    s = SeedPools(n, seed, workers, overrides, rendered, {})
+    s.info["flowsynth_mean_flow"] = mean_flow(s.pool)
+    arms = {name: ARM_POOLS[name](s) for name in names}
+    info = s.info
+    info["mean_flow"] = {k: mean_flow(v) for k, v in arms.items()}
+    info["still_share"] = {k: float((torch.linalg.vector_norm(v[2], dim=1) < 0.5)[v[3][:, 0]].float().mean())
+                           for k, v in arms.items()}
+    return arms, info, cfg
