@@ -2,7 +2,9 @@
 
 Every BouncingThingsConfig field is also a flag (``--num-frames 8``, ``--object-size 0.3,1.0``,
 ``--texture-dir none``); flags override values from ``--config FILE`` (JSON, TOML or YAML), which override
-``--preset NAME`` (default, chairs, things; flowsynth.scene.config.PRESETS).
+``--preset NAME`` (default, chairs, things; flowsynth.scene.config.PRESETS). ``--dataset layers`` makes
+FlyingChairs-style 2D layers instead (flowsynth.datasets.Layers): a LayersConfig from ``--config FILE`` and the
+flags of its fields (``--width``, ``--height``, ``--num-frames``, ``--texture-dir``, ``--motion-scale``, ...).
 ``flowsynth export --help`` lists every flag with its type, default and meaning (from the field
 docstrings in flowsynth/scene/config.py).
 
@@ -29,10 +31,16 @@ import time
 import traceback
 from pathlib import Path
 
-from flowsynth._flags import add_config_flags, integer
+from flowsynth._flags import add_config_flags, add_layers_flags, integer, layers_only_fields
 from flowsynth.errors import ConfigError, FlowsynthError, StorageError
 
-__all__ = ["build_config", "main"]
+__all__ = ["PREVIEW_BOUNCING", "PREVIEW_LAYERS", "build_config", "main"]
+
+PREVIEW_BOUNCING = ("rgb", "flow_fw", "flow_bw", "occ_fw", "depth", "normals", "instance", "box2d_visible",
+                    "object_valid")
+"""What ``flowsynth preview`` shows of a BouncingThings sample without ``--outputs``."""
+PREVIEW_LAYERS = ("rgb", "flow_fw", "flow_bw", "valid_fw", "occ_fw", "occ_bw", "instance")
+"""What it shows of a Layers sample (``--dataset layers``)."""
 
 
 def _config_fields():
@@ -72,15 +80,26 @@ def _read_config_file(path: str) -> dict:
     return {k.replace("-", "_"): (tuple(v) if isinstance(v, list) else v) for k, v in data.items()}
 
 
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
 def build_config(args: argparse.Namespace):
-    """BouncingThingsConfig from ``--preset NAME``, overridden by ``--config FILE``, then by field flags."""
+    """BouncingThingsConfig from ``--preset NAME``, overridden by ``--config FILE``, then by field flags; with
+    ``--dataset layers`` a LayersConfig from ``--config FILE``, then its fields' flags."""
     from flowsynth.scene import BouncingThingsConfig
 
     from flowsynth.scene import PRESETS
 
-    if args.preset not in PRESETS:
-        raise ConfigError(f"--preset: unknown preset {args.preset!r}; presets: {sorted(PRESETS)}")
-    values = dict(PRESETS[args.preset])
+    layers_given = [_flag(f.name) for f in layers_only_fields() if getattr(args, "layers_" + f.name) is not None]
+    if args.dataset == "layers":
+        return _layers_config(args)
+    if layers_given:
+        raise ConfigError(f"{', '.join(layers_given)}: flags of 2D layers; add --dataset layers or leave them out")
+    preset = "default" if args.preset is None else args.preset
+    if preset not in PRESETS:
+        raise ConfigError(f"--preset: unknown preset {preset!r}; presets: {sorted(PRESETS)}")
+    values = dict(PRESETS[preset])
     values.update(_read_config_file(args.config) if args.config else {})
     flags = {f.name: getattr(args, "cfg_" + f.name) for f in _config_fields()}
     values.update({k: v for k, v in flags.items() if v is not None})  # parsed by flowsynth._flags
@@ -90,6 +109,31 @@ def build_config(args: argparse.Namespace):
         name = re.match(r"\w*", str(e)).group(0)
         if flags.get(name) is not None:
             raise ConfigError(f"--{name.replace('_', '-')}: {e}") from e
+        raise
+
+
+def _layers_config(args: argparse.Namespace):
+    """LayersConfig from ``--config FILE``, overridden by its fields' flags (module docstring)."""
+    from flowsynth.datasets import LayersConfig
+
+    if args.preset is not None:
+        raise ConfigError("--preset names a BouncingThings preset; --dataset layers takes --config FILE and its flags")
+    names = {f.name for f in dataclasses.fields(LayersConfig)}
+    scene_only = [_flag(f.name) for f in _config_fields() if f.name not in names
+                  and getattr(args, "cfg_" + f.name) is not None]
+    if scene_only:
+        raise ConfigError(f"{', '.join(scene_only)}: not a field of 2D layers (LayersConfig: "
+                          f"{', '.join(_flag(n) for n in sorted(names))}); leave it out or drop --dataset layers")
+    flags = {n: getattr(args, "cfg_" + n, None) for n in names}
+    flags.update({f.name: getattr(args, "layers_" + f.name) for f in layers_only_fields()})
+    values = _read_config_file(args.config) if args.config else {}
+    values.update({k: v for k, v in flags.items() if v is not None})
+    try:
+        return LayersConfig.from_dict(values)
+    except ConfigError as e:
+        name = re.match(r"\w*", str(e)).group(0)
+        if flags.get(name) is not None:
+            raise ConfigError(f"{_flag(name)}: {e}") from e
         raise
 
 
@@ -153,19 +197,24 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--json", default=None, help="also write the statistics to this JSON file [default: none]")
     _tune_parser(sub, _sub_kw)
     for sp in (ex, pv, st):
-        sp.add_argument("--preset", default="default",
+        sp.add_argument("--dataset", choices=("bouncing", "layers"), default="bouncing",
+                        help="what to generate: bouncing (3D scenes, BouncingThings) or layers (FlyingChairs-style 2D "
+                             "layers, flowsynth.datasets.Layers: a LayersConfig from --config and the flags of its "
+                             "fields) [default bouncing]")
+        sp.add_argument("--preset", default=None,
                         help="named config to start from: default, chairs, things (BouncingThingsConfig.preset) "
                              "[default: default]")
         sp.add_argument("--config", default=None,
                         help="config file (.json, .toml, .yaml); overrides the preset, flags override it "
                              "[default: none]")
         add_config_flags(sp)
+        add_layers_flags(sp)
     return p
 
 
 def _tune_parser(sub, sub_kw: dict) -> None:
     from flowsynth.training import PRECISIONS
-    from flowsynth.tune import DEFAULT_BUDGET, DEFAULT_CANDIDATES, RECIPE
+    from flowsynth.tune import DEFAULT_BUDGET, DEFAULT_CANDIDATES, QUICK, RECIPE
 
     tn = sub.add_parser("tune", help="fit the generator's knobs to your validation pairs (docs/tune.md; resumable)",
                         **sub_kw, usage="flowsynth tune --val DIR --out PRESET.json [options]")
@@ -185,7 +234,7 @@ def _tune_parser(sub, sub_kw: dict) -> None:
                     help=f"points of the search space tried, the default among them [int, default "
                          f"{DEFAULT_CANDIDATES}; --quick: 2]")
     tn.add_argument("--pool", type=integer, default=None,
-                    help=f"training pairs rendered per net [int, default {RECIPE.pool}; --quick: 4]")
+                    help=f"training pairs rendered per net [int, default {RECIPE.pool}; --quick: {QUICK.pool}]")
     tn.add_argument("--seed", type=integer, default=0,
                     help="candidates drawn, nets, pools and batches [int, default 0]")
     tn.add_argument("--device", default="cpu", help="torch device the nets train on (cpu, cuda, ...) [default cpu]")
@@ -207,20 +256,23 @@ def _tune(args) -> None:
 
 
 def _preview(args, cfg) -> None:
-    from flowsynth.datasets import BouncingThings
+    from flowsynth.datasets import make_stream
     from flowsynth.memory import check_sample_memory
     from flowsynth.viz import sample_preview, save_png
 
-    outputs = ["rgb", "flow_fw", "flow_bw", "occ_fw", "depth", "normals", "instance", "box2d_visible",
-               "object_valid"] if args.outputs is None else [k for k in args.outputs.split(",") if k]
+    outputs = [k for k in args.outputs.split(",") if k] if args.outputs is not None else \
+        list(PREVIEW_LAYERS) if args.dataset == "layers" else list(PREVIEW_BOUNCING)
     check_sample_memory(cfg)
-    ds = BouncingThings(cfg, outputs=outputs if cfg.num_frames > 1 else
-                        [k for k in outputs if "_fw" not in k and "_bw" not in k], seed=args.seed)
+    ds = make_stream(cfg, outputs if cfg.num_frames > 1 else
+                     [k for k in outputs if "_fw" not in k and "_bw" not in k], seed=args.seed)
     img = sample_preview(ds.sample(args.index))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     # what made the picture, so a stale one can be told apart (scripts/make_preview.py, tests/test_cli.py)
-    save_png(args.out, img, text={"flowsynth:config": json.dumps(cfg.to_dict(), sort_keys=True),
-                                  "flowsynth:seed": str(args.seed), "flowsynth:index": str(args.index)})
+    text = {"flowsynth:config": json.dumps(cfg.to_dict(), sort_keys=True), "flowsynth:seed": str(args.seed),
+            "flowsynth:index": str(args.index)}
+    if args.dataset != "bouncing":
+        text["flowsynth:dataset"] = args.dataset
+    save_png(args.out, img, text=text)
     print(f"wrote {args.out} ({img.shape[1]}x{img.shape[0]})")
 
 

@@ -73,7 +73,7 @@ class Recipe:
 
 
 RECIPE = Recipe()
-QUICK = Recipe(res=(160, 128), crop=(128, 128), batch=1, updates=2, test_updates=2, pool=4)
+QUICK = Recipe(res=(160, 128), crop=(128, 128), batch=1, updates=2, test_updates=2, pool=2)
 """``flowsynth tune --quick``: the smallest recipe RAFT-small trains on, to check that a tune runs."""
 
 
