@@ -6,7 +6,7 @@
 
 ``fs.datasets.BouncingThings`` renders pairs in DataLoader workers (no disk); each batch is cropped, flipped and
 colour-jittered and trained on by ``flowsynth.training.train_step``: the step the learning judge
-(``benchmarks/learning/raft.py``) measures. A progress bar shows the loss; the checkpoint (model, optimiser,
+(``benchmarks/learning/trainers.py``) measures. A progress bar shows the loss; the checkpoint (model, optimiser,
 schedule and step) is written atomically every ``--save-every`` steps and at the end, and the same command resumes
 from it. With ``--eval DIR`` (NAME/frame10.png, frame11.png, flow10.flo for each pair, as Middlebury ships them),
 ``--sintel ROOT`` or ``--kitti ROOT`` (read by torchvision's dataset classes), the end-point error (EPE) on those
@@ -49,7 +49,7 @@ def build_raft():
 
 def stream_config(width: int, height: int) -> fs.BouncingThingsConfig:
     """The default config at ``width`` x ``height``, 2 frames, its flow range scaled from the 512 px width it is set
-    for (as benchmarks/learning/raft.py renders it)."""
+    for (as benchmarks/learning/pools.py renders it)."""
     base = fs.BouncingThingsConfig()
     return dataclasses.replace(base, width=width, height=height, num_frames=2,
                                flow_px=tuple(x * width / 512 for x in base.flow_px))
