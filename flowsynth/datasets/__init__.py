@@ -1,13 +1,18 @@
-"""Datasets: ``BouncingThings`` streams samples (``loader``: workers that survive CUDA), ``DeviceBatches`` renders
-batches on a device, ``FlowPairs`` gives torchvision's tuples, ``Mixture`` mixes configs; ``Exported`` and ``Shards``
-read what ``flowsynth export`` wrote (a folder; a ``webdataset``'s shards, shuffled, split by worker and rank)."""
+"""Datasets: ``BouncingThings`` (3D scenes) and ``Layers`` (2D layers) stream samples, ``Mixture`` mixes their configs,
+``DeviceBatches`` renders batches on a device, ``FlowPairs`` gives torchvision's tuples, ``loader`` workers survive
+CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote (a folder; a ``webdataset``'s shards)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
 from flowsynth.datasets.flowpairs import FlowPairs
+from flowsynth.datasets.kinds import KINDS, config_from, config_kind, make_stream, stream_outputs
+from flowsynth.datasets.layer_render import CATEGORY_NAMES as LAYER_CATEGORIES
+from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, layers_pairs
 from flowsynth.datasets.workers import loader
 
-__all__ = ["BouncingThings", "DeviceBatches", "Exported", "FlowPairs", "Mixture", "Shards", "loader", "sample_seed"]
+__all__ = ["KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "BouncingThings", "DeviceBatches", "Exported", "FlowPairs",
+           "Layers", "LayersConfig", "Mixture", "Shards", "config_from", "config_kind", "layers_pairs", "loader",
+           "make_stream", "sample_seed", "stream_outputs"]
 
 
 def __getattr__(name: str):

@@ -1,47 +1,71 @@
-"""``Mixture``: one ``BouncingThings`` stream drawn from several configs (presets), reproducibly, with an optional
-curriculum.
+"""``Mixture``: one stream drawn from several configs of either kind (``BouncingThingsConfig``, ``LayersConfig``),
+reproducibly, with an optional curriculum; saved to and loaded from a preset file.
 
 Sample i comes from config k = ``source(i)``, drawn from the weights in force at index i with a generator seeded
-by (seed, i) alone, and is exactly sample i of ``BouncingThings(configs[k], outputs, seed)``: a pure function of
-(configs, weights, seed, i), whatever the workers, ranks or order of reading. Iteration, sharding, epochs and
-``state_dict`` are ``BouncingThings``' own (this class is one).
+by (seed, i) alone, and is exactly sample i of that config's own stream (``BouncingThings(configs[k], outputs,
+seed)`` or ``Layers(configs[k], outputs, seed)``): a pure function of (configs, weights, seed, i), whatever the
+workers, ranks or order of reading. Iteration, sharding, epochs and ``state_dict`` are ``IndexStream``'s.
 
 A curriculum is a list of stages ``[(until, weights), ...]``: index i uses the weights of the first stage with
 i < until (the last stage's ``until`` may be None: open-ended). "chairs, then things" is
 ``[(20000, {"chairs": 1}), (None, {"chairs": 1, "things": 3})]``.
 
-All configs must give samples of one shape (width, height, num_frames and max_objects equal), so that
-``default_collate`` batches a mixture; each item carries ``source`` (int64, k).
+All configs must give samples of one shape (width, height and num_frames equal, and max_objects among the
+BouncingThings configs), so that ``default_collate`` batches a mixture. Each item holds the keys every source gives:
+the outputs, ``index``, ``seed``, ``provenance`` and ``source`` (int64, k), and ``K`` and ``cam_T_world`` when every
+source is a BouncingThings config.
+
+A preset file is JSON::
+
+    {"format": "flowsynth.mixture", "version": 1,
+     "sources": [{"name": "things", "kind": "bouncing", "config": {...}},
+                 {"name": "chairs", "kind": "layers", "config": {...}}],
+     "weights": {"things": 1, "chairs": 1}}
+
+``kind`` is one of ``flowsynth.datasets.KINDS``, ``config`` the config's ``to_dict()``, and ``weights`` null (equal
+weights), a dict, or a curriculum ``[[until, {...}], ..., [null, {...}]]``. ``to_preset`` writes one,
+``from_preset`` reads it; the outputs, seed and stream options are arguments, not part of the preset.
 """
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from flowsynth.datasets.bouncing import BouncingThings
+from flowsynth.datasets.kinds import config_from, config_kind
+from flowsynth.datasets.layers import Layers
+from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
 
-__all__ = ["Mixture"]
+__all__ = ["PRESET_FORMAT", "Mixture"]
 
 MIX_SALT = 0x6D1C  # keeps the source draw apart from every other generator seeded by (seed, i)
-SHAPE_FIELDS = ("width", "height", "num_frames", "max_objects")
+SHAPE_FIELDS = ("width", "height", "num_frames")
+PRESET_FORMAT = "flowsynth.mixture"
+"""The ``format`` of a preset file (version 1)."""
+_ALWAYS = ("index", "seed", "provenance")  # keys every source's items hold besides the outputs
 
 
-class Mixture(BouncingThings):
+class Mixture(IndexStream):
     """A stream of samples from several configs.
 
     Args:
-        configs: name -> ``BouncingThingsConfig`` (or a preset name, ``BouncingThingsConfig.preset``), or a sequence
-            of either (named by their position).
+        configs: name -> ``BouncingThingsConfig``, ``LayersConfig`` or a BouncingThings preset name
+            (``BouncingThingsConfig.preset``), or a sequence of them (named by their position).
         weights: name -> weight >= 0 (a missing name weighs 0; None: equal weights), or a curriculum: a list of
             ``(until, weights)`` stages (module docstring).
-        outputs, seed, length, start, occlusion, device, threads: as ``BouncingThings``.
+        outputs, seed, length, start: as ``BouncingThings``; every source must give every output.
+        occlusion, device, threads: the BouncingThings sources' (a Layers source renders with torch on the CPU,
+            its occlusion exact from the layer order).
 
-    Raises ConfigError for configs of different sample shapes, unknown names, negative or all-zero weights, or
-    stages whose ``until`` do not increase.
+    Raises ConfigError for configs of different sample shapes or of another type, outputs a source does not give,
+    unknown names, negative or all-zero weights, or stages whose ``until`` do not increase.
     """
 
     def __init__(self, configs, weights=None, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
@@ -58,40 +82,127 @@ class Mixture(BouncingThings):
         if not items:
             raise ConfigError("a Mixture needs at least one config")
         items = [(str(k), BouncingThingsConfig.preset(c) if isinstance(c, str) else c) for k, c in items]
-        self.names = [k for k, _ in items]
-        first = items[0][1]
         for name, c in items:
-            if not isinstance(c, BouncingThingsConfig):
-                raise ConfigError(f"config {name!r} must be a BouncingThingsConfig or a preset name, "
-                                  f"got {type(c).__name__}")
-            diff = [f for f in SHAPE_FIELDS if getattr(c, f) != getattr(first, f)]
-            if diff:
-                raise ConfigError(f"config {name!r} differs from {items[0][0]!r} in {diff}: a Mixture's samples "
-                                  f"must share one shape (set {', '.join(diff)} alike)")
+            try:
+                config_kind(c)
+            except ConfigError:
+                raise ConfigError(f"config {name!r} must be a BouncingThingsConfig, a LayersConfig or a preset name, "
+                                  f"got {type(c).__name__}") from None
+        self.names = [k for k, _ in items]
+        _check_shapes(items)
         self.stages = _stages(weights, self.names)
-        kw = dict(seed=seed, length=length, start=start, occlusion=occlusion, device=device, threads=threads)
-        super().__init__(first, outputs, **kw)
-        self.parts = [BouncingThings(c, outputs, **kw) for _, c in items]
+        self.weights = _plain_weights(weights)
+        self._init_stream(seed, length, start)
+        self.parts = [BouncingThings(c, outputs, seed, length, start=start, occlusion=occlusion, device=device,
+                                     threads=threads) if config_kind(c) == "bouncing"
+                      else Layers(c, outputs, seed, length, start=start) for _, c in items]
+        common = set.intersection(*(set(p.outputs) for p in self.parts))
+        self.outputs = tuple(k for k in self.parts[0].outputs if k in common)
+        self.keys = frozenset((*self.outputs, *_ALWAYS))
         self.configs = dict(items)
+        self.cfg, self.device = items[0][1], device
 
     def source(self, i: int) -> int:
         """The config index of sample ``i``."""
-        if not isinstance(i, (int, np.integer)) or i < 0:
-            raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
+        i = check_index(i)
         p = next(w for until, w in self.stages if until is None or i < until)
-        rng = np.random.default_rng([self.seed, int(i), MIX_SALT])
+        rng = np.random.default_rng([self.seed, i, MIX_SALT])
         return int(rng.choice(len(p), p=p))
 
     def scene(self, i: int):
-        """The simulated scene behind sample ``i`` (from its source's config)."""
-        return self.parts[self.source(i)].scene(i)
+        """The simulated scene behind sample ``i`` (from its source's config); ConfigError when that source is a
+        Layers config (2D layers have no scene: ``Layers.draw`` says what a layered sample is made of)."""
+        part = self.parts[self.source(i)]
+        if not isinstance(part, BouncingThings):
+            raise ConfigError(f"sample {i} comes from the Layers source {self.names[self.source(i)]!r}, which has "
+                              "no 3D scene; its draw is parts[k].draw(i)")
+        return part.scene(i)
 
     def sample(self, i: int) -> dict[str, torch.Tensor]:
-        """Sample ``i``: sample i of its source's ``BouncingThings``, plus ``source`` (int64)."""
+        """Sample ``i``: sample i of its source's stream (the keys every source gives), plus ``source`` (int64)."""
         k = self.source(i)
-        out = self.parts[k].sample(i)
+        out = {key: v for key, v in self.parts[k].sample(i).items() if key in self.keys}
         out["source"] = torch.tensor(k, dtype=torch.int64)
         return out
+
+    # -- presets -------------------------------------------------------------------------------------------------
+    def preset_dict(self) -> dict:
+        """This mixture's preset (module docstring) as a JSON-compatible dict."""
+        sources = [{"name": n, "kind": config_kind(c), "config": c.to_dict()} for n, c in self.configs.items()]
+        return {"format": PRESET_FORMAT, "version": 1, "sources": sources, "weights": self.weights}
+
+    def to_preset(self, path: str | os.PathLike) -> Path:
+        """Write the preset file ``path`` (JSON, atomically); returns its path."""
+        from flowsynth.io import write_json
+
+        write_json(Path(path), self.preset_dict())
+        return Path(path)
+
+    @classmethod
+    def from_preset_dict(cls, preset: dict, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
+                         length: int | None = None, **kwargs) -> Mixture:
+        """The mixture of a preset dict (``preset_dict``'s form); ``outputs``, ``seed``, ``length`` and the keywords
+        as ``Mixture``'s. ConfigError naming what is wrong with the preset."""
+        if not isinstance(preset, dict) or preset.get("format") != PRESET_FORMAT:
+            raise ConfigError(f"a mixture preset is a JSON object with \"format\": \"{PRESET_FORMAT}\"")
+        if preset.get("version") != 1:
+            raise ConfigError(f"mixture preset version {preset.get('version')!r} is not supported (version 1)")
+        sources = preset.get("sources")
+        if not isinstance(sources, list) or not sources:
+            raise ConfigError("a mixture preset needs \"sources\": a non-empty list of {name, kind, config}")
+        configs = {}
+        for n, s in enumerate(sources):
+            if not isinstance(s, dict) or set(s) != {"name", "kind", "config"} or not isinstance(s["config"], dict):
+                raise ConfigError(f"mixture preset source {n} must be {{\"name\", \"kind\", \"config\"}}, got {s!r}")
+            if str(s["name"]) in configs:
+                raise ConfigError(f"mixture preset source name {s['name']!r} is used twice")
+            configs[str(s["name"])] = config_from(s["kind"], s["config"])
+        weights = preset.get("weights")
+        if isinstance(weights, list):
+            weights = [tuple(stage) if isinstance(stage, list) else stage for stage in weights]
+        return cls(configs, weights, outputs, seed, length, **kwargs)
+
+    @classmethod
+    def from_preset(cls, path: str | os.PathLike, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
+                    length: int | None = None, **kwargs) -> Mixture:
+        """The mixture of the preset file ``path`` (``to_preset``); ``outputs``, ``seed``, ``length`` and the
+        keywords as ``Mixture``'s. ConfigError for a missing file, bad JSON or a bad preset, naming the file."""
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"mixture preset {str(p)!r} does not exist")
+        try:
+            preset = json.loads(p.read_text())
+        except ValueError as e:
+            raise ConfigError(f"mixture preset {str(p)!r} is not valid JSON: {e}") from e
+        try:
+            return cls.from_preset_dict(preset, outputs, seed, length, **kwargs)
+        except ConfigError as e:
+            raise ConfigError(f"mixture preset {str(p)!r}: {e}") from e
+
+
+def _check_shapes(items: list) -> None:
+    """ConfigError unless every config gives samples of one shape (module docstring)."""
+    name0, first = items[0]
+    for name, c in items:
+        diff = [f for f in SHAPE_FIELDS if getattr(c, f) != getattr(first, f)]
+        if diff:
+            raise ConfigError(f"config {name!r} differs from {name0!r} in {diff}: a Mixture's samples must share one "
+                              f"shape (set {', '.join(diff)} alike)")
+    things = [(name, c) for name, c in items if config_kind(c) == "bouncing"]
+    for name, c in things:
+        if c.max_objects != things[0][1].max_objects:
+            raise ConfigError(f"config {name!r} differs from {things[0][0]!r} in ['max_objects']: a Mixture's "
+                              "samples must share one shape (set max_objects alike)")
+
+
+def _plain_weights(weights):
+    """``weights`` in the preset's JSON form (None, a dict, or a list of [until, dict] stages)."""
+    if weights is None:
+        return None
+    if isinstance(weights, Mapping):
+        return {str(k): float(v) for k, v in weights.items()}
+    return [[None if until is None else int(until), None if w is None else {str(k): float(v) for k, v in w.items()}]
+            for until, w in weights]
 
 
 def _stages(weights, names: list[str]) -> list[tuple[int | None, np.ndarray]]:
