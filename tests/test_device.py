@@ -244,10 +244,10 @@ def test_recorder_catches_a_gbuffer_round_trip(twin, scene, monkeypatch):
     assert any("read a G-buffer array into numpy" in b for b in rec.violations(TWIN))
 
 
-STAGES = ["raycast/gbuffer", "renderer/pipeline", "truth/flow", "renderer/shading", "renderer/finalpass",
-          "raycast/accel", "raycast/tiles", "raycast/culling", "raycast/blas", "truth/stereo", "truth/tracks",
-          "truth/annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap", "kernels/dof",
-          "scene/motion", "scene/physics"]
+STAGES = ["raycast/gbuffer", "renderer/pipeline", "renderer/batch", "truth/flow", "renderer/shading",
+          "renderer/finalpass", "raycast/accel", "raycast/tiles", "raycast/culling", "raycast/blas", "truth/stereo",
+          "truth/tracks", "truth/annotations", "scene/camera", "datasets/bouncing", "kernels/shade", "kernels/tonemap",
+          "kernels/dof", "scene/motion", "scene/physics"]
 
 
 @pytest.mark.parametrize("module", STAGES)

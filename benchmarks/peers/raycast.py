@@ -139,7 +139,7 @@ def setup_flowsynth(scene: fs.Scene) -> Engine:
         "kernel": lambda: wp.launch(kernel, dim=shape[:2], inputs=inputs, outputs=outs),
         "raw": lambda: wp.launch(raw_kernel, dim=shape[:2], inputs=inputs, outputs=raw_outs),
         "scene_accel": lambda: SceneAccel(meshes, cam_T_world, world_T_obj),
-        "gbuffer_outputs": lambda: gbuffer_outputs(scene, gb, plan, world_T_obj),
+        "gbuffer_outputs": lambda: gbuffer_outputs([scene], [(meshes, cam_T_world, world_T_obj)], accel, gb, plan),
         "asset_bvh_build": lambda: blas.atlas([mesh]),
     }
     rows = [("flowsynth fs.render", "full", "render", first), ("flowsynth cast_gbuffer", "cast", "cast", None),

@@ -263,7 +263,7 @@ def streams_only(cpus: int, rounds: int, n: int, default: bool = False) -> None:
 # up in their modules at call time), and the scene itself (``BouncingThings.scene``: layout, materials, physics).
 STAGES = (("flowsynth.renderer.pipeline", "SceneAccel", "accel"),
           ("flowsynth.renderer.pipeline", "cast_gbuffer", "cast"),
-          ("flowsynth.renderer.pipeline", "gbuffer_outputs", "gbuffer outputs"),
+          ("flowsynth.renderer.batch", "gbuffer_outputs", "gbuffer outputs"),
           ("flowsynth.truth", "flow_outputs", "flow"), ("flowsynth.renderer.shading", "render_rgb", "rgb"))
 
 

@@ -5,9 +5,8 @@ casts it again. It sits below both, so neither imports the other (docs/architect
 
 The G-buffer stays in Warp arrays on the accel's device: the stages that run kernels (flow, position and motion,
 shading) read those arrays. ``GBuffer.host()`` is the one hand-over to numpy, made at most once per G-buffer (no
-copy on the CPU), for the stages that compute on the host: the renderer's per-pixel outputs, tracks, object
-tables, stereo disparity, the final pass's depth and the lights' scale. ``to_torch`` is the edge where a stage's
-Warp output becomes a CPU tensor.
+copy on the CPU), for the stages that compute on the host: tracks, object tables, stereo disparity and the final
+pass's depth. ``to_torch`` is the edge where a stage's Warp output becomes a CPU tensor.
 """
 
 from __future__ import annotations
