@@ -34,8 +34,8 @@ class ExportError(FlowsynthError):
     """Writing or reading an exported dataset failed (a folder that holds something else, a conflicting manifest,
     a file that is not what its layout says). The CLI exits with status 2.
 
-    Not an ``OSError`` (it was one until issue 41): most export errors are bad input, not the operating system's.
-    What the file system refused is a :class:`StorageError`, which is both.
+    Not an ``OSError``: most export errors are bad input, not the operating system's. What the file system refused
+    is a :class:`StorageError`, which is both.
     """
 
 

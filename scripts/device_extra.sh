@@ -1,21 +1,35 @@
 #!/usr/bin/env bash
-# Issue 53 item 3, the hook scripts/device_run.sh starts in the background: the whole decision of protocol 0023
-# (docs/decisions/0023) on the lent GPU in one call: seeds 0-4 of the default, the photo baseline and the two presets
-# (mixture, curriculum), 20 nets x 2400 steps, their tests and their pools. The pools render on the machine's CPU
-# cores (forkserver workers) while device_run.sh's steps run; training waits for /tmp/gpu_steps_done (written by
-# device_run.sh after its last timing step), so the timings have the GPU to themselves. Then every net trains at once
-# in one process (--ensemble: flowsynth.ensemble, vmap over the 20 nets), which prints the ensemble's steps/s at each
-# checkpoint (learn.log, rate.txt). When it ends well, --diagnose-checkpoints reads every net's kept checkpoints there
-# (the weights stay on the machine): the motion each invents on the still photographs and the goal of issue 53, item
-# 5 (learning_raft_diagnose_checkpoints_gpu.json, .png; DIAGNOSE=0 skips it). Results come back in one archive,
-# $OUT/learning.tgz, rewritten every 15 s (a run cut short keeps every net's curve so far). LEARN_ARGS replaces the
-# seeds, workers and threads, DEVICE the device (a smoke test on the CPU: LEARN_ARGS="--quick --seeds 0 --workers 2"
-# DEVICE=cpu GPU_DONE_MARKER=/dev/null).
+# The hook scripts/device_run.sh starts in the background: the whole decision of protocol 0023
+# (docs/decisions/0023-raft-judge.md) on the lent GPU in one call: seeds 0-4 of the default, the photo baseline and the
+# two presets (mixture, curriculum), 20 nets x 2400 steps, their tests and their pools. The pools render on the
+# machine's CPU cores (forkserver workers) while device_run.sh's steps run; training waits for $GPU_DONE_MARKER
+# (default /tmp/gpu_steps_done; device_run.sh removes it at its start and writes it after its last timing step), so
+# the timings have the GPU to themselves. Then every net trains at once in one process (--ensemble:
+# flowsynth.ensemble, vmap over the 20 nets), which prints the ensemble's steps/s at each checkpoint (learn.log,
+# rate.txt). When it ends well, --diagnose-checkpoints reads every net's kept checkpoints there (the weights stay on
+# the machine): the motion each invents on the still photographs, and the goal decision 0023 sets for it
+# (learning_raft_diagnose_checkpoints_gpu.json, .png; DIAGNOSE=0 skips it). Results come back in one archive,
+# $OUT/learning.tgz, rewritten every 15 s (a run cut short keeps every net's curve so far).
+#
+# Environment: OUT (required: where learning.tgz goes; device_run.sh sets it); MIDDLEBURY (required: the folder of
+# Middlebury pairs, NAME/frame10.png, frame11.png, flow10.flo; on the lent machine wherever the data were carried);
+# LEARN_DIR (default /tmp/learn: the run's own files); DEVICE (default cuda); LEARN_ARGS replaces the seeds, workers
+# and threads; PYTHON (default python3). A smoke test on the CPU: LEARN_ARGS="--quick --seeds 0 --workers 2"
+# DEVICE=cpu GPU_DONE_MARKER=/dev/null MIDDLEBURY=... OUT=... Exit status: the benchmark's; 2 for a missing variable.
 set -u
 cd "$(dirname "$0")/.."
-L=/tmp/learn
+if [ -z "${OUT:-}" ]; then
+    echo "device_extra.sh: set OUT to the folder the results archive goes to" >&2
+    exit 2
+fi
+MB=${MIDDLEBURY:-}
+if [ -z "$MB" ] || [ ! -d "$MB" ]; then
+    echo "device_extra.sh: set MIDDLEBURY to the folder of Middlebury pairs (NAME/frame10.png, frame11.png," \
+        "flow10.flo); got '$MB'" >&2
+    exit 2
+fi
+L=${LEARN_DIR:-/tmp/learn}
 mkdir -p "$L"
-MB=${MIDDLEBURY:-/root/stage/middlebury}
 DEVICE=${DEVICE:-cuda}
 pack() {  # the results, progress curves, the log and seed 0's nets (for the figures), one file (a call returns 8)
     mkdir -p "$L/nets"

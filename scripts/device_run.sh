@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Issue 52's checks on a lent GPU machine (items 1, 2 and 4), as one bounded run after the wheels are installed into
-# /tmp/site (../shared/GPU.md's three calls). Usage, from the repository root there:
+# The checks of a lent GPU machine (the stream after CUDA, a training loop fed by the stream, the device's rates), as one
+# bounded run after the wheels are installed into $SITE_DIR (../shared/GPU.md's three calls). Usage, from the
+# repository root there:
 #
 #     OUT=/some/dir bash scripts/device_run.sh [BUDGET_S]        # BUDGET_S: the whole run's seconds, default 450
 #     SMOKE=1 OUT=/tmp/o bash scripts/device_run.sh 900           # the same steps on a CPU-only machine, quick sizes
@@ -8,33 +9,36 @@
 # Steps, in order, each under its own `timeout` (its cap, or what is left of the budget) and each run whatever the
 # step before it returned:
 #   env          nvidia-smi; Python, torch, warp (and its devices), numpy versions
-#   stream       item 1: tests/test_workers_cuda.py (spawn, forkserver and fs.datasets.loader yield the fork samples;
+#   stream       tests/test_workers_cuda.py (spawn, forkserver and fs.datasets.loader yield the fork samples;
 #                a worker forked after CUDA refuses; and, marked cuda, the stream with 4 workers in a process that
 #                initialised CUDA by torch alone and by torch and Warp renders: rate against before CUDA, no
 #                "CUDA error" line, a plain forked DataLoader refused)
-#   feed         item 2: benchmarks/device/feed.py, RAFT-small's step on cuda fed by fs.datasets.loader's workers
+#   feed         benchmarks/device/feed.py, RAFT-small's step on cuda fed by fs.datasets.loader's workers
 #                (the cores less one) against pairs in memory (feed.json, feed.png)
-#   feed_device  item 2 with batched device rendering: feed.py --source device (fs.datasets.DeviceBatches;
+#   feed_device  the same with batched device rendering: feed.py --source device (fs.datasets.DeviceBatches;
 #                feed_device.json, feed_device.png)
-#   gpu          item 4: benchmarks/device/gpu.py, CPU and GPU side by side at 512x384, T=2: one by one, batched
+#   gpu          benchmarks/device/gpu.py, CPU and GPU side by side at 512x384, T=2: one by one, batched
 #                (render_batch alone and DeviceBatches end to end, the GPU's busy share), profiles (gpu.json)
 #   tests        tests/test_batched.py and tests/test_device.py (placement of every stage, on "cuda" too)
 # SMOKE=1: no GPU needed: feed on the CPU with --quick, gpu.py --quick, the same tests (their cuda cases skip);
 # every step's cap is multiplied by CAP_SCALE (SMOKE's default 4: a 2-core machine is slower than the lent one).
 # Hook: an executable scripts/device_extra.sh runs in the background only when EXTRA_AT is set (start: before the
-# first step; after_gpu: after the last), bounded by the same deadline (output in $OUT/extra.log); it shares the
-# machine with the steps, so every timing would carry its load.
+# first step; after_gpu: after the last), bounded by the same deadline (output in $OUT/extra.log; it needs its own
+# variables, MIDDLEBURY at least); it shares the machine with the steps, so every timing would carry its load. The
+# marker $GPU_DONE_MARKER (default /tmp/gpu_steps_done; exported to the hook) says the timings are done: removed at
+# the start (a regular file only: GPU_DONE_MARKER=/dev/null stays), written after the gpu step; the hook's training
+# waits for it, so a rerun on a warm machine cannot let training start during the timings.
 #
 # Everything comes back through $OUT, written as it goes: device_run.log (every step's output, step headers, and a
 # summary line per step: name, exit status, seconds), feed.json, feed.png, feed_device.json, feed_device.png, gpu.json (each
 # rewritten after every measurement). Just before the budget ends (MARGIN_S, default 20 s, kept for the read-back)
 # whatever still runs is killed.
 #
-# Environment: PYTHONPATH=/tmp/site:<repo root> (the carried wheels, then this checkout); WARP_CACHE_PATH (default
-# /tmp/warp-cache, shared by every step); FLOWSYNTH_BENCH_RESULTS=$OUT (the benchmarks' JSON); PYTHON (default
-# python3); FEED_ARGS and GPU_ARGS, extra arguments of the two benchmarks. Where /tmp/site exists, a .pth file in the
-# interpreter's site-packages also names it, for the tests that start a fresh interpreter with their own
-# PYTHONPATH. Exit status: 0 when every step passed, else 1.
+# Environment: SITE_DIR (default /tmp/site: the carried wheels); PYTHONPATH=$SITE_DIR:<repo root> (the wheels, then
+# this checkout); WARP_CACHE_PATH (default /tmp/warp-cache, shared by every step); FLOWSYNTH_BENCH_RESULTS=$OUT (the
+# benchmarks' JSON); PYTHON (default python3); FEED_ARGS and GPU_ARGS, extra arguments of the two benchmarks. Where
+# $SITE_DIR exists, a .pth file in the interpreter's site-packages also names it, for the tests that start a fresh
+# interpreter with their own PYTHONPATH. Exit status: 0 when every step passed, else 1.
 set -u -o pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -47,12 +51,15 @@ export OUT
 mkdir -p "$OUT"
 LOG=$OUT/device_run.log
 PY=${PYTHON:-python3}
-export PYTHONPATH="/tmp/site:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+SITE_DIR=${SITE_DIR:-/tmp/site}
+export PYTHONPATH="$SITE_DIR:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
 export PYTHONUNBUFFERED=1
 export WARP_CACHE_PATH=${WARP_CACHE_PATH:-/tmp/warp-cache}
 export FLOWSYNTH_BENCH_RESULTS=$OUT
 export MPLCONFIGDIR=${MPLCONFIGDIR:-/tmp/mpl-cache}
 mkdir -p "$WARP_CACHE_PATH"
+export GPU_DONE_MARKER=${GPU_DONE_MARKER:-/tmp/gpu_steps_done}
+[ -f "$GPU_DONE_MARKER" ] && rm -f "$GPU_DONE_MARKER"  # a warm machine's last run wrote it: not done yet this run
 
 log() { echo "$*" | tee -a "$LOG"; }
 left() { echo $((DEADLINE - $(date +%s))); }
@@ -84,10 +91,10 @@ step() {  # step NAME CAP_S COMMAND...
 
 log "device_run.sh: budget $BUDGET s (deadline at +$((DEADLINE - START)) s), OUT=$OUT, $(date -u +%FT%TZ)"
 
-if [ -d /tmp/site ]; then  # a fresh interpreter started with PYTHONPATH=<repo> still finds the carried wheels
+if [ -d "$SITE_DIR" ]; then  # a fresh interpreter started with PYTHONPATH=<repo> still finds the carried wheels
     SP=$("$PY" -c 'import os, site; print(next((p for p in site.getsitepackages() if os.access(p, os.W_OK)), ""))')
     if [ -n "$SP" ]; then
-        echo /tmp/site > "$SP/flowsynth-device-site.pth"
+        echo "$SITE_DIR" > "$SP/flowsynth-device-site.pth"
         log "wrote $SP/flowsynth-device-site.pth"
     fi
 fi
@@ -141,7 +148,7 @@ step feed 110 "$PY" benchmarks/device/feed.py "${FEED[@]}" ${FEED_ARGS:-}
 step feed_device 90 "$PY" benchmarks/device/feed.py --source device "${FEED[@]}" ${FEED_ARGS:-}
 # shellcheck disable=SC2086
 step gpu 150 "$PY" benchmarks/device/gpu.py "${GPU[@]}" ${GPU_ARGS:-}
-touch "${GPU_DONE_MARKER:-/tmp/gpu_steps_done}"  # the timings are done: device_extra.sh's training may use the GPU
+touch "$GPU_DONE_MARKER"  # the timings are done: device_extra.sh's training may use the GPU
 step tests 120 "$PY" -m pytest -q -x -rfEs --durations=8 -p no:cacheprovider tests/test_batched.py tests/test_device.py
 [ "${EXTRA_AT:-}" = after_gpu ] && start_extra
 

@@ -154,3 +154,23 @@ def test_bad_positions_say_what_to_do():
         DeviceBatches(CFG, ["depth"], 2).set_epoch(1)
     with pytest.raises(TypeError):
         DeviceBatches(CFG, ["depth"], 2, workers=1)  # the name is DataLoader's: num_workers
+
+
+def test_the_loaders_endless_stream_broken_off_repeats_nothing():
+    """The same promise for ``fs.datasets.loader`` over an endless BouncingThings (persistent forkserver workers):
+    a loop broken off and iterated again repeats no sample; it skips at most the batches the workers had prefetched
+    (``prefetch_factor`` 2 a worker)."""
+    loader = fs.datasets.loader(BouncingThings(CFG, outputs=["depth"], seed=2), batch_size=2, num_workers=2,
+                                timeout=TIMEOUT)
+    passes = []
+    for _ in range(2):
+        seen = []
+        for b in loader:
+            seen += b["index"].tolist()
+            if len(seen) == 4:
+                break
+        passes.append(seen)
+    first, second = passes
+    assert not set(first) & set(second), passes
+    skipped = set(range(max(second) + 1)) - set(first) - set(second)
+    assert len(skipped) <= 2 * 2 * 2, passes

@@ -100,7 +100,7 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
-# --- textures with the statistics of natural images, made without files (issue 46's levers) --------------------
+# --- textures with the statistics of natural images, made without files ---------------------------------------
 NATURAL_KINDS = ("pink", "leaves", "edges")
 
 

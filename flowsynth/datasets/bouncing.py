@@ -48,8 +48,8 @@ class BouncingThings(IndexStream):
         occlusion: "exact" or "depth" (see flowsynth.truth.flow).
         device: Warp device of the renderer's stages ("cpu", the default; "cuda" or "cuda:N" where Warp finds one,
             else a ConfigError from the first sample, in the process that renders it: Warp is not initialised
-            before DataLoader workers fork). Written for any Warp device; device placement tested on an H100,
-            speed not. Physics runs on the CPU whatever the device (a sample's scene does not depend on it).
+            before DataLoader workers fork). Physics runs on the CPU whatever the device (a sample's scene does not
+            depend on it).
         threads: threads of each ray launch (None = every core the process may use, and 1 inside a
             DataLoader worker, so workers x threads never exceed the cores; see flowsynth.parallel).
 

@@ -8,8 +8,8 @@ __all__ = ["ENGINES", "JOURNAL", "MANIFEST", "Sizes", "estimate", "export_datase
 
 
 def __getattr__(name: str):
-    # The function was ``export`` until issue 41 (a function named like its module); the old name still works,
-    # with a DeprecationWarning, and is bound nowhere (``flowsynth.export`` is always this folder).
+    # ``export``, the function's former name (a function named like its module), still works with a
+    # DeprecationWarning, and is bound nowhere (``flowsynth.export`` is always this folder).
     if name == "export":
         import warnings
 

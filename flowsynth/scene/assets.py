@@ -54,7 +54,7 @@ PRIMITIVE_ASSETS = ("box", "sphere", "cylinder", "capsule", "cone")
 
 BUILTIN_ASSETS = (*PRIMITIVE_ASSETS, "torus", "rock", "crystal", "star", "blob", "chair", "frame")
 """Every built-in asset name, in category order (see ``docs/scenes.md``). ``chair`` and ``frame`` (thin legs, bars
-and holes: issue 38's "thin structures and chair-like parts") are not in the default config's ``assets``."""
+and holes: thin structures and chair-like parts) are not in the default config's ``assets``."""
 
 _GLOB_CHARS = "*?["
 HULL_MAX_VERTICES = 192

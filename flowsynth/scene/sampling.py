@@ -83,8 +83,8 @@ along the line of sight moves few pixels, and its speed must stay finite."""
 
 @dataclass(frozen=True)
 class SceneLayout:
-    """Everything drawn for one scene before motion (``sample_layout``). Named ``Layout`` until issue 41; that
-    name now belongs to the export layouts alone (``flowsynth.io.layouts.base.Layout``).
+    """Everything drawn for one scene before motion (``sample_layout``); not an export layout
+    (``flowsynth.io.layouts.base.Layout``).
 
     Attributes:
         asset_keys: the resolved asset list (built-in names and absolute paths).
