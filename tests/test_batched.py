@@ -138,6 +138,41 @@ def test_batch_path_stays_on_the_device(twin, scenes, monkeypatch):  # noqa: F81
         assert torch.equal(got[k], ref[k]), k
 
 
+def test_render_is_the_batch_of_one(scenes, monkeypatch):
+    """``fs.render``'s batched keys are the very tensors ``batch_outputs`` made for its batch of one (the same
+    memory), stereo's disparity change riding on the fw pass among them; the per-scene keys (object tables, stereo
+    disparity, motion-blurred rgb) come from elsewhere."""
+    from flowsynth.renderer import pipeline
+
+    seen = []
+    orig = pipeline.batch_outputs
+
+    def record(batch_scenes, *args):
+        out = orig(batch_scenes, *args)
+        seen.append((len(batch_scenes), out))
+        return out
+
+    monkeypatch.setattr(pipeline, "batch_outputs", record)
+    batched = ["depth", "instance", "flow_fw", "occ_bw", "motion", "rgb", "K", "disparity_change"]
+    got = fs.render(scenes[0], [*batched, "box2d_visible", "disparity"], stereo_baseline=0.1)
+    [(B, out)] = seen
+    assert B == 1 and sorted(out) == sorted(batched)
+    for k in batched:
+        assert got[k].data_ptr() == out[k][0].data_ptr() and torch.equal(got[k], out[k][0]), k
+    seen.clear()
+    blurred = fs.render(scenes[0], ["depth", "rgb"], shutter=0.5)
+    [(B, out)] = seen
+    assert sorted(out) == ["depth"] and blurred["rgb"].shape == (3, 3, 36, 48)
+
+
+def test_motion_blur_is_one_scene_at_a_time(scenes):
+    from flowsynth.plan import make_plan
+    from flowsynth.renderer import shading
+
+    with pytest.raises(ConfigError, match="one scene at a time, got 2"):
+        shading.render_rgb(scenes[:2], None, None, make_plan(["rgb"], shutter=0.5))
+
+
 def test_bad_batches_say_what_to_do(scenes):
     small = fs.BouncingThingsConfig(width=32, height=24, num_frames=3)
     other = fs.datasets.BouncingThings(small, outputs=["depth"], seed=1).scene(0)

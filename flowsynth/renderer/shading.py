@@ -136,19 +136,19 @@ def shade_radiance(scenes, accel: SceneAccel, gb, plan, device: str = "cpu"):
     wp = wp_runtime()
     B, T = len(scenes), scenes[0].num_frames
     H, W = scenes[0].camera.height, scenes[0].camera.width
+    spp, shutter = int(plan.spp), float(plan.shutter)
+    if shutter > 0 and B != 1:
+        raise ConfigError(f"motion blur (shutter {shutter}) renders one scene at a time, got {B}; render "
+                          "motion-blurred rgb per scene with fs.render")
     lights = [resolve_lights(s.lights, s.world_T_cam[0], median_hit_distance(gb, b * T) if not s.lights else 1.0)
               for b, s in enumerate(scenes)]
     if accel.empty:
         sky = np.stack([np.broadcast_to(_sky(x).astype(np.float32), (T, H, W, 3)) for x in lights])
         return wp.array(sky.reshape(-1, H, W, 3), dtype=wp.vec3, device=device)
     seeds = [int(s.render_seed) if plan.seed is None else plan.seed for s in scenes]
-    spp, shutter = int(plan.spp), float(plan.shutter)
     slices = min(spp, MAX_TIME_SLICES) if shutter > 0 else 1
     cam_T_worlds = [s.cam_T_world for s in scenes]
     if shutter > 0:
-        if B != 1:
-            raise ConfigError(f"motion blur (shutter {shutter}) renders one scene at a time, got {B}; render "
-                              "motion-blurred rgb per scene with fs.render")
         scene = scenes[0]
         times = shutter_times(T, shutter, slices).reshape(-1) + plan.shutter_offset  # offset: the final pass
         cam_T_worlds = [np.linalg.inv(poses_at(scene.world_T_cam, times))]
