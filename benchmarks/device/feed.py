@@ -35,7 +35,6 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _common
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))  # tvision: torchvision's shims
 
 from _common import machine_info, print_table, pyplot, save_figure, write_json
 
@@ -45,16 +44,6 @@ QUICK = {"res": (160, 128), "crop": (128, 128), "batch": 2, "updates": 2, "steps
          "workers": 2}
 OUTPUTS = ["rgb", "flow_fw", "valid_fw"]
 LR = 4e-4
-
-
-def raft_small():
-    """torchvision's RAFT-small with random weights (tests/tvision.py's shim where this torch needs it)."""
-    import tvision
-
-    tvision.datasets()
-    from torchvision.models.optical_flow import raft_small as build
-
-    return build(weights=None)
 
 
 def stream_config(res: tuple[int, int]):
@@ -133,10 +122,11 @@ def main(argv: list[str] | None = None) -> int:
         if s[key] < lo:
             p.error(f"--{key} {s[key]}: must be at least {lo}")
 
-    torch.manual_seed(a.seed)
-    net = raft_small().to(a.device)  # on the device before any worker starts, as a training script does
+    from flowsynth.nets import raft_small
     from flowsynth.training import one_cycle
 
+    torch.manual_seed(a.seed)
+    net = raft_small().to(a.device)  # on the device before any worker starts, as a training script does
     opt, sched = one_cycle(net.parameters(), LR, 2 * (s["warmup"] + s["steps"]) + 2 * s["workers"])  # both loops
     cfg = stream_config(s["res"])
     live = live_batches(a.source, cfg, s["batch"], s["workers"], a.device, a.seed)
