@@ -223,8 +223,8 @@ def _tune_parser(sub, sub_kw: dict) -> None:
                          "flow10.flo), FlyingChairs (*_img1.ppm, *_img2.ppm, *_flow.flo), KITTI (image_2/, "
                          "flow_occ/) or Sintel (clean|final/SCENE/, flow/SCENE/) [required]")
     tn.add_argument("--out", required=True,
-                    help="the preset file to write, JSON of config fields (flowsynth export --config PRESET.json "
-                         "reads it); state and report go to PRESET.tune/ beside it; re-running resumes [required]")
+                    help="the preset file to write: a mixture preset (fs.datasets.Mixture.from_preset reads it); "
+                         "state and report go to PRESET.tune/ beside it; re-running resumes [required]")
     tn.add_argument("--pairs", default=None, help="comma-separated names (or globs) of the pairs to tune on "
                                                   "[default: all]")
     tn.add_argument("--budget", type=integer, default=None,

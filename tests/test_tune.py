@@ -17,22 +17,33 @@ from flowsynth.tune import TWIN, Rung, plan_cost, plan_rungs, search
 
 # -- the search space ---------------------------------------------------------------------------------------------
 def test_default_point_is_the_generators_defaults():
-    cfg = tune.preset_config(tune.key_of(tune.default_point()))
-    assert cfg == fs.BouncingThingsConfig(width=512, height=384, num_frames=2)
-    for knob in tune.SPACE:  # every knob's default label holds its field's default
-        assert knob.values[knob.default] == getattr(fs.BouncingThingsConfig(), knob.field)
+    configs, weights = tune.sources(tune.key_of(tune.default_point()))
+    assert configs == {"things": fs.BouncingThingsConfig(width=512, height=384, num_frames=2)}
+    assert weights == {"things": 1.0}
+    for knob in tune.SPACE:  # every knob's default label holds its field's default (no 2D layers)
+        want = 0.0 if knob.field == tune.LAYERS else getattr(fs.BouncingThingsConfig(), knob.field)
+        assert knob.values[knob.default] == want
 
 
-def test_grid_is_the_product_of_the_knobs_and_every_point_is_a_valid_config():
+def test_grid_is_the_product_of_the_knobs_and_every_point_makes_its_mixture():
     points = tune.grid()
     assert len(points) == math.prod(len(k.values) for k in tune.SPACE)
     keys = [tune.key_of(p) for p in points]
     assert len(set(keys)) == len(keys)
     for key in keys:
-        assert tune.point_of(key) == dict(tune.point_of(key))
-        cfg = tune.preset_config(key)  # validated by the config
+        point = tune.point_of(key)
+        configs, weights = tune.sources(key)  # validated by the configs
         for knob in tune.SPACE:
-            assert getattr(cfg, knob.field) == knob.values[tune.point_of(key)[knob.name]]
+            value = knob.values[point[knob.name]]
+            if knob.field == tune.LAYERS:
+                assert weights.get(tune.LAYERS, 0.0) == value and sum(weights.values()) == pytest.approx(1)
+                assert (tune.LAYERS in configs) == (value > 0)
+            else:
+                assert getattr(configs["things"], knob.field) == value
+    for key in keys[::29]:  # the preset file's dict, read back by the Mixture
+        mix = fs.datasets.Mixture.from_preset_dict(tune.preset(key))
+        configs, weights = tune.sources(key)
+        assert mix.configs == configs and mix.preset_dict()["weights"] == weights
 
 
 def test_candidates_are_distinct_seeded_and_start_with_the_default():
@@ -45,10 +56,12 @@ def test_candidates_are_distinct_seeded_and_start_with_the_default():
         tune.draw_candidates(len(tune.grid()) + 1, 0)
 
 
-def test_training_config_scales_motion_with_the_width():
-    key = tune.draw_candidates(3, 0)[2]
-    big, small = tune.preset_config(key), tune.training_config(key, (256, 192))
-    assert (small.width, small.height) == (256, 192)
+def test_training_sources_scale_motion_with_the_width():
+    key = tune.key_of({**tune.default_point(), tune.LAYERS: "0.5", "motion": "large"})
+    big, big_layers = tune.sources(key)[0].values()
+    small, small_layers = tune.sources(key, (256, 192))[0].values()
+    assert (small.width, small.height) == (small_layers.width, small_layers.height) == (256, 192)
+    assert big_layers.motion_scale == small_layers.motion_scale == 1.0
     assert small.flow_px == pytest.approx(tuple(x / 2 for x in big.flow_px))
     assert small.num_objects == big.num_objects and small.texture_families == big.texture_families
 

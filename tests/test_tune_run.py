@@ -83,7 +83,7 @@ def _memo(render):
     cache = {}
 
     def memo(cfg, seed, n, workers=0):
-        key = (cfg, seed, n)
+        key = (repr(cfg), seed, n)
         if key not in cache:
             cache[key] = render(cfg, seed, n, workers)
         return cache[key]
@@ -100,8 +100,8 @@ def test_the_trainer_resumes_bit_for_bit_at_any_checkpoint(tmp_path):
     _, pairs = tune.read_pairs(write_middlebury(tmp_path / "mb", h=40, w=48))
     recipe = Recipe(res=(48, 32), crop=(16, 24), batch=2, updates=2, test_updates=2, pool=3)
     keys = tune.draw_candidates(3, 0)
-    settings = {k: (tune.training_config(k, recipe.res), 0) for k in keys}
-    settings[keys[0] + TWIN] = (tune.training_config(keys[0], recipe.res), 100)
+    settings = {k: (tune.sources(k, recipe.res), 0) for k in keys}
+    settings[keys[0] + TWIN] = (tune.sources(keys[0], recipe.res), 100)
     rungs = plan_rungs(3, tune.plan_cost(3, 4))
     render = _memo(tune.render_pool)
 
@@ -140,8 +140,8 @@ def test_quick_tune_command_end_to_end(tmp_path, capsys):
     argv = ["tune", "--val", str(val), "--out", str(out), "--quick", "--pairs", "Alpha"]
     assert main(argv) == 0
     rep = read_json(tmp_path / "preset.tune" / "report.json")
-    cfg = fs.BouncingThingsConfig.from_dict(read_json(out))
-    assert cfg == tune.preset_config(rep["winner"])
+    mix = fs.datasets.Mixture.from_preset(out)
+    assert mix.configs == tune.sources(rep["winner"])[0]
     assert rep["settings"]["pairs"] == ["Alpha"]
     rungs = rep["plan"]
     steps = [0, *(s for r in rungs for s in r["checkpoints"])]
@@ -159,7 +159,7 @@ def test_quick_tune_command_end_to_end(tmp_path, capsys):
     out.unlink()
     assert main(argv) == 0  # finished: rewrites the preset and the report from the state
     assert "continuing" in capsys.readouterr().out and read_json(tmp_path / "preset.tune" / "report.json") == rep
-    assert fs.BouncingThingsConfig.from_dict(read_json(out)) == cfg
+    assert fs.datasets.Mixture.from_preset(out).configs == mix.configs
 
 
 def _run(argv, capsys):

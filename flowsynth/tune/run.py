@@ -19,7 +19,7 @@ from flowsynth.io import atomic_path, atomic_write_bytes, write_json
 from flowsynth.tune.halving import TWIN, TWIN_SEED, plan_cost, plan_rungs, rank, search
 from flowsynth.tune.pairs import read_pairs
 from flowsynth.tune.report import markdown, plot, summarize
-from flowsynth.tune.space import draw_candidates, preset_config, training_config
+from flowsynth.tune.space import draw_candidates, preset, sources
 from flowsynth.tune.trainer import QUICK, RECIPE, EnsembleTrainer, Recipe, render_pool
 
 __all__ = ["DEFAULT_BUDGET", "DEFAULT_CANDIDATES", "tune", "work_dir"]
@@ -83,8 +83,8 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
 
     Args:
         val: a folder of validation pairs (``flowsynth.tune.pairs``: Middlebury, FlyingChairs, KITTI, Sintel).
-        out: the preset file to write (JSON of ``BouncingThingsConfig`` fields: ``BouncingThingsConfig.from_dict``
-            and ``flowsynth export --config`` read it).
+        out: the preset file to write (``fs.datasets.Mixture.from_preset`` reads it; its first source's config is
+            ``BouncingThingsConfig.from_dict``'s).
         pairs: only these pairs (names or globs); None: all.
         budget: training steps over all nets [net-steps: one step of one net on one batch of ``recipe.batch``
             crops]; None: ``DEFAULT_BUDGET`` (``quick``: the smallest that trains the candidates).
@@ -132,8 +132,8 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
                 "recipe": recipe.to_dict(), "precision": precision}
     work.mkdir(parents=True, exist_ok=True)
     state = _load(work / "state.pt", identity)
-    settings = {k: (training_config(k, recipe.res), seed) for k in keys}
-    settings[keys[0] + TWIN] = (training_config(keys[0], recipe.res), seed + TWIN_SEED)
+    settings = {k: (sources(k, recipe.res), seed) for k in keys}
+    settings[keys[0] + TWIN] = (sources(keys[0], recipe.res), seed + TWIN_SEED)
 
     def save(st: dict) -> None:
         with atomic_path(work / "state.pt") as tmp:
@@ -156,6 +156,6 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
     atomic_write_bytes(work / "report.md", markdown(summary).encode())
     plot(summary, work / "curves.png")
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, preset_config(summary["winner"]).to_dict())
+    write_json(out, preset(summary["winner"]))
     return summary
 

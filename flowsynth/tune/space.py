@@ -1,17 +1,19 @@
 """The search space of ``flowsynth tune``: a few of the generator's own knobs, each with a handful of values.
 
-``SPACE`` is the table (docs/tune.md shows the same one): each knob sets one ``BouncingThingsConfig`` field, and
-one of its values, labelled ``"default"`` or named in ``Knob.default``, is the field's default, so the all-default
-point is ``BouncingThingsConfig()`` (at the preset's size). A point is one label per knob; its key,
-``"motion=small,objects=default,..."``, names it in the state, the report and the preset's provenance.
+``SPACE`` is the table (docs/tune.md shows the same one). A point is one label per knob; its key,
+``"motion=small,objects=default,..."``, names it in the state and the report. A point makes a ``Mixture``'s sources
+(``sources``): "things", a ``BouncingThingsConfig`` whose fields the knobs set (each knob but ``layers`` sets one
+field), and, where the ``layers`` knob's share is above 0, "layers", a ``LayersConfig`` (FlyingChairs-style 2D
+layers) of the same size, weighted by that share. Each knob's default label holds the generator's default, so the
+all-default point is ``BouncingThingsConfig()`` alone (at the preset's size).
 
 Motion is given at ``REFERENCE_WIDTH`` (512 px, FlyingChairs' width, as the learning judge gives ``flow_px``) and
-scaled to the width a tune renders at; the preset a tune writes is at ``PRESET_SIZE`` with the motion as given.
+scaled to the width a tune renders at; the preset a tune writes is at ``PRESET_SIZE`` with the motion as given. The
+2D layers keep ``LayersConfig``'s own motion (the learning benchmark's chairs2d draws).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Any
@@ -21,12 +23,13 @@ import numpy as np
 from flowsynth.errors import ConfigError
 from flowsynth.scene import BouncingThingsConfig
 
-__all__ = ["PRESET_SIZE", "REFERENCE_WIDTH", "SPACE", "Knob", "default_point", "draw_candidates", "grid", "key_of",
-           "point_of", "preset_config", "training_config"]
+__all__ = ["LAYERS", "PRESET_SIZE", "REFERENCE_WIDTH", "SPACE", "Knob", "default_point", "draw_candidates", "grid",
+           "key_of", "point_of", "preset", "sources"]
 
 REFERENCE_WIDTH = 512  # [px] the image width at which the motion knob's flow_px values are given
 PRESET_SIZE = (512, 384)  # (width, height) [px] of the preset a tune writes
 PRESET_FRAMES = 2  # frames per clip of the preset: one flow pair, as a tune trains on
+LAYERS = "layers"  # the knob (and the mixture source) of the 2D layers' share
 _DEFAULT_FAMILIES = BouncingThingsConfig().texture_families
 
 
@@ -37,7 +40,7 @@ class Knob:
     name: str
     """The knob's name in keys and reports."""
     field: str
-    """The ``BouncingThingsConfig`` field it sets."""
+    """The ``BouncingThingsConfig`` field it sets (``LAYERS``: the 2D layers' share of the mixture)."""
     values: dict[str, Any]
     """label -> the field's value (for ``flow_px``: at ``REFERENCE_WIDTH``)."""
     default: str
@@ -58,6 +61,8 @@ SPACE: tuple[Knob, ...] = (
     Knob("textures", "texture_families",
          {"procedural": _DEFAULT_FAMILIES, "natural": (*_DEFAULT_FAMILIES, "solid", "leaves")}, "procedural",
          "texture families: the default procedural ones, or those plus flat colours and dead leaves"),
+    Knob(LAYERS, LAYERS, {"0": 0.0, "0.5": 0.5}, "0",
+         "share of the training pairs that are FlyingChairs-style 2D layers (fs.datasets.Layers)"),
 )
 
 
@@ -104,17 +109,26 @@ def draw_candidates(n: int, seed: int) -> list[str]:
     return [default, *(others[int(i)] for i in picked)]
 
 
-def preset_config(key: str) -> BouncingThingsConfig:
-    """The config of point ``key`` as a preset: ``PRESET_SIZE``, ``PRESET_FRAMES`` frames, each knob's field set to
-    its label's value, every other field at its default."""
+def sources(key: str, res: tuple[int, int] = PRESET_SIZE) -> tuple[dict, dict]:
+    """Point ``key``'s ``Mixture`` arguments (configs, weights) at ``res`` = (width, height) [px], ``PRESET_FRAMES``
+    frames: {"things": its ``BouncingThingsConfig``, and "layers": a ``LayersConfig`` of the same size where its share
+    is above 0}, {name: weight}. Motion (``flow_px``) is scaled by width / ``REFERENCE_WIDTH``."""
+    from flowsynth.datasets import LayersConfig
+
     point = point_of(key)
-    fields = {k.field: k.values[point[k.name]] for k in SPACE}
-    return BouncingThingsConfig(width=PRESET_SIZE[0], height=PRESET_SIZE[1], num_frames=PRESET_FRAMES, **fields)
+    fields = {k.field: k.values[point[k.name]] for k in SPACE if k.field != LAYERS}
+    fields["flow_px"] = tuple(x * res[0] / REFERENCE_WIDTH for x in fields["flow_px"])
+    things = BouncingThingsConfig(width=res[0], height=res[1], num_frames=PRESET_FRAMES, **fields)
+    share = next(k.values[point[k.name]] for k in SPACE if k.field == LAYERS)
+    if share == 0:
+        return {"things": things}, {"things": 1.0}
+    layers = LayersConfig(width=res[0], height=res[1], num_frames=PRESET_FRAMES)
+    return {"things": things, LAYERS: layers}, {"things": 1.0 - share, LAYERS: share}
 
 
-def training_config(key: str, res: tuple[int, int]) -> BouncingThingsConfig:
-    """The config a tune renders point ``key``'s training pairs from: ``preset_config(key)`` at ``res`` = (width,
-    height) [px], its ``flow_px`` scaled by width / ``REFERENCE_WIDTH`` (so motion keeps its share of the image)."""
-    cfg = preset_config(key)
-    scale = res[0] / REFERENCE_WIDTH
-    return dataclasses.replace(cfg, width=res[0], height=res[1], flow_px=tuple(x * scale for x in cfg.flow_px))
+def preset(key: str) -> dict:
+    """Point ``key``'s preset at ``PRESET_SIZE``: the JSON of ``fs.datasets.Mixture.from_preset`` (one source, or two
+    with the 2D layers)."""
+    from flowsynth.datasets import Mixture
+
+    return Mixture(*sources(key)).preset_dict()

@@ -2,10 +2,11 @@
 generator setting, and tested on the validation pairs at every checkpoint.
 
 Each net is RAFT's recipe as the learning judge runs it (``Recipe``: its defaults are protocol 0023's): a pool of
-``pool`` pairs rendered at ``res`` from the net's config and seed, batches of ``batch`` random ``crop`` crops with
-flips and colour jitter (``flowsynth.training.augment``) drawn from the net's own generator, ``updates`` flow updates
-a step, AdamW on one one-cycle schedule of the plan's full length; tested on every validation pair at full size with
-``test_updates`` updates (``flowsynth.training.predict``), the EPE over its valid pixels.
+``pool`` pairs rendered at ``res`` from the net's generator setting (a ``Mixture``'s sources) and seed, batches of
+``batch`` random ``crop`` crops with flips and colour jitter (``flowsynth.training.augment``) drawn from the net's own
+generator, ``updates`` flow updates a step, AdamW on one one-cycle schedule of the plan's full length; tested on every
+validation pair at full size with ``test_updates`` updates (``flowsynth.training.predict``), the EPE over its valid
+pixels.
 
 The state splits into one part per net (weights, AdamW moments, batch generator) and a shared part (the schedule, the
 optimiser's step count, the loss scaler), so a rung's survivors continue in a smaller ensemble, and a state saved at a
@@ -77,13 +78,13 @@ QUICK = Recipe(res=(160, 128), crop=(128, 128), batch=1, updates=2, test_updates
 """``flowsynth tune --quick``: the smallest recipe RAFT-small trains on, to check that a tune runs."""
 
 
-def render_pool(cfg, seed: int, n: int, workers: int = 0) -> tuple[torch.Tensor, ...]:
-    """Pairs 0 .. n-1 of ``BouncingThings(cfg, seed=seed)`` (``cfg`` of 2 or more frames; frames 0 and 1): (img1,
-    img2 uint8 (n, 3, H, W), flow float32 (n, 2, H, W) [px], valid bool (n, 1, H, W)), rendered in ``workers``
-    processes (``flowsynth.datasets.loader``; 0: here)."""
-    from flowsynth.datasets import BouncingThings, loader
+def render_pool(sources: tuple[dict, dict], seed: int, n: int, workers: int = 0) -> tuple[torch.Tensor, ...]:
+    """Pairs 0 .. n-1 of ``Mixture(*sources, seed=seed)`` (``sources`` = (configs, weights), configs of 2 or more
+    frames; frames 0 and 1): (img1, img2 uint8 (n, 3, H, W), flow float32 (n, 2, H, W) [px], valid bool (n, 1, H,
+    W)), rendered in ``workers`` processes (``flowsynth.datasets.loader``; 0: here)."""
+    from flowsynth.datasets import Mixture, loader
 
-    ds = BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, length=n)
+    ds = Mixture(*sources, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, length=n)
     parts: list[list[torch.Tensor]] = [[], [], [], []]
     for b in loader(ds, batch_size=min(16, n), num_workers=workers):
         rgb = (b["rgb"][:, :2] * 255).round().clamp(0, 255).to(torch.uint8)
@@ -95,11 +96,12 @@ def render_pool(cfg, seed: int, n: int, workers: int = 0) -> tuple[torch.Tensor,
 class EnsembleTrainer:
     """The nets of a tune (the module docstring says how each is trained and tested).
 
-    ``settings``: {key: (config, seed)}, every net a search may ask for: its pool is ``render_pool(config, seed,
-    recipe.pool)``, its weights are the net's initialisation under ``torch.manual_seed(seed)`` and its batches come
-    from a generator seeded ``seed``. ``pairs``: {name: ``Pair``}. ``steps``: the schedule's length (the plan's last
-    step). ``net``: builds one net (``flowsynth.nets.raft_small``: RAFT-small with random weights). ``render``: the
-    function that renders a pool (``render_pool``'s signature). Implements ``flowsynth.tune.halving.Trainer``."""
+    ``settings``: {key: (sources, seed)}, every net a search may ask for: its pool is ``render(sources, seed,
+    recipe.pool, workers)``, its weights are the net's initialisation under ``torch.manual_seed(seed)`` and its
+    batches come from a generator seeded ``seed``. ``pairs``: {name: ``Pair``}. ``steps``: the schedule's length
+    (the plan's last step). ``net``: builds one net (``flowsynth.nets.raft_small``: RAFT-small with random weights).
+    ``render``: the function that renders a pool (``render_pool``'s signature). Implements
+    ``flowsynth.tune.halving.Trainer``."""
 
     def __init__(self, settings: dict[str, tuple], pairs: dict[str, Pair], recipe: Recipe, steps: int, *,
                  device: str = "cpu", precision: str = "fp32", workers: int = 0, net: Callable | None = None,
@@ -211,8 +213,8 @@ class EnsembleTrainer:
         self.pools = {k: v for k, v in self.pools.items() if k in keys}
         for key in keys:
             if key not in self.pools:
-                cfg, seed = self.settings[key]
-                self.pools[key] = self.render(cfg, seed, self.recipe.pool, self.workers)
+                sources, seed = self.settings[key]
+                self.pools[key] = self.render(sources, seed, self.recipe.pool, self.workers)
 
     @torch.no_grad()
     def _evaluate(self) -> dict[str, dict[str, float]]:
