@@ -5,6 +5,7 @@ score rule, resume after an interruption at any point."""
 import io
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,6 +45,24 @@ def test_grid_is_the_product_of_the_knobs_and_every_point_makes_its_mixture():
         mix = fs.datasets.Mixture.from_preset_dict(tune.preset(key))
         configs, weights = tune.sources(key)
         assert mix.configs == configs and mix.preset_dict()["weights"] == weights
+
+
+def _fmt(v):
+    if isinstance(v, tuple):
+        return "(" + ", ".join(_fmt(x) for x in v) + ")"
+    return v if isinstance(v, str) else f"{v:g}"
+
+
+def test_docs_table_is_the_search_space():
+    """docs/tune.md's table, row by row, rendered from SPACE: the table in the code and in the docs are one."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "tune.md").read_text()
+    rows = ["| knob | sets | values (label: value) | default | what it changes |", "|---|---|---|---|---|"]
+    for k in tune.SPACE:
+        sets = "the 2D layers' weight in the mixture" if k.field == tune.LAYERS else f"`BouncingThingsConfig.{k.field}`"
+        vals = "; ".join(f"`{label}`: {_fmt(v)}" for label, v in k.values.items())
+        rows.append(f"| `{k.name}` | {sets} | {vals} | `{k.default}` | {k.what} |")
+    assert "\n".join(rows) + "\n\n" in doc
+    assert f"{len(tune.grid())} points" in doc
 
 
 def test_candidates_are_distinct_seeded_and_start_with_the_default():
@@ -87,6 +106,12 @@ def test_plan_halves_to_one_and_fits_the_budget(n):
     worst = sum((r.size + (r.index > 0) + 1) * (r.end - r.start) for r in rungs)
     assert worst == plan_cost(n, rungs[0].end) <= budget
     assert plan_cost(n, rungs[0].end + 2) > budget  # the largest first rung that fits (steps come in pairs)
+
+
+def test_the_default_plan_ends_at_the_judges_length():
+    rungs = plan_rungs(tune.DEFAULT_CANDIDATES, tune.DEFAULT_BUDGET)
+    assert (tune.DEFAULT_CANDIDATES, tune.DEFAULT_BUDGET) == (8, 10500)  # docs/tune.md's numbers
+    assert [r.end for r in rungs] == [300, 600, 1200, 2400]
 
 
 def test_a_budget_too_small_is_a_named_error_with_the_smallest_that_works():

@@ -22,11 +22,11 @@ def summarize(state: dict, candidates: list[str], rungs: list[Rung]) -> dict:
 
     Returns {"winner", "reference", "twin": keys; "scores": {"winner", "reference", "twin": their last rung's
     scores [px], None for a net that diverged}; "margin": reference - winner [px]; "ratio": winner / reference;
-    "noise": |twin - reference| [px] (these three None when one of the three diverged); "margin_over_noise" (None
-    also when the noise is 0); "verdict": one sentence; "plan": [{"rung", "candidates",
-    "start", "end", "checkpoints"}]; "nets": [{"key", "labels", "twin", "rungs": scores per rung it ran, "curve":
-    [{"step", "mean", "epe": {pair: px}}]}] (the reference, its twin, then the candidates by how far they got and
-    their last score)}."""
+    "noise": |twin - reference| [px] (these three None when one of the three diverged); "noise_by_rung": the same
+    in every rung; "margin_over_noise" (None also when the noise is 0); "verdict": one sentence; "plan": [{"rung",
+    "candidates", "start", "end", "checkpoints"}]; "nets": [{"key", "labels", "twin", "rungs": scores per rung it
+    ran, "curve": [{"step", "mean", "epe": {pair: px}}]}] (the reference, its twin, then the candidates by how far
+    they got and their last score)}."""
     ref, twin, winner = candidates[0], candidates[0] + TWIN, state["winner"]
     last = state["scores"][-1]
     s_w, s_r, s_t = last[winner], last[ref], last[twin]
@@ -52,9 +52,10 @@ def summarize(state: dict, candidates: list[str], rungs: list[Rung]) -> dict:
         nets.append({"key": key, "labels": point_of(key.removesuffix(TWIN)), "twin": key == twin,
                      "rungs": [s[key] for s in state["scores"] if key in s], "curve": state["curves"][key]})
     nets[2:] = sorted(nets[2:], key=lambda n: (-len(n["rungs"]), rank(n["rungs"][-1]), n["key"]))
+    by_rung = [None if None in (s[ref], s[twin]) else abs(s[twin] - s[ref]) for s in state["scores"]]
     return {"winner": winner, "reference": ref, "twin": twin,
             "scores": {"winner": s_w, "reference": s_r, "twin": s_t}, "margin": margin, "ratio": ratio,
-            "noise": noise, "margin_over_noise": over, "verdict": verdict,
+            "noise": noise, "noise_by_rung": by_rung, "margin_over_noise": over, "verdict": verdict,
             "plan": [{"rung": r.index, "candidates": r.size, "start": r.start, "end": r.end,
                       "checkpoints": list(r.checkpoints)} for r in rungs],
             "nets": nets}
@@ -81,7 +82,8 @@ def markdown(summary: dict) -> str:
     s = summary["scores"]
     ratio = "" if summary["ratio"] is None else f" (ratio winner / default {summary['ratio']:.3f})"
     lines += ["", f"Last rung [px]: winner {_px(s['winner'])}, default {_px(s['reference'])}, the default's twin "
-                  f"{_px(s['twin'])}{ratio}.", "",
+                  f"{_px(s['twin'])}{ratio}. The twin's distance from the default, rung by rung [px]: "
+                  + ", ".join(map(_px, summary["noise_by_rung"])) + ".", "",
               f"Verdict: {summary['verdict']}."]
     return "\n".join(lines) + "\n"
 

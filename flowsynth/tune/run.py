@@ -29,6 +29,7 @@ DEFAULT_BUDGET = plan_cost(DEFAULT_CANDIDATES, 300)
 """[net-steps] 10500: 8 candidates halved over rungs ending at steps 300, 600, 1200 and 2400 (the judge's length)."""
 QUICK_CANDIDATES = 2
 RAFT_MIN = 128  # [px] RAFT-small's correlation pyramid needs crops of at least this a side
+POOL_BYTES = 2 * 3 + 2 * 4 + 1  # [bytes per pixel] of a pool's pair: two uint8 images, float32 flow, bool valid
 
 
 def work_dir(out: str | Path) -> Path:
@@ -145,8 +146,10 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         log(f"tune: rung {rung + 1} of {len(rungs)}, step {st['step']} of {rungs[-1].end}: best now "
             f"{'diverged' if now[best] is None else f'{now[best]:.3f} px'} ({best})")
 
+    pool_gib = (candidates + 1) * recipe.pool * recipe.res[0] * recipe.res[1] * POOL_BYTES / 2**30
     log(f"tune: {len(val_pairs)} {layout} pairs, {candidates} candidates, {len(rungs)} rungs ending at steps "
-        f"{[r.end for r in rungs]}, budget {budget} net-steps" + (", continuing" if state else ""))
+        f"{[r.end for r in rungs]}, budget {budget} net-steps, rung 0's pools {pool_gib:.1f} GiB in memory"
+        + (", continuing" if state else ""))
     if state is None or "winner" not in state:
         trainer = EnsembleTrainer(settings, val_pairs, recipe, rungs[-1].end, device=device, precision=precision,
                                   workers=workers, net=net, render=render)
