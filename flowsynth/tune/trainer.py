@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -130,9 +131,12 @@ class EnsembleTrainer:
             raise ConfigError(f"the nets are at step {self.step}; cannot go back to {step}")
         if keys != self.keys or self.ens is None:
             self._assemble(list(keys))
-        for _ in range(self.step, step):
-            batch = [self._draw(k) for k in self.keys]
-            self.ens.step(tuple(torch.stack(x).to(self.device) for x in zip(*batch)))
+        with ThreadPoolExecutor(1) as ahead:  # the next step's batches are drawn while the nets step
+            batches = ahead.submit(self._draws) if self.step < step else None
+            for s in range(self.step + 1, step + 1):
+                batch = batches.result()
+                batches = ahead.submit(self._draws) if s < step else None  # never past ``step``: the state is exact
+                self.ens.step(tuple(x.to(self.device) for x in batch))
         self.step = step
         return self._evaluate()
 
@@ -150,6 +154,10 @@ class EnsembleTrainer:
             self.gens[key] = torch.Generator().set_state(own["generator"])
 
     # -- internals ------------------------------------------------------------------------------------------------
+    def _draws(self) -> tuple:
+        """One step's batches: each net's draw from its pool and generator, stacked (K, B, ...)."""
+        return tuple(torch.stack(x) for x in zip(*(self._draw(k) for k in self.keys)))
+
     def _draw(self, key: str) -> tuple:
         from flowsynth.training import augment
 
