@@ -30,8 +30,8 @@ def _report(q, job) -> None:
         q.put(f"{type(e).__name__}: {e}")
 
 
-def _in_forked_child(job, cuda: bool, monkeypatch) -> str:
-    monkeypatch.setattr(processes, "cuda_initialised", lambda: cuda)
+def _forked(job) -> str:
+    """What ``job`` did in a child forked from this process: "ran", or the exception it raised."""
     ctx = mp.get_context("fork")
     q = ctx.Queue()
     p = ctx.Process(target=_report, args=(q, job))
@@ -42,6 +42,11 @@ def _in_forked_child(job, cuda: bool, monkeypatch) -> str:
     return got
 
 
+def _in_forked_child(job, cuda: bool, monkeypatch) -> str:
+    monkeypatch.setattr(processes, "cuda_initialised", lambda: cuda)
+    return _forked(job)
+
+
 def _physics_scene_0():
     BouncingThings(CFG, outputs=["depth"], seed=5).scene(0)
 
@@ -49,12 +54,7 @@ def _physics_scene_0():
 def _grandchild_without_cuda_of_its_own():
     """Fork again from a child that did not initialise CUDA itself, and report the grandchild's answer."""
     processes.cuda_initialised = lambda: False  # this child's own state (a forked copy: the parent keeps its own)
-    ctx = mp.get_context("fork")
-    q = ctx.Queue()
-    p = ctx.Process(target=_report, args=(q, wp_runtime))
-    p.start()
-    got = q.get(timeout=TIMEOUT)
-    p.join(TIMEOUT)
+    got = _forked(wp_runtime)
     if got.startswith("ForkError"):
         raise fs.ForkError(got)
 
