@@ -1,4 +1,5 @@
-"""Command-line flags for the BouncingThingsConfig fields: help from the field docstrings, strict parsing.
+"""Command-line flags for the BouncingThingsConfig and LayersConfig fields: help from the field docstrings, strict
+parsing.
 
 Every field ``name`` becomes ``--name-with-dashes VALUE``. The help line of a flag is the field's
 docstring (the string literal under the field in flowsynth/scene/config.py), its type and
@@ -16,7 +17,8 @@ import functools
 import inspect
 from typing import Any
 
-__all__ = ["add_config_flags", "cli_form", "field_docs", "flag_type", "integer"]
+__all__ = ["add_config_flags", "add_layers_flags", "cli_form", "docs_of", "field_docs", "flag_type", "integer",
+           "layers_only_fields"]
 
 
 @functools.cache
@@ -24,8 +26,13 @@ def field_docs() -> dict[str, str]:
     """{field name: its docstring} of BouncingThingsConfig, read from the source of flowsynth.scene.config."""
     from flowsynth.scene import BouncingThingsConfig
 
-    tree = ast.parse(inspect.getsource(inspect.getmodule(BouncingThingsConfig)))
-    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "BouncingThingsConfig")
+    return docs_of(BouncingThingsConfig)
+
+
+def docs_of(config_class) -> dict[str, str]:
+    """{field name: its docstring} of the dataclass ``config_class``, read from its module's source."""
+    tree = ast.parse(inspect.getsource(inspect.getmodule(config_class)))
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == config_class.__name__)
     docs = {}
     for field, after in zip(cls.body, cls.body[1:]):
         if (isinstance(field, ast.AnnAssign) and isinstance(field.target, ast.Name)
@@ -122,5 +129,30 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
         typ = flag_type(f)
         meaning = " ".join(docs.get(f.name, "").split()).replace("``", "").replace("%", "%%")
         grp.add_argument("--" + f.name.replace("_", "-"), dest="cfg_" + f.name, default=None, type=typ,
+                         metavar=typ.metavar,
+                         help=f"{meaning} [{str(f.type).replace(' ', '')}, default {cli_form(f.default)}]")
+
+
+def layers_only_fields() -> list[dataclasses.Field]:
+    """The LayersConfig fields that are no BouncingThingsConfig field (the others share their flag)."""
+    from flowsynth.datasets import LayersConfig
+    from flowsynth.scene import BouncingThingsConfig
+
+    shared = {f.name for f in dataclasses.fields(BouncingThingsConfig)}
+    return [f for f in dataclasses.fields(LayersConfig) if f.name not in shared]
+
+
+def add_layers_flags(parser: argparse.ArgumentParser) -> None:
+    """Add one flag per LayersConfig field that is no BouncingThingsConfig field (dest ``layers_<name>``, default
+    None = not given); the shared fields (width, height, num_frames, texture_dir) take the scene's flags."""
+    from flowsynth.datasets import LayersConfig
+
+    docs = docs_of(LayersConfig)
+    grp = parser.add_argument_group("2D layers (--dataset layers; LayersConfig fields besides --width, --height, "
+                                    "--num-frames and --texture-dir)")
+    for f in layers_only_fields():
+        typ = flag_type(f)
+        meaning = " ".join(docs.get(f.name, "").split()).replace("``", "").replace("%", "%%")
+        grp.add_argument("--" + f.name.replace("_", "-"), dest="layers_" + f.name, default=None, type=typ,
                          metavar=typ.metavar,
                          help=f"{meaning} [{str(f.type).replace(' ', '')}, default {cli_form(f.default)}]")

@@ -1,15 +1,16 @@
 """Dataset statistics: what a config actually produces, measured on rendered samples.
 
-``dataset_stats(cfg, num)`` renders ``num`` samples and reports, over every frame pair and every valid
-pixel (``valid_fw``):
+``dataset_stats(cfg, num)`` renders ``num`` samples of ``cfg``'s stream (BouncingThings or Layers) and reports,
+over every frame pair and every valid pixel (``valid_fw``):
 
 - ``flow``: mean and 50/90/99th percentiles of |flow_fw| [px], and ``zero_fraction``, the share of
   valid pixels with |flow| < ``ZERO_FLOW_PX``;
 - ``occluded_fraction`` (``occ_fw``) and ``out_of_frame_fraction`` (``oof_fw``) of valid pixels;
 - ``textureless_fraction``: share of 8x8 patches of the RGB frames whose grey intensity has standard
   deviation below 0.02 (:func:`textureless_fraction`, the one definition used across flowsynth);
-- ``category_share``: pixel share of each category ("nothing", "room", "object:<asset>") over all frames;
-- ``seconds_per_sample``: wall-clock time of ``BouncingThings.sample`` (mean, min, max);
+- ``category_share``: pixel share of each category ("nothing", "room", "object:<asset>"; a Layers stream's
+  "background", "shape:ellipse", "shape:polygon") over all frames;
+- ``seconds_per_sample``: wall-clock time of the stream's ``sample`` (mean, min, max);
 - with ``dis=True``: OpenCV DIS optical-flow EPE beside the zero-flow EPE on room and object pixels
   (:func:`dis_check`), which says whether the pixels carry the motion a flow network must learn.
 
@@ -116,8 +117,6 @@ def _percentile(hist: np.ndarray, q: float) -> float:
 def summarize(records: list[dict], cfg) -> dict:
     """Pool :func:`sample_record` results into the statistics dict (module docstring); a statistic whose
     inputs no record has is None."""
-    from flowsynth.scene import OBJECT_CATEGORY_OFFSET, ROOM_CATEGORY, resolve_assets
-
     def total(key: str) -> int | None:
         have = [r[key] for r in records if key in r]
         return sum(have) if have else None
@@ -140,9 +139,7 @@ def summarize(records: list[dict], cfg) -> dict:
         out[name] = n / valid if n is not None and valid else None
     tiles = total("tiles")
     out["textureless_fraction"] = total("flat_tiles") / tiles if tiles else None
-    names = {0: "nothing", ROOM_CATEGORY: "room"}
-    for a, key in enumerate(resolve_assets(cfg.assets)):
-        names[OBJECT_CATEGORY_OFFSET + a] = "object:" + key
+    names = _category_names(cfg)
     cats: dict[int, int] = {}
     for r in records:
         for k, v in r.get("category", {}).items():
@@ -155,30 +152,43 @@ def summarize(records: list[dict], cfg) -> dict:
     return out
 
 
+def _category_names(cfg) -> dict[int, str]:
+    """category id -> name for ``cfg``'s samples."""
+    from flowsynth.datasets import LAYER_CATEGORIES, config_kind
+    from flowsynth.scene import OBJECT_CATEGORY_OFFSET, ROOM_CATEGORY, resolve_assets
+
+    if config_kind(cfg) == "layers":
+        return dict(LAYER_CATEGORIES)
+    names = {0: "nothing", ROOM_CATEGORY: "room"}
+    for a, key in enumerate(resolve_assets(cfg.assets)):
+        names[OBJECT_CATEGORY_OFFSET + a] = "object:" + key
+    return names
+
+
 def dataset_stats(cfg=None, num: int = 16, *, seed: int = 0, start: int = 0, occlusion: str = "exact",
                   dis: bool = False, progress: Callable[[int], None] | None = None) -> dict:
-    """Statistics of samples ``start .. start + num - 1`` of ``BouncingThings(cfg, seed=seed)``.
+    """Statistics of samples ``start .. start + num - 1`` of ``cfg``'s stream (``flowsynth.datasets.make_stream``).
 
     Args:
-        cfg: BouncingThingsConfig (defaults when None) with num_frames >= 2.
+        cfg: BouncingThingsConfig (defaults when None) or LayersConfig, with num_frames >= 2.
         num: number of samples, >= 1.
         seed, start: which samples.
-        occlusion: "exact" or "depth" (flowsynth.truth.flow).
+        occlusion: "exact" or "depth" (flowsynth.truth.flow; a Layers stream's is exact).
         dis: also run :func:`dis_check` on every frame pair (needs opencv-python).
         progress: called with the number of samples done after each one.
 
     Returns:
         JSON-compatible dict; see the module docstring for the keys. Fractions are in [0, 1].
     """
+    from flowsynth.datasets import make_stream
     from flowsynth.scene import BouncingThingsConfig
-    from flowsynth.datasets import BouncingThings
 
     cfg = BouncingThingsConfig() if cfg is None else cfg
     if isinstance(num, bool) or not isinstance(num, int) or num < 1:
         raise ConfigError(f"num must be an integer >= 1, got {num!r}")
     if cfg.num_frames < 2:
         raise ConfigError("statistics need flow: num_frames >= 2")
-    ds = BouncingThings(cfg, outputs=STATS_OUTPUTS, seed=seed, start=start, occlusion=occlusion)
+    ds = make_stream(cfg, STATS_OUTPUTS, seed, start=start, occlusion=occlusion)
     records, dis_rows = [], []
     for k in range(num):
         t = time.perf_counter()

@@ -17,6 +17,8 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch, capsys):
     # the printed values are the ones the README's comments state
     assert out[0] == "torch.Size([2, 2, 3, 192, 256]) torch.Size([2, 1, 2, 192, 256])"
     assert out[1] == "default 0"  # the Mixture block: index 12345 drawn from default, index 3 from chairs
-    assert float(out[2].split("(")[1].split(")")[0]) == 3.5
+    assert out[2] == "torch.Size([1, 2, 96, 128]) torch.bool"  # the 2D layers block: one pair, its occlusion
+    assert out[3] == "['things', 'layers']"  # the mixture of both kinds, back from its preset file
+    assert float(out[4].split("(")[1].split(")")[0]) == 3.5
     assert out[-2] == "2 torch.Size([1, 2, 192, 256])"
     assert out[-1] == "(2, 1, 2, 96, 128) True"  # a device batch's sample 1 is the stream's sample 1

@@ -6,13 +6,15 @@ from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
 from flowsynth.datasets.flowpairs import FlowPairs
 from flowsynth.datasets.kinds import KINDS, config_from, config_kind, make_stream, stream_outputs
+from flowsynth.datasets.layer_draws import PairDraw, draw_pair
 from flowsynth.datasets.layer_render import CATEGORY_NAMES as LAYER_CATEGORIES
+from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, layers_pairs
 from flowsynth.datasets.workers import loader
 
 __all__ = ["KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "BouncingThings", "DeviceBatches", "Exported", "FlowPairs",
-           "Layers", "LayersConfig", "Mixture", "Shards", "config_from", "config_kind", "layers_pairs", "loader",
-           "make_stream", "sample_seed", "stream_outputs"]
+           "Layers", "LayersConfig", "Mixture", "PairDraw", "Shards", "config_from", "config_kind", "draw_pair",
+           "layers_pairs", "loader", "make_stream", "render_layers", "sample_seed", "stream_outputs"]
 
 
 def __getattr__(name: str):

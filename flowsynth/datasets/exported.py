@@ -77,11 +77,11 @@ class Exported(Dataset):
     def __len__(self) -> int:
         return len(self.names)
 
-    def camera(self, i: int) -> dict:
+    def camera(self, i: int) -> dict | None:
         """Sample ``i``'s camera as the manifest records it for every layout: ``K`` (3x3 list, px), ``width``,
         ``height``, ``model`` ("pinhole", "brown_conrady", "kannala_brandt") and ``dist`` (its coefficients in
         OpenCV's order; [] for a pinhole). The same as the sample's provenance ``camera``, with model and dist
-        always present.
+        always present; None for a sample without a camera (an export of ``Layers``).
 
         Raises ExportError for an export written before cameras were recorded (re-run its export command:
         the resume writes those samples again)."""

@@ -99,21 +99,36 @@ class _Maps:
             out[near] |= self.inside(k, u[near], v[near])
         return out
 
-    def move(self, lay: torch.Tensor, x: torch.Tensor, y: torch.Tensor, step: int):
-        """Points (x, y) of layer ``lay`` (per point) moved ``step`` frames (+1 forward, -1 back) by their layer."""
-        coef = torch.from_numpy(np.stack([self.power(k, step)[:2].ravel() for k in range(len(self.mats))]))[lay]
-        return (coef[..., 0] * x + coef[..., 1] * y + coef[..., 2],
-                coef[..., 3] * x + coef[..., 4] * y + coef[..., 5])
+    def move(self, lay: torch.Tensor, t: int, x: torch.Tensor, y: torch.Tensor, step: int):
+        """The pixels (x, y) of frame t, of layer ``lay`` (per pixel), moved ``step`` frames (+1 forward, -1 back)
+        by their layer's motion."""
+        tx, ty = _apply(self.power(0, step), x, y)
+        for k in range(1, len(self.mats)):
+            rows, cols = self.window(k, t)
+            mine = lay[rows, cols] == k
+            if bool(mine.any()):
+                u, v = _apply(self.power(k, step), x[rows, cols], y[rows, cols])
+                tx[rows, cols] = torch.where(mine, u, tx[rows, cols])
+                ty[rows, cols] = torch.where(mine, v, ty[rows, cols])
+        return tx, ty
 
 
-def _warp(src: torch.Tensor, m: np.ndarray, x: torch.Tensor, y: torch.Tensor, padding: str) -> torch.Tensor:
+def _warp(src: torch.Tensor, m: np.ndarray, x: torch.Tensor, y: torch.Tensor, padding: str,
+          box: tuple[float, float, float, float] | None = None) -> torch.Tensor:
     """(3, H, W) ``src`` sampled bilinearly at the points m (x, y) ((h, w) float64): (3, h, w) float32
-    (``padding``: grid_sample's)."""
+    (``padding``: grid_sample's). ``box`` (x min, y min, x max, y max) [px], where every point that matters lies:
+    only the pixels around it are read (the zero padding outside the image stays where it is)."""
     H, W = src.shape[-2:]
     u, v = _apply(m, x, y)
-    grid = torch.stack([(2 * u + 1) / W - 1, (2 * v + 1) / H - 1], -1)[None]
-    return torch.nn.functional.grid_sample(src[None].to(torch.float64), grid, mode="bilinear", padding_mode=padding,
-                                           align_corners=False)[0].to(torch.float32)
+    c0, r0, c1, r1 = 0, 0, W, H
+    if box is not None:
+        c0, r0 = max(math.floor(box[0]) - 1, 0), max(math.floor(box[1]) - 1, 0)
+        c1, r1 = min(math.ceil(box[2]) + 2, W), min(math.ceil(box[3]) + 2, H)
+    w, h = c1 - c0, r1 - r0
+    grid = torch.stack([(2 * (u - c0) + 1) / w - 1, (2 * (v - r0) + 1) / h - 1], -1)[None]
+    part = src[None, :, r0:r1, c0:c1].to(torch.float64)
+    sampled = torch.nn.functional.grid_sample(part, grid, mode="bilinear", padding_mode=padding, align_corners=False)
+    return sampled[0].to(torch.float32)
 
 
 def render_layers(draw: PairDraw, texture: Callable[[int], torch.Tensor], width: int, height: int, num_frames: int,
@@ -151,7 +166,7 @@ def render_layers(draw: PairDraw, texture: Callable[[int], torch.Tensor], width:
         for t in range(num_frames - 1):
             src, dst = (t, t + 1) if step == 1 else (t + 1, t)
             lay = lays[src]
-            tx, ty = maps.move(lay, xs, ys, step)
+            tx, ty = maps.move(lay, src, xs, ys, step)
             inside = (tx >= -0.5) & (tx < width - 0.5) & (ty >= -0.5) & (ty < height - 0.5)
             per.setdefault("flow", []).append(torch.stack([tx - xs, ty - ys]).to(torch.float32))
             per.setdefault("valid", []).append(inside[None])
@@ -180,6 +195,7 @@ def _frame(maps: _Maps, draw: PairDraw, texture, lay: torch.Tensor, t: int, xs, 
         if not bool(mask.any()):
             continue
         tex = texture(layer.texture)
-        tex = tex[:, rows, cols] if t == 0 else _warp(tex, maps.power(k, -t), xs[rows, cols], ys[rows, cols], "zeros")
+        tex = tex[:, rows, cols] if t == 0 else _warp(tex, maps.power(k, -t), xs[rows, cols], ys[rows, cols], "zeros",
+                                                      maps.bounds(k))
         img[:, rows, cols] = torch.where(mask, tex, img[:, rows, cols])
     return img

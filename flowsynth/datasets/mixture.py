@@ -132,9 +132,10 @@ class Mixture(IndexStream):
         return {"format": PRESET_FORMAT, "version": 1, "sources": sources, "weights": self.weights}
 
     def to_preset(self, path: str | os.PathLike) -> Path:
-        """Write the preset file ``path`` (JSON, atomically); returns its path."""
+        """Write the preset file ``path`` (JSON, atomically; its folder made if missing); returns its path."""
         from flowsynth.io import write_json
 
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
         write_json(Path(path), self.preset_dict())
         return Path(path)
 

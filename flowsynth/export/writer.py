@@ -36,18 +36,21 @@ __all__ = ["ExportWriter", "camera_record", "run_job"]
 _ALWAYS_KEPT = ("index", "seed", "K", "cam_T_world", "provenance")
 
 
-def camera_record(provenance: str) -> dict:
-    """The camera of a sample's ``provenance`` (JSON string): K (3x3 list), width, height, model, dist."""
+def camera_record(provenance: str) -> dict | None:
+    """The camera of a sample's ``provenance`` (JSON string): K (3x3 list), width, height, model, dist; None for a
+    sample without a camera (a ``Layers`` sample)."""
     import json
 
-    return {"model": "pinhole", "dist": [], **json.loads(provenance)["camera"]}
+    camera = json.loads(provenance).get("camera")
+    return None if camera is None else {"model": "pinhole", "dist": [], **camera}
 
 
 class ExportWriter:
-    """Generate and write units of ``BouncingThings(cfg, outputs, seed, occlusion)`` in ``layout``.
+    """Generate and write units of ``cfg``'s stream (``flowsynth.datasets.make_stream``: BouncingThings or Layers) in
+    ``layout``.
 
     Args:
-        cfg: the export's ``BouncingThingsConfig``.
+        cfg: the export's ``BouncingThingsConfig`` or ``LayersConfig``.
         outputs: resolved output keys (``flowsynth.plan.make_plan(...).outputs``).
         seed: dataset seed.
         occlusion: occlusion method (``flowsynth.plan.OCCLUSION_METHODS``).
@@ -73,7 +76,7 @@ class ExportWriter:
         """
         import torch
 
-        from flowsynth.datasets import BouncingThings
+        from flowsynth.datasets import make_stream
         from flowsynth.stats import cheap_stats_outputs
 
         if worker_process:
@@ -81,8 +84,7 @@ class ExportWriter:
 
             set_worker_process()
         torch.set_num_threads(1)
-        self._ds = BouncingThings(self.cfg, outputs=cheap_stats_outputs(self.outputs), seed=self.seed,
-                                  occlusion=self.occlusion)
+        self._ds = make_stream(self.cfg, cheap_stats_outputs(self.outputs), self.seed, occlusion=self.occlusion)
         return self
 
     def start_worker(self) -> None:

@@ -151,7 +151,7 @@ class WebDataset(Layout):
         if PROVENANCE_KEY in sample:
             (folder / f"{key}.provenance.json").write_text(sample[PROVENANCE_KEY], encoding="utf-8")
             out[f"{key}.provenance.json"] = "meta"
-            cam = json.loads(sample[PROVENANCE_KEY])["camera"]
+            cam = json.loads(sample[PROVENANCE_KEY]).get("camera", {})  # a Layers sample has no camera
             if "model" in cam:  # a lens camera (a pinhole's provenance has no model: its shards are unchanged)
                 (folder / f"{key}.camera.json").write_text(json.dumps({"model": cam["model"], "dist": cam["dist"]}))
                 out[f"{key}.camera.json"] = "meta"
