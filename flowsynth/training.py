@@ -1,7 +1,7 @@
 """RAFT's training recipe, scaled down, for any net with torchvision RAFT's calling convention.
 
 One training step (``train_step``) serves both ``examples/train_raft.py`` and the learning judge
-(``benchmarks/learning/raft.py``), so what the judge measures is what a user runs. Only torch is imported: the net
+(``benchmarks/learning/trainers.py``), so what the judge measures is what a user runs. Only torch is imported: the net
 (torchvision's ``raft_small(weights=None)``, or any module called as ``net(img1, img2, num_flow_updates=N)`` that
 returns the list of its N flow estimates) comes from the caller; flowsynth never depends on torchvision.
 

@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 NOT_CACHES = {
     "flowsynth.caches._REGISTRY": "the registry itself",
     "flowsynth.io.layouts._REGISTRY": "the export layout plug-ins by name",
-    "flowsynth.kernels.wp_runtime": "Warp's initialisation, once per process",
+    "flowsynth.kernels._initialised_warp": "Warp's initialisation, once per process",
     "flowsynth.scene.physics._clamp_kernel": "a compiled Warp kernel (no argument)",
     "flowsynth._flags.field_docs": "the config's field docstrings, read once from the source (no argument)",
     "flowsynth.parallel._pools": "thread pools by size (a resource, not data)",

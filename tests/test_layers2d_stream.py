@@ -162,7 +162,7 @@ def test_mixture_of_both_kinds_and_its_preset_round_trip(photos, tmp_path):
     (lambda p: Mixture({"a": _cfg(p), "b": fs.BouncingThingsConfig(width=64, height=48, num_frames=2)},
                        outputs=["rgb", "depth"]), "Layers gives"),
     (lambda p: Mixture.from_preset(p + "/none.json"), "does not exist"),
-    (lambda p: Mixture.from_preset_dict({"format": "flowsynth.mixture", "version": 1,
+    (lambda p: Mixture.from_preset_dict({"format": "flowsynth-mixture", "version": 1,
                                          "sources": [{"name": "a", "kind": "blobs", "config": {}}]}), "kind"),
     (lambda p: Mixture.from_preset_dict({"sources": []}), "format"),
     (lambda p: layers_pairs(0, 0, torch.rand(2, 3, 32, 32)), "n must be"),

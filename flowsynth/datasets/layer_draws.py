@@ -19,7 +19,7 @@ import dataclasses
 import numpy as np
 import torch
 
-__all__ = ["BASE_WIDTH", "OUTLINE_PX", "Ellipse", "Layer", "PairDraw", "Polygon", "affine", "draw_pair"]
+__all__ = ["BASE_WIDTH", "OUTLINE_PX", "Ellipse", "PairDraw", "Polygon", "ShapeLayer", "affine", "draw_pair"]
 
 BASE_WIDTH = 128
 """[px] the width the shapes' sizes and the shifts are given at; they scale with width / BASE_WIDTH."""
@@ -104,7 +104,7 @@ class Polygon:
 
 
 @dataclasses.dataclass(frozen=True)
-class Layer:
+class ShapeLayer:
     """One shape of a pair: its outline in frame 0, its texture and its motion."""
 
     shape: Ellipse | Polygon
@@ -125,7 +125,7 @@ class PairDraw:
     """Index of the background's source."""
     motion: tuple[tuple[float, ...], ...]
     """(2, 3) affine map [px] of the background, frame t to t + 1."""
-    layers: tuple[Layer, ...]
+    layers: tuple[ShapeLayer, ...]
     """The shapes in drawing order: layer k + 1 covers layers 0..k (0 is the background)."""
 
     def to_dict(self) -> dict:
@@ -171,5 +171,5 @@ def draw_pair(rng: np.random.Generator, width: int, height: int, n_sources: int,
             shape = Polygon(tuple((int(px), int(py)) for px, py in pts))
         B = affine(rng, rng.uniform(1.0, 6.0) * k * motion_scale, 0.15 * motion_scale, 0.1 * motion_scale,
                    (width, height))
-        layers.append(Layer(shape, texture, _matrix(B)))
+        layers.append(ShapeLayer(shape, texture, _matrix(B)))
     return PairDraw(background, _matrix(A), tuple(layers))

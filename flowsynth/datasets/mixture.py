@@ -17,7 +17,7 @@ source is a BouncingThings config.
 
 A preset file is JSON::
 
-    {"format": "flowsynth.mixture", "version": 1,
+    {"format": "flowsynth-mixture", "version": 1,
      "sources": [{"name": "things", "kind": "bouncing", "config": {...}},
                  {"name": "chairs", "kind": "layers", "config": {...}}],
      "weights": {"things": 1, "chairs": 1}}
@@ -47,7 +47,7 @@ __all__ = ["PRESET_FORMAT", "Mixture"]
 
 MIX_SALT = 0x6D1C  # keeps the source draw apart from every other generator seeded by (seed, i)
 SHAPE_FIELDS = ("width", "height", "num_frames")
-PRESET_FORMAT = "flowsynth.mixture"
+PRESET_FORMAT = "flowsynth-mixture"
 """The ``format`` of a preset file (version 1)."""
 _ALWAYS = ("index", "seed", "provenance")  # keys every source's items hold besides the outputs
 
