@@ -6,7 +6,8 @@ any training stream, quantised to 8 bits as the learning benchmark's ``chairs2d`
 through uint8 pools). A frame is rendered the first time a draw picks it, then kept for the life of the process
 (``fs.clear_caches`` empties it): a DataLoader worker renders the frames its samples pick. What that costs: one
 frame at 256x192 took 0.26 s on a busy 2-core CPU (plus about 7 s the first time a process loads the kernels), so the
-default 64 frames add about 17 s per process, spread over its first samples; 3 bytes a pixel each (9.4 MB at
+default 600 frames (as many as the learning benchmark's 2D pools were textured from: one frame for every two pairs
+of a 1200-pair pool) add about 160 s per process, spread over its first samples; 3 bytes a pixel each (88 MB at
 256x192).
 
 With ``texture_dir``: every image of the folder (``flowsynth.appearance.list_textures``: sorted by name), cut to the

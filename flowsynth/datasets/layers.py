@@ -52,9 +52,10 @@ class LayersConfig:
     texture_dir: str | None = None
     """A folder of images the background and the shapes are cut from (each image fitted to the frame); None: the
     default bank of flowsynth frames (``texture_bank`` of them)."""
-    texture_bank: int = 64
+    texture_bank: int = 600
     """Frames in the default texture bank [count, >= 1]: frame 0 of BouncingThings samples 0..texture_bank-1 at
-    this width and height, rendered once per process when first picked (about 0.26 s each at 256x192)."""
+    this width and height, rendered once per process when first picked (about 0.26 s each at 256x192). The
+    default is as many frames as the learning benchmark's 2D pools were textured from (600 for 1200 pairs)."""
     texture_seed: int = TEXTURE_SEED
     """Seed of the BouncingThings stream of the default bank (>= 0): keep it apart from the training streams'."""
 
