@@ -35,7 +35,7 @@ from _common import RESULTS_DIR, machine_info
 GROUPS = ("speed", "accuracy", "learning", "peers", "device")  # the folders of benchmarks/, by concern
 BENCHMARKS = ["raycast", "bvh", "accuracy", "physics", "peers_physics", "rgb", "throughput", "export", "ray_export",
               "scaling", "physics_graph", "png_level", "tiles", "outputs_cost", "datastats", "learning",
-              "texture", "shading_cost", "cycles", "start_methods", "precision"]
+              "texture", "shading_cost", "cycles", "start_methods", "precision", "layers_equivalence"]
 # Benchmarks that need an optional outside program print a line starting with this and exit 0 without it
 # (cycles: Blender); their row then reads "skipped".
 SKIP_MARK = "SKIPPED"

@@ -1,6 +1,9 @@
 """The RAFT judge's training pools: one function per arm of ``protocol.ARMS`` (``ARM_POOLS``), each making its arm's
 pool for one seed, and ``build_arms``, which makes the pools of a run's arms. A pool is (img1, img2, flow, valid):
 uint8 (n, 3, h, w) images, float32 (n, 2, h, w) flow [px] and bool (n, 1, h, w) valid, at ``protocol.RES``.
+The 2D pools (the chairs2d arms and chairs2d_photos) come from the library's layers, ``fs.datasets.layers_pairs``
+(``layers_pool``); a run's data records it (``LAYERS``). Decision 0023's equivalence rule relates them to the
+registered runs' pools, which OpenCV drew (``sets.chairs2d_pairs``, kept as the reference).
 """
 
 from __future__ import annotations
@@ -8,9 +11,15 @@ from __future__ import annotations
 import dataclasses
 
 from .protocol import POOL, RES, SCALE
-from .sets import NATURAL_PHOTOS, chairs2d_pairs, natural_folder, photo_folder, photo_sources
+from .sets import NATURAL_PHOTOS, natural_folder, photo_folder, photo_sources
 
 CHAIRS2D_ARMS = ("chairs2d", "mixture", "curriculum")  # the arms made from the chairs2d pool
+# the 2D pools' generator, recorded as the run's data["layers"]: the library's layers_pairs (a run without the key
+# drew them with OpenCV's sets.chairs2d_pairs, as the registered runs of decision 0023 did)
+LAYERS = "flowsynth"
+# torch threads drawing the 2D pools: the pairs are the same bits at any count, and one thread is the fastest on a
+# loaded machine (decision 0023 gives the rates)
+LAYERS_THREADS = 1
 
 
 def _u8(x):
@@ -51,13 +60,32 @@ def mean_flow(data) -> float:
     return float(torch.linalg.vector_norm(data[2], dim=1)[data[3][:, 0] > 0.5].mean())
 
 
+def layers_pool(n: int, seed: int, sources, motion_scale: float = 1.0) -> tuple:
+    """n FlyingChairs-style pairs from ``sources`` ((m, 3, h, w) float in [0, 1]): ``fs.datasets.layers_pairs(n,
+    seed, sources, motion_scale)``'s frames and forward flow as (img1, img2 float32 (n, 3, h, w) in [0, 1], flow
+    float32 (n, 2, h, w) [px], valid bool (n, 1, h, w)). Valid is True everywhere, as in FlyingChairs and as the
+    registered runs trained: a layer's flow is exact at every pixel, its target inside the image or not. Runs on
+    ``LAYERS_THREADS`` torch threads and restores the caller's count."""
+    import torch
+
+    import flowsynth as fs
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(LAYERS_THREADS)
+    try:
+        out = fs.datasets.layers_pairs(n, seed, sources, motion_scale, outputs=("rgb", "flow_fw"))
+    finally:
+        torch.set_num_threads(threads)
+    rgb, flow = out["rgb"], out["flow_fw"][:, 0]
+    return rgb[:, 0], rgb[:, 1], flow, torch.ones(n, 1, *flow.shape[-2:], dtype=torch.bool)
+
+
 def baseline_pool(n: int, seed: int, sources, target_flow: float):
-    """n chairs2d pairs from ``sources`` (float (m, 3, h, w) in [0, 1]) whose mean |flow| matches ``target_flow``
-    [px] (the motion scale measured on 64 pilot pairs of seed + 1): (the pool, the motion scale)."""
-    pilot = chairs2d_pairs(64, seed + 1, sources)
-    scale = target_flow / mean_flow(pilot)
-    img1, img2, flow, valid = chairs2d_pairs(n, seed, sources, scale)
-    return (_u8(img1), _u8(img2), flow, valid > 0.5), scale
+    """n 2D pairs (``layers_pool``) from ``sources`` (float (m, 3, h, w) in [0, 1]) whose mean |flow| matches
+    ``target_flow`` [px] (the motion scale measured on 64 pilot pairs of seed + 1): (the pool, the motion scale)."""
+    scale = target_flow / mean_flow(layers_pool(64, seed + 1, sources))
+    img1, img2, flow, valid = layers_pool(n, seed, sources, scale)
+    return (_u8(img1), _u8(img2), flow, valid), scale
 
 
 @dataclasses.dataclass
@@ -89,6 +117,7 @@ class SeedPools:
         if self.chairs is None:
             textures = self.rendered[0][self.n:].float() / 255
             self.chairs, self.info["chairs2d_motion_scale"] = baseline_pool(self.n, self.seed, textures, self.target)
+            self.info["layers"] = LAYERS
         return self.chairs
 
 
@@ -131,6 +160,7 @@ def chairs2d_photos(s: SeedPools) -> tuple:
     """The 2D baseline textured with crops of NATURAL_PHOTOS."""
     sources = photo_sources(max(s.n // 2, 8), s.seed, RES, NATURAL_PHOTOS)
     pool, s.info["chairs2d_photos_motion_scale"] = baseline_pool(s.n, s.seed, sources, s.target)
+    s.info["layers"] = LAYERS
     return pool
 
 
@@ -156,8 +186,9 @@ ARM_POOLS = {f.__name__: f for f in (flowsynth, chairs2d_photos, chairs2d, flows
 
 def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL) -> tuple[dict, dict, object]:
     """The pools (``n`` pairs each) of the arms ``names`` (of ``protocol.ARMS``) for ``seed``: ({arm: pool}, info,
-    the flowsynth config). ``info``: the flowsynth pool's mean |flow| [px], the baselines' motion scales, and per arm
-    its mean |flow| [px] and the share of valid pixels moving less than 0.5 px ("still_share")."""
+    the flowsynth config). ``info``: the flowsynth pool's mean |flow| [px], the baselines' motion scales, the 2D
+    pools' generator ("layers": ``LAYERS``, when a 2D arm is built), and per arm its mean |flow| [px] and the share of
+    valid pixels moving less than 0.5 px ("still_share")."""
     import torch
 
     extra = n // 2 if set(CHAIRS2D_ARMS) & set(names) else 0

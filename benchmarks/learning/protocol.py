@@ -10,8 +10,9 @@ arms, ``trainers`` trains and tests the nets, ``runs`` runs the whole protocol.
 - Training pools: ``POOL`` pairs per arm rendered at ``RES`` (256x192), images kept as uint8.
   - ``flowsynth``: ``BouncingThingsConfig()`` (with ``--set`` changes: a lever) at 256x192, 2 frames, its
     ``flow_px`` divided by ``SCALE`` so motion keeps the proportions of a 512x384 rendering; procedural textures only.
-  - ``chairs2d_photos``: the FlyingChairs-style 2D baseline (``sets.chairs2d_pairs``) textured with crops of
-    every photograph that ships with scikit-image (``NATURAL_PHOTOS``), as FlyingChairs is textured with photographs.
+  - ``chairs2d_photos``: the FlyingChairs-style 2D baseline (``pools.layers_pool``, the library's layers; the
+    registered runs drew it with OpenCV, ``sets.chairs2d_pairs``) textured with crops of every photograph that ships
+    with scikit-image (``NATURAL_PHOTOS``), as FlyingChairs is textured with photographs.
   - ``chairs2d``: the same baseline textured with flowsynth frames not trained on: it isolates what the 3D motion
     teaches. Both baselines' motion is scaled so that their mean |flow| equals the flowsynth pool's.
   - ``flowsynth_photos``: the flowsynth config with NATURAL_PHOTOS as every texture (``texture_families=("image",)``).
