@@ -233,3 +233,15 @@ def test_report_numbers_come_from_the_last_rung(tmp_path):
     text = tune.markdown(rep)
     assert text.count("\n| ") == 1 + len(keys) + 1 and "x the noise" in text  # the header, the nets, the twin
     assert f"{last[keys[2]]:.3f}" in text
+
+
+@pytest.mark.parametrize("margin, words", [(0.2, "0.8x the noise: within the noise, no win"),
+                                           (0.4, "1.6x the noise: under 2x the noise, weak evidence at best"),
+                                           (1.0, "4.0x the noise"), (-1.0, "the default won")])
+def test_the_verdict_reads_the_margin_in_noises(margin, words):
+    keys = tune.draw_candidates(2, 0)
+    quality = {keys[0]: 1.0, keys[0] + TWIN: 1.25, keys[1]: 1.0 - margin}  # the noise: 0.25 px
+    rungs = plan_rungs(2, 100)
+    rep = tune.summarize(search(Standin(quality), keys, rungs), keys, rungs)
+    assert words in rep["verdict"]
+    assert rep["winner"] == (keys[0] if margin < 0 else keys[1]) and rep["noise"] == pytest.approx(0.25)

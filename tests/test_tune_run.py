@@ -112,7 +112,7 @@ def test_the_trainer_resumes_bit_for_bit_at_any_checkpoint(tmp_path):
     assert len({whole["curves"][k][0]["mean"] for k in keys}) == 1  # one initialisation for every candidate
     assert whole["curves"][keys[0] + TWIN][0]["mean"] != whole["curves"][keys[0]][0]["mean"]  # the twin's own
     assert len({whole["curves"][k][-1]["mean"] for k in keys[:2]}) == 2  # their data differ
-    for cut in (2, 4, 5):  # mid-rung 0; the end of rung 0 (before and after the survivors are chosen)
+    for cut in (1, 3, 4, 5):  # after the untrained test; rung 0's last checkpoint; its survivors chosen; mid-rung 1
         saved = []
 
         def save(st, saved=saved, cut=cut):
@@ -160,6 +160,8 @@ def test_quick_tune_command_end_to_end(tmp_path, capsys):
     assert main(argv) == 0  # finished: rewrites the preset and the report from the state
     assert "continuing" in capsys.readouterr().out and read_json(tmp_path / "preset.tune" / "report.json") == rep
     assert fs.datasets.Mixture.from_preset(out).configs == mix.configs
+    assert main([*argv, "--seed", "1"]) == 2  # the folder holds another tune: refused, naming what differs
+    assert "differ in ['candidates', 'seed']" in capsys.readouterr().err
 
 
 def _run(argv, capsys):

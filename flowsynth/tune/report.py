@@ -13,7 +13,9 @@ from flowsynth.io import atomic_path
 from flowsynth.tune.halving import TWIN, Rung, rank
 from flowsynth.tune.space import SPACE, point_of
 
-__all__ = ["markdown", "plot", "summarize"]
+__all__ = ["WEAK", "markdown", "plot", "summarize"]
+
+WEAK = 2.0  # a margin under this many noises (|twin - default|) is called weak evidence in the verdict
 
 
 def summarize(state: dict, candidates: list[str], rungs: list[Rung]) -> dict:
@@ -46,7 +48,8 @@ def summarize(state: dict, candidates: list[str], rungs: list[Rung]) -> dict:
         verdict = (f"{winner} beat the default by {margin:.3f} px ({100 * (1 - ratio):.1f}% of its {s_r:.3f} px); a "
                    f"repeat of the default with other seeds moved by {noise:.3f} px, so the margin is "
                    + (f"{over:.1f}x the noise" if over is not None else "above a noise of 0")
-                   + ("" if over is None or over > 1 else ": within the noise, not a clear win"))
+                   + ("" if over is None or over >= WEAK else ": within the noise, no win" if over <= 1 else
+                      f": under {WEAK:g}x the noise, weak evidence at best"))
     nets = []
     for key in [ref, twin, *candidates[1:]]:
         nets.append({"key": key, "labels": point_of(key.removesuffix(TWIN)), "twin": key == twin,

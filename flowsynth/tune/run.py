@@ -63,6 +63,10 @@ def _device(name: str) -> torch.device:
     return dev
 
 
+def _px(score: float | None) -> str:
+    return "diverged" if score is None else f"{score:.3f} px"
+
+
 def _load(path: Path, identity: dict) -> dict | None:
     if not path.is_file():
         return None
@@ -112,8 +116,9 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
     recipe = recipe or (QUICK if quick else RECIPE)
     if pool is not None:
         recipe = dataclasses.replace(recipe, pool=pool)
-    candidates = _positive("candidates", QUICK_CANDIDATES if quick and candidates is None else
-                           candidates or DEFAULT_CANDIDATES, 2)
+    if candidates is None:
+        candidates = QUICK_CANDIDATES if quick else DEFAULT_CANDIDATES
+    candidates = _positive("candidates", candidates, 2)
     seed, workers = _positive("seed", seed, 0), _positive("workers", workers, 0)
     check_precision(precision, _device(device))
     keys = draw_candidates(candidates, seed)
@@ -136,15 +141,23 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
     settings = {k: (sources(k, recipe.res), seed) for k in keys}
     settings[keys[0] + TWIN] = (sources(keys[0], recipe.res), seed + TWIN_SEED)
 
+    logged = [None]  # the step of the last checkpoint logged
+
     def save(st: dict) -> None:
         with atomic_path(work / "state.pt") as tmp:
             torch.save({"identity": identity, "search": st}, tmp)
         write_json(work / "progress.json", {k: v for k, v in st.items() if k != "trainer"})
-        rung = min(st["rung"], len(rungs) - 1)
+        if st["step"] == logged[0]:  # the end of a rung: its scores
+            scores = st["scores"][-1]
+            best = min(scores, key=lambda k: (rank(scores[k]), k))
+            log(f"tune: rung {len(st['scores'])} of {len(rungs)} done, best score {_px(scores[best])} ({best})"
+                + (f"; {len(st['alive'])} go on" if "winner" not in st else f"; winner {st['winner']}"))
+            return
+        logged[0] = st["step"]
         now = {k: c[-1]["mean"] for k, c in st["curves"].items() if c[-1]["step"] == st["step"]}
         best = min(now, key=lambda k: (rank(now[k]), k))
-        log(f"tune: rung {rung + 1} of {len(rungs)}, step {st['step']} of {rungs[-1].end}: best now "
-            f"{'diverged' if now[best] is None else f'{now[best]:.3f} px'} ({best})")
+        log(f"tune: step {st['step']} of {rungs[-1].end} (rung {st['rung'] + 1}): {len(now)} nets tested, best "
+            f"{_px(now[best])} ({best})")
 
     pool_gib = (candidates + 1) * recipe.pool * recipe.res[0] * recipe.res[1] * POOL_BYTES / 2**30
     log(f"tune: {len(val_pairs)} {layout} pairs, {candidates} candidates, {len(rungs)} rungs ending at steps "
