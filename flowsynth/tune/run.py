@@ -151,7 +151,7 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
             scores = st["scores"][-1]
             best = min(scores, key=lambda k: (rank(scores[k]), k))
             log(f"tune: rung {len(st['scores'])} of {len(rungs)} done, best score {_px(scores[best])} ({best})"
-                + (f"; {len(st['alive'])} go on" if "winner" not in st else f"; winner {st['winner']}"))
+                + (f"; kept {len(st['alive'])}" if "winner" not in st else f"; winner {st['winner']}"))
             return
         logged[0] = st["step"]
         now = {k: c[-1]["mean"] for k, c in st["curves"].items() if c[-1]["step"] == st["step"]}
