@@ -80,7 +80,7 @@ def test_training_sources_scale_motion_with_the_width():
     big, big_layers = tune.sources(key)[0].values()
     small, small_layers = tune.sources(key, (256, 192))[0].values()
     assert (small.width, small.height) == (small_layers.width, small_layers.height) == (256, 192)
-    assert big_layers.motion_scale == small_layers.motion_scale == 1.0
+    assert big_layers.motion_scale == small_layers.motion_scale == tune.LAYERS_MOTION_SCALE * 96 / 48  # width-free
     assert small.flow_px == pytest.approx(tuple(x / 2 for x in big.flow_px))
     assert small.num_objects == big.num_objects and small.texture_families == big.texture_families
 
@@ -245,3 +245,17 @@ def test_the_verdict_reads_the_margin_in_noises(margin, words):
     rep = tune.summarize(search(Standin(quality), keys, rungs), keys, rungs)
     assert words in rep["verdict"]
     assert rep["winner"] == (keys[0] if margin < 0 else keys[1]) and rep["noise"] == pytest.approx(0.25)
+
+
+def test_layers_motion_follows_the_motion_knob():
+    """The 2D layers' motion scale is 1.5 at the default motion and scales with the knob's largest flow."""
+    from flowsynth.tune import space
+
+    def layers_scale(motion):
+        point = {**space.default_point(), "layers": "0.5", "motion": motion}
+        configs, weights = space.sources(space.key_of(point))
+        assert weights == {"things": 0.5, "layers": 0.5}
+        return configs["layers"].motion_scale
+
+    assert layers_scale("default") == 1.5
+    assert layers_scale("small") == 1.5 * 16 / 48 and layers_scale("large") == 1.5 * 96 / 48

@@ -9,7 +9,8 @@ all-default point is ``BouncingThingsConfig()`` alone (at the preset's size).
 
 Motion is given at ``REFERENCE_WIDTH`` (512 px, FlyingChairs' width, as the learning judge gives ``flow_px``) and
 scaled to the width a tune renders at; the preset a tune writes is at ``PRESET_SIZE`` with the motion as given. The
-2D layers keep ``LayersConfig``'s own motion (the learning benchmark's chairs2d draws).
+2D layers follow the same knob: their ``motion_scale`` is ``LAYERS_MOTION_SCALE`` (their mean |flow| then matches the
+default 3D stream's, as the learning judge matched its 2D pools) times the knob's largest flow over the default's.
 """
 
 from __future__ import annotations
@@ -23,13 +24,16 @@ import numpy as np
 from flowsynth.errors import ConfigError
 from flowsynth.scene import BouncingThingsConfig
 
-__all__ = ["LAYERS", "PRESET_SIZE", "REFERENCE_WIDTH", "SPACE", "Knob", "default_point", "draw_candidates", "grid",
-           "key_of", "point_of", "preset", "sources"]
+__all__ = ["LAYERS", "LAYERS_MOTION_SCALE", "PRESET_SIZE", "REFERENCE_WIDTH", "SPACE", "Knob", "default_point",
+           "draw_candidates", "grid", "key_of", "point_of", "preset", "sources"]
 
 REFERENCE_WIDTH = 512  # [px] the image width at which the motion knob's flow_px values are given
 PRESET_SIZE = (512, 384)  # (width, height) [px] of the preset a tune writes
 PRESET_FRAMES = 2  # frames per clip of the preset: one flow pair, as a tune trains on
 LAYERS = "layers"  # the knob (and the mixture source) of the 2D layers' share
+# LayersConfig.motion_scale at which the 2D layers' mean |flow| matches the default 3D stream's: the learning judge's
+# pilot-matched scale was 1.48-1.52 over seeds 0-2 (docs/decisions/0023-raft-judge.md)
+LAYERS_MOTION_SCALE = 1.5
 _DEFAULT_FAMILIES = BouncingThingsConfig().texture_families
 
 
@@ -122,7 +126,9 @@ def sources(key: str, res: tuple[int, int] = PRESET_SIZE) -> tuple[dict, dict]:
     share = next(k.values[point[k.name]] for k in SPACE if k.field == LAYERS)
     if share == 0:
         return {"things": things}, {"things": 1.0}
-    layers = LayersConfig(width=res[0], height=res[1], num_frames=PRESET_FRAMES)
+    motion = next(k for k in SPACE if k.field == "flow_px")
+    scale = LAYERS_MOTION_SCALE * motion.values[point[motion.name]][1] / motion.values[motion.default][1]
+    layers = LayersConfig(width=res[0], height=res[1], num_frames=PRESET_FRAMES, motion_scale=scale)
     return {"things": things, LAYERS: layers}, {"things": 1.0 - share, LAYERS: share}
 
 
