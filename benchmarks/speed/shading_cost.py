@@ -21,7 +21,7 @@ or 1, one layer; the families table run at the revision before and after shows w
 3. **Camera rays** (``camera_rays``): the shading kernel traces rays of its own from the camera for the extra
    samples of edge pixels (``edge_spp``) and for spp > 1. Without motion blur they walk the G-buffer cast's
    screen-tile lists near to far (``flowsynth.renderer.shading.CAMERA_RAY_TILES``, since 2026-11-24) instead of the
-   top-level BVH; render_radiance per sample both ways, round-robin, with the images compared (identical).
+   top-level BVH; shade_radiance per sample both ways, round-robin, with the images compared (identical).
    Settings: the default config (flat, edge_spp 4), issue 13's full sample (512x384, 2 frames, direct, 20
    objects, edge_spp 4) and the same with spp 4.
 
@@ -186,7 +186,7 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
 
 
 def _tiles_vs_bvh(ds, scenes: list, rounds: int) -> tuple[float, float, bool]:
-    """Median render_radiance CPU per scene [s] with camera rays through the tile lists and through the BVH,
+    """Median shade_radiance CPU per scene [s] with camera rays through the tile lists and through the BVH,
     alternating each round (one untimed warm-up round), and whether every image came out identical."""
     import torch
 
@@ -255,13 +255,13 @@ def main() -> None:
         print_table(out["lookups"], ["variant", "cpu_ms", "ns_per_octave", "x_before", "note"])
     if "families" in tables:
         out["families"] = families(W, H, samples, rounds)
-        print(f"\nrender_radiance per 2-frame {W}x{H} sample (flat, 20 objects, edge_spp 1, seed 0, {samples} "
+        print(f"\nshade_radiance per 2-frame {W}x{H} sample (flat, 20 objects, edge_spp 1, seed 0, {samples} "
               f"samples a round, medians of {rounds} rounds), every surface one family; last row: "
               "BouncingThingsConfig() (320x240, 24 frames, flat, edge_spp 4), whole sample")
         print_table(out["families"], ["textures", "radiance_cpu_ms", "x_solid", "sample_cpu_ms", "radiance_share"])
     if "camera_rays" in tables:
         out["camera_rays"] = camera_rays(samples, rounds, args.quick)
-        print(f"\nrender_radiance per sample [ms], camera rays through the top-level BVH vs the tile lists "
+        print(f"\nshade_radiance per sample [ms], camera rays through the top-level BVH vs the tile lists "
               f"({samples} samples a round, medians of {rounds} round-robin rounds, process CPU); x_bvh: BVH time "
               "over tiles time")
         print_table(out["camera_rays"], ["setting", "bvh_radiance_ms", "tiles_radiance_ms", "x_bvh",
