@@ -1,6 +1,6 @@
 """Dataset statistics: what a config actually produces, measured on rendered samples.
 
-``dataset_stats(cfg, num)`` renders ``num`` samples of ``cfg``'s stream (BouncingThings or Layers) and reports,
+``dataset_stats(cfg, num)`` renders ``num`` samples of ``cfg``'s stream (BouncingThings, Layers or Mixture) and reports,
 over every frame pair and every valid pixel (``valid_fw``):
 
 - ``flow``: mean and 50/90/99th percentiles of |flow_fw| [px], and ``zero_fraction``, the share of
@@ -9,7 +9,7 @@ over every frame pair and every valid pixel (``valid_fw``):
 - ``textureless_fraction``: share of 8x8 patches of the RGB frames whose grey intensity has standard
   deviation below 0.02 (:func:`textureless_fraction`, the one definition used across flowsynth);
 - ``category_share``: pixel share of each category ("nothing", "room", "object:<asset>"; a Layers stream's
-  "background", "shape:ellipse", "shape:polygon") over all frames;
+  "background", "shape:ellipse", "shape:polygon"; a mixture's names of one id joined by "|") over all frames;
 - ``seconds_per_sample``: wall-clock time of the stream's ``sample`` (mean, min, max);
 - with ``dis=True``: OpenCV DIS optical-flow EPE beside the zero-flow EPE on room and object pixels
   (:func:`dis_check`), which says whether the pixels carry the motion a flow network must learn.
@@ -153,10 +153,18 @@ def summarize(records: list[dict], cfg) -> dict:
 
 
 def _category_names(cfg) -> dict[int, str]:
-    """category id -> name for ``cfg``'s samples."""
+    """category id -> name for ``cfg``'s samples; a mixture's id that its sources name differently gets their names
+    joined by "|" ("room|background")."""
     from flowsynth.datasets import LAYER_CATEGORIES, config_kind
     from flowsynth.scene import OBJECT_CATEGORY_OFFSET, ROOM_CATEGORY, resolve_assets
 
+    if config_kind(cfg) == "mixture":
+        names: dict[int, list[str]] = {}
+        for _, c in cfg.sources:
+            for k, name in _category_names(c).items():
+                if name not in names.setdefault(k, []):
+                    names[k].append(name)
+        return {k: "|".join(v) for k, v in names.items()}
     if config_kind(cfg) == "layers":
         return dict(LAYER_CATEGORIES)
     names = {0: "nothing", ROOM_CATEGORY: "room"}
@@ -170,7 +178,7 @@ def dataset_stats(cfg=None, num: int = 16, *, seed: int = 0, start: int = 0, occ
     """Statistics of samples ``start .. start + num - 1`` of ``cfg``'s stream (``flowsynth.datasets.make_stream``).
 
     Args:
-        cfg: BouncingThingsConfig (defaults when None) or LayersConfig, with num_frames >= 2.
+        cfg: BouncingThingsConfig (defaults when None), LayersConfig or MixtureConfig, with num_frames >= 2.
         num: number of samples, >= 1.
         seed, start: which samples.
         occlusion: "exact" or "depth" (flowsynth.truth.flow; a Layers stream's is exact).

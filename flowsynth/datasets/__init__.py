@@ -1,6 +1,6 @@
-"""Datasets: ``BouncingThings`` (3D scenes) and ``Layers`` (2D layers) stream samples, ``Mixture`` mixes their configs,
-``DeviceBatches`` renders batches on a device, ``FlowPairs`` gives torchvision's tuples, ``loader`` workers survive
-CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote (a folder; a ``webdataset``'s shards)."""
+"""Datasets: ``BouncingThings`` (3D scenes) and ``Layers`` (2D layers) stream samples, ``Mixture`` mixes their configs
+(``MixtureConfig``: a preset file), ``DeviceBatches`` renders batches on a device, ``FlowPairs`` gives torchvision's
+tuples, ``loader`` workers survive CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
@@ -13,8 +13,8 @@ from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, laye
 from flowsynth.datasets.workers import loader
 
 __all__ = ["KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "BouncingThings", "DeviceBatches", "Exported", "FlowPairs",
-           "Layers", "LayersConfig", "Mixture", "PairDraw", "Shards", "config_from", "config_kind", "draw_pair",
-           "layers_pairs", "loader", "make_stream", "render_layers", "sample_seed", "stream_outputs"]
+           "Layers", "LayersConfig", "Mixture", "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind",
+           "draw_pair", "layers_pairs", "loader", "make_stream", "render_layers", "sample_seed", "stream_outputs"]
 
 
 def __getattr__(name: str):
@@ -26,6 +26,10 @@ def __getattr__(name: str):
         from flowsynth.datasets.mixture import Mixture
 
         return Mixture
+    if name == "MixtureConfig":
+        from flowsynth.datasets.mixture import MixtureConfig
+
+        return MixtureConfig
     if name == "Shards":
         from flowsynth.datasets.shards import Shards
 

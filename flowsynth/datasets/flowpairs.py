@@ -8,7 +8,7 @@ import numpy as np
 from PIL import Image
 from torch.utils.data import Dataset
 
-from flowsynth.datasets.bouncing import BouncingThings
+from flowsynth.datasets.kinds import config_kind, make_stream
 from flowsynth.errors import ConfigError
 
 __all__ = ["MASKS", "FlowPairs"]
@@ -20,11 +20,11 @@ MASKS = ("valid", "visible")
 class FlowPairs(Dataset):
     """Map-style dataset of image pairs with forward flow, like ``torchvision.datasets.FlyingChairs``.
 
-    Item i is frames (0, 1) of BouncingThings sample i: ``(img1, img2, flow, valid_flow_mask)`` with
-    img1/img2 ``PIL.Image`` RGB, flow ``np.ndarray`` (2, H, W) float32 [px] (dx, dy), valid
-    ``np.ndarray`` (H, W) bool — the torchvision convention (KITTI-style 4-tuple). When ``transforms``
-    is given it is called as ``transforms(img1, img2, flow, valid)`` and its result returned, as in
-    torchvision.
+    Item i is frames (0, 1) of sample i of ``cfg``'s stream (``flowsynth.datasets.make_stream``: BouncingThings,
+    Layers or Mixture): ``(img1, img2, flow, valid_flow_mask)`` with img1/img2 ``PIL.Image`` RGB, flow
+    ``np.ndarray`` (2, H, W) float32 [px] (dx, dy), valid ``np.ndarray`` (H, W) bool — the torchvision convention
+    (KITTI-style 4-tuple). When ``transforms`` is given it is called as ``transforms(img1, img2, flow, valid)`` and
+    its result returned, as in torchvision.
 
     Which mask. ``mask="valid"`` (default) is ``valid_fw``: every pixel whose flow is defined, occluded
     and out-of-frame pixels included. This is what torchvision-style training expects: FlyingChairs,
@@ -33,10 +33,12 @@ class FlowPairs(Dataset):
     occluded pixels, and torchvision's RAFT reference recipe drops only invalid pixels and |flow| above
     ``max_flow``. ``mask="visible"`` is ``valid_fw & ~occ_fw``: the pixels whose surface is seen in both
     frames, for evaluation in the style of KITTI "noc" or Sintel "matched" EPE, or to train on matched
-    pixels only. It costs the visibility rays of exact occlusion.
+    pixels only. It costs the visibility rays of exact occlusion. For a Layers sample (a mixture's included)
+    ``valid_fw`` is where the flow's target lies in the image, and ``occ_fw`` comes from the layer order.
 
     Args:
-        cfg: BouncingThingsConfig with num_frames >= 2 (default config when None).
+        cfg: a BouncingThingsConfig (default config when None), LayersConfig or MixtureConfig (a preset file:
+            ``MixtureConfig.from_file(path)``), with num_frames >= 2.
         seed: dataset seed.
         length: number of pairs (len()).
         transforms: optional callable (img1, img2, flow, valid) -> anything.
@@ -48,9 +50,14 @@ class FlowPairs(Dataset):
         if mask not in MASKS:
             raise ConfigError(f"mask must be one of {list(MASKS)}, got {mask!r}")
         outputs = ("rgb", "flow_fw", "valid_fw") + (("occ_fw",) if mask == "visible" else ())
-        self.stream = BouncingThings(cfg, outputs=outputs, seed=seed, length=length)
-        if self.stream.cfg.num_frames < 2:
+        if cfg is None:
+            from flowsynth.scene import BouncingThingsConfig
+
+            cfg = BouncingThingsConfig()
+        config_kind(cfg)  # a ConfigError for anything but a dataset config
+        if cfg.num_frames < 2:
             raise ConfigError("FlowPairs needs num_frames >= 2")
+        self.stream = make_stream(cfg, outputs, seed, length)
         self.transforms, self.mask = transforms, mask
 
     def __len__(self) -> int:

@@ -1,5 +1,6 @@
-"""``Mixture``: one stream drawn from several configs of either kind (``BouncingThingsConfig``, ``LayersConfig``),
-reproducibly, with an optional curriculum; saved to and loaded from a preset file.
+"""``Mixture``: one stream drawn from several configs of either source kind (``BouncingThingsConfig``,
+``LayersConfig``), reproducibly, with an optional curriculum; ``MixtureConfig``: its configs and weights, what a
+preset file holds, a dataset config as the other two are (``flowsynth.datasets.make_stream`` makes its Mixture).
 
 Sample i comes from config k = ``source(i)``, drawn from the weights in force at index i with a generator seeded
 by (seed, i) alone, and is exactly sample i of that config's own stream (``BouncingThings(configs[k], outputs,
@@ -22,59 +23,90 @@ A preset file is JSON::
                  {"name": "chairs", "kind": "layers", "config": {...}}],
      "weights": {"things": 1, "chairs": 1}}
 
-``kind`` is one of ``flowsynth.datasets.KINDS``, ``config`` the config's ``to_dict()``, and ``weights`` null (equal
-weights), a dict, or a curriculum ``[[until, {...}], ..., [null, {...}]]``. ``to_preset`` writes one,
-``from_preset`` reads it; the outputs, seed and stream options are arguments, not part of the preset.
+``kind`` is one of ``SOURCE_KINDS``, ``config`` the config's ``to_dict()``, and ``weights`` null (equal weights), a
+dict, or a curriculum ``[[until, {...}], ..., [null, {...}]]``. ``MixtureConfig.to_dict`` / ``from_dict`` /
+``from_file`` and ``Mixture.to_preset`` / ``from_preset`` write and read one; the outputs, seed and stream options
+are arguments, not part of the preset.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from flowsynth.datasets.bouncing import BouncingThings
-from flowsynth.datasets.kinds import config_from, config_kind
-from flowsynth.datasets.layers import Layers
+from flowsynth.datasets.layers import Layers, LayersConfig
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
 
-__all__ = ["PRESET_FORMAT", "Mixture"]
+__all__ = ["PRESET_FORMAT", "SOURCE_KINDS", "Mixture", "MixtureConfig", "source_config", "source_kind"]
 
 MIX_SALT = 0x6D1C  # keeps the source draw apart from every other generator seeded by (seed, i)
 SHAPE_FIELDS = ("width", "height", "num_frames")
 PRESET_FORMAT = "flowsynth-mixture"
 """The ``format`` of a preset file (version 1)."""
+SOURCE_KINDS = ("bouncing", "layers")
+"""The kinds a source of a mixture may be (``source_kind``)."""
 _ALWAYS = ("index", "seed", "provenance")  # keys every source's items hold besides the outputs
 
 
-class Mixture(IndexStream):
-    """A stream of samples from several configs.
 
-    Args:
-        configs: name -> ``BouncingThingsConfig``, ``LayersConfig`` or a BouncingThings preset name
-            (``BouncingThingsConfig.preset``), or a sequence of them (named by their position).
-        weights: name -> weight >= 0 (a missing name weighs 0; None: equal weights), or a curriculum: a list of
-            ``(until, weights)`` stages (module docstring).
-        outputs, seed, length, start: as ``BouncingThings``; every source must give every output.
-        occlusion, device, threads: the BouncingThings sources' (a Layers source renders with torch on the CPU,
-            its occlusion exact from the layer order).
+def source_kind(cfg) -> str:
+    """``"bouncing"`` for a ``BouncingThingsConfig``, ``"layers"`` for a ``LayersConfig``: the kind of a mixture's
+    source; ConfigError otherwise."""
+    from flowsynth.scene import BouncingThingsConfig
 
-    Raises ConfigError for configs of different sample shapes or of another type, outputs a source does not give,
-    unknown names, negative or all-zero weights, or stages whose ``until`` do not increase.
+    if isinstance(cfg, BouncingThingsConfig):
+        return "bouncing"
+    if isinstance(cfg, LayersConfig):
+        return "layers"
+    raise ConfigError(f"a source config must be a BouncingThingsConfig or a LayersConfig, got {type(cfg).__name__}")
+
+
+def source_config(kind: str, values: dict[str, Any]):
+    """The source config of ``kind`` (``SOURCE_KINDS``) from a dict of its fields (``to_dict``'s form); ConfigError
+    for an unknown kind or field."""
+    from flowsynth.scene import BouncingThingsConfig
+
+    if kind == "bouncing":
+        return BouncingThingsConfig.from_dict(dict(values))
+    if kind == "layers":
+        return LayersConfig.from_dict(dict(values))
+    raise ConfigError(f"unknown source kind {kind!r}; kinds: {list(SOURCE_KINDS)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class MixtureConfig:
+    """A mixture's named source configs and their weights, checked once: what a preset file holds (module
+    docstring), without outputs, seed or stream options. A config never changes once made.
+
+    ``MixtureConfig(configs, weights)`` takes ``Mixture``'s ``configs`` and ``weights`` arguments (a dict or list of
+    configs or BouncingThings preset names; weights, a curriculum or None) and keeps them in the normal forms below.
+    Raises ConfigError as ``Mixture`` does for its configs and weights.
     """
 
-    def __init__(self, configs, weights=None, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
-                 length: int | None = None, *, start: int = 0, occlusion: str = "exact", device: str = "cpu",
-                 threads: int | None = None) -> None:
+    sources: tuple[tuple[str, Any], ...]
+    """(name, ``BouncingThingsConfig`` or ``LayersConfig``) pairs in order; ``Mixture.source(i)`` indexes them."""
+    weights: Any = None
+    """None (equal weights), {name: weight}, or a curriculum [[until, {name: weight} or None], ...]: the preset's
+    JSON form."""
+
+    def __post_init__(self) -> None:
         from flowsynth.scene import BouncingThingsConfig
 
+        configs = self.sources
         if isinstance(configs, Mapping):
             items = list(configs.items())
+        elif isinstance(configs, Sequence) and not isinstance(configs, str) and all(
+                isinstance(c, tuple) and len(c) == 2 and isinstance(c[0], str) for c in configs) and configs:
+            items = list(configs)  # (name, config) pairs: the normal form
         elif isinstance(configs, Sequence) and not isinstance(configs, str):
             items = [(str(k), c) for k, c in enumerate(configs)]
         else:
@@ -84,18 +116,137 @@ class Mixture(IndexStream):
         items = [(str(k), BouncingThingsConfig.preset(c) if isinstance(c, str) else c) for k, c in items]
         for name, c in items:
             try:
-                config_kind(c)
+                source_kind(c)
             except ConfigError:
                 raise ConfigError(f"config {name!r} must be a BouncingThingsConfig, a LayersConfig or a preset name, "
                                   f"got {type(c).__name__}") from None
-        self.names = [k for k, _ in items]
         _check_shapes(items)
-        self.stages = _stages(weights, self.names)
-        self.weights = _plain_weights(weights)
+        _stages(self.weights, [k for k, _ in items])
+        object.__setattr__(self, "sources", tuple(items))
+        object.__setattr__(self, "weights", _plain_weights(self.weights))
+
+    @property
+    def configs(self) -> dict[str, Any]:
+        """name -> source config, in order."""
+        return dict(self.sources)
+
+    @property
+    def width(self) -> int:
+        """Image width of every source [px]."""
+        return self.sources[0][1].width
+
+    @property
+    def height(self) -> int:
+        """Image height of every source [px]."""
+        return self.sources[0][1].height
+
+    @property
+    def num_frames(self) -> int:
+        """Frames per sample of every source."""
+        return self.sources[0][1].num_frames
+
+    def check_files(self) -> None:
+        """Each source's ``check_files`` (the meshes, textures and folders it names); ConfigError naming the
+        source."""
+        for name, c in self.sources:
+            try:
+                c.check_files()
+            except ConfigError as e:
+                raise ConfigError(f"mixture source {name!r}: {e}") from e
+
+    def to_dict(self) -> dict:
+        """The preset (module docstring) as a JSON-compatible dict; ``from_dict(cfg.to_dict()) == cfg``."""
+        sources = [{"name": n, "kind": source_kind(c), "config": c.to_dict()} for n, c in self.sources]
+        return {"format": PRESET_FORMAT, "version": 1, "sources": sources, "weights": self.weights}
+
+    @classmethod
+    def from_dict(cls, preset: dict) -> MixtureConfig:
+        """The config of a preset dict (``to_dict``'s form); ConfigError naming what is wrong with it."""
+        if not isinstance(preset, dict) or preset.get("format") != PRESET_FORMAT:
+            raise ConfigError(f"a mixture preset is a JSON object with \"format\": \"{PRESET_FORMAT}\"")
+        if preset.get("version") != 1:
+            raise ConfigError(f"mixture preset version {preset.get('version')!r} is not supported (version 1)")
+        unknown = sorted(set(preset) - {"format", "version", "sources", "weights"})
+        if unknown:
+            raise ConfigError(f"unknown mixture preset key(s) {unknown}; a preset holds format, version, sources and "
+                              "weights")
+        sources = preset.get("sources")
+        if not isinstance(sources, list) or not sources:
+            raise ConfigError("a mixture preset needs \"sources\": a non-empty list of {name, kind, config}")
+        configs = {}
+        for n, s in enumerate(sources):
+            if not isinstance(s, dict) or set(s) != {"name", "kind", "config"} or not isinstance(s["config"], dict):
+                raise ConfigError(f"mixture preset source {n} must be {{\"name\", \"kind\", \"config\"}}, got {s!r}")
+            if str(s["name"]) in configs:
+                raise ConfigError(f"mixture preset source name {s['name']!r} is used twice")
+            try:
+                configs[str(s["name"])] = source_config(s["kind"], s["config"])
+            except ConfigError as e:
+                raise ConfigError(f"mixture preset source {s['name']!r}: {e}") from e
+        weights = preset.get("weights")
+        if isinstance(weights, list):
+            weights = [tuple(stage) if isinstance(stage, list) else stage for stage in weights]
+        return cls(configs, weights)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike) -> MixtureConfig:
+        """The config of the preset file ``path`` (JSON, ``Mixture.to_preset``'s); ConfigError for a missing file,
+        bad JSON or a bad preset, naming the file and what is wrong."""
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"mixture preset {str(p)!r} does not exist")
+        try:
+            preset = json.loads(p.read_text())
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ConfigError(f"mixture preset {str(p)!r} is not valid JSON: {e}") from e
+        try:
+            return cls.from_dict(preset)
+        except ConfigError as e:
+            raise ConfigError(f"mixture preset {str(p)!r}: {e}") from e
+
+
+class Mixture(IndexStream):
+    """A stream of samples from several configs.
+
+    Args:
+        configs: name -> ``BouncingThingsConfig``, ``LayersConfig`` or a BouncingThings preset name
+            (``BouncingThingsConfig.preset``), or a sequence of them (named by their position); or a
+            ``MixtureConfig`` (then ``weights`` is its own: pass None).
+        weights: name -> weight >= 0 (a missing name weighs 0; None: equal weights), or a curriculum: a list of
+            ``(until, weights)`` stages (module docstring).
+        outputs, seed, length, start: as ``BouncingThings``; every source must give every output.
+        occlusion, device, threads: the BouncingThings sources' (a Layers source renders with torch on the CPU,
+            its occlusion exact from the layer order).
+
+    Attributes: ``config`` (its ``MixtureConfig``), ``names``, ``configs`` (name -> config), ``weights`` (the
+    preset's form), ``parts`` (each source's own stream), ``outputs``.
+
+    Raises ConfigError for configs of different sample shapes or of another type, outputs a source does not give,
+    unknown names, negative or all-zero weights, or stages whose ``until`` do not increase.
+    """
+
+    def __init__(self, configs, weights=None, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
+                 length: int | None = None, *, start: int = 0, occlusion: str = "exact", device: str = "cpu",
+                 threads: int | None = None) -> None:
+        if isinstance(configs, MixtureConfig):
+            if weights is not None:
+                raise ConfigError("weights belong to the MixtureConfig; pass weights=None with one")
+            self.config = configs
+        else:
+            self.config = MixtureConfig(configs, weights)
+        items = self.config.sources
+        self.names = [k for k, _ in items]
+        self.weights = self.config.weights
+        self.stages = _stages(self.weights, self.names)
         self._init_stream(seed, length, start)
-        self.parts = [BouncingThings(c, outputs, seed, length, start=start, occlusion=occlusion, device=device,
-                                     threads=threads) if config_kind(c) == "bouncing"
-                      else Layers(c, outputs, seed, length, start=start) for _, c in items]
+        self.parts = []
+        for name, c in items:
+            try:
+                self.parts.append(BouncingThings(c, outputs, seed, length, start=start, occlusion=occlusion,
+                                                 device=device, threads=threads) if source_kind(c) == "bouncing"
+                                  else Layers(c, outputs, seed, length, start=start))
+            except ConfigError as e:
+                raise ConfigError(f"mixture source {name!r}: {e}") from e
         common = set.intersection(*(set(p.outputs) for p in self.parts))
         self.outputs = tuple(k for k in self.parts[0].outputs if k in common)
         self.keys = frozenset((*self.outputs, *_ALWAYS))
@@ -127,9 +278,8 @@ class Mixture(IndexStream):
 
     # -- presets -------------------------------------------------------------------------------------------------
     def preset_dict(self) -> dict:
-        """This mixture's preset (module docstring) as a JSON-compatible dict."""
-        sources = [{"name": n, "kind": config_kind(c), "config": c.to_dict()} for n, c in self.configs.items()]
-        return {"format": PRESET_FORMAT, "version": 1, "sources": sources, "weights": self.weights}
+        """This mixture's preset (module docstring) as a JSON-compatible dict: ``self.config.to_dict()``."""
+        return self.config.to_dict()
 
     def to_preset(self, path: str | os.PathLike) -> Path:
         """Write the preset file ``path`` (JSON, atomically; its folder made if missing); returns its path."""
@@ -144,41 +294,14 @@ class Mixture(IndexStream):
                          length: int | None = None, **kwargs) -> Mixture:
         """The mixture of a preset dict (``preset_dict``'s form); ``outputs``, ``seed``, ``length`` and the keywords
         as ``Mixture``'s. ConfigError naming what is wrong with the preset."""
-        if not isinstance(preset, dict) or preset.get("format") != PRESET_FORMAT:
-            raise ConfigError(f"a mixture preset is a JSON object with \"format\": \"{PRESET_FORMAT}\"")
-        if preset.get("version") != 1:
-            raise ConfigError(f"mixture preset version {preset.get('version')!r} is not supported (version 1)")
-        sources = preset.get("sources")
-        if not isinstance(sources, list) or not sources:
-            raise ConfigError("a mixture preset needs \"sources\": a non-empty list of {name, kind, config}")
-        configs = {}
-        for n, s in enumerate(sources):
-            if not isinstance(s, dict) or set(s) != {"name", "kind", "config"} or not isinstance(s["config"], dict):
-                raise ConfigError(f"mixture preset source {n} must be {{\"name\", \"kind\", \"config\"}}, got {s!r}")
-            if str(s["name"]) in configs:
-                raise ConfigError(f"mixture preset source name {s['name']!r} is used twice")
-            configs[str(s["name"])] = config_from(s["kind"], s["config"])
-        weights = preset.get("weights")
-        if isinstance(weights, list):
-            weights = [tuple(stage) if isinstance(stage, list) else stage for stage in weights]
-        return cls(configs, weights, outputs, seed, length, **kwargs)
+        return cls(MixtureConfig.from_dict(preset), None, outputs, seed, length, **kwargs)
 
     @classmethod
     def from_preset(cls, path: str | os.PathLike, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
                     length: int | None = None, **kwargs) -> Mixture:
         """The mixture of the preset file ``path`` (``to_preset``); ``outputs``, ``seed``, ``length`` and the
         keywords as ``Mixture``'s. ConfigError for a missing file, bad JSON or a bad preset, naming the file."""
-        p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"mixture preset {str(p)!r} does not exist")
-        try:
-            preset = json.loads(p.read_text())
-        except ValueError as e:
-            raise ConfigError(f"mixture preset {str(p)!r} is not valid JSON: {e}") from e
-        try:
-            return cls.from_preset_dict(preset, outputs, seed, length, **kwargs)
-        except ConfigError as e:
-            raise ConfigError(f"mixture preset {str(p)!r}: {e}") from e
+        return cls(MixtureConfig.from_file(path), None, outputs, seed, length, **kwargs)
 
 
 def _check_shapes(items: list) -> None:
@@ -189,7 +312,7 @@ def _check_shapes(items: list) -> None:
         if diff:
             raise ConfigError(f"config {name!r} differs from {name0!r} in {diff}: a Mixture's samples must share one "
                               f"shape (set {', '.join(diff)} alike)")
-    things = [(name, c) for name, c in items if config_kind(c) == "bouncing"]
+    things = [(name, c) for name, c in items if source_kind(c) == "bouncing"]
     for name, c in things:
         if c.max_objects != things[0][1].max_objects:
             raise ConfigError(f"config {name!r} differs from {things[0][0]!r} in ['max_objects']: a Mixture's "
