@@ -17,8 +17,11 @@ import functools
 import inspect
 from typing import Any
 
-__all__ = ["add_config_flags", "add_layers_flags", "cli_form", "docs_of", "field_docs", "flag_type", "integer",
-           "layers_only_fields"]
+__all__ = ["SIZE_FIELDS", "add_config_flags", "add_layers_flags", "cli_form", "docs_of", "field_docs", "flag_type",
+           "integer", "layers_only_fields"]
+
+SIZE_FIELDS = ("width", "height", "num_frames")
+"""The config fields that set a sample's shape (``--width``, ``--height``, ``--num-frames``): every kind has them."""
 
 
 @functools.cache

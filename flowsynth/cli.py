@@ -5,6 +5,9 @@ Every BouncingThingsConfig field is also a flag (``--num-frames 8``, ``--object-
 ``--preset NAME`` (default, chairs, things; flowsynth.scene.config.PRESETS). ``--dataset layers`` makes
 FlyingChairs-style 2D layers instead (flowsynth.datasets.Layers): a LayersConfig from ``--config FILE`` and the
 flags of its fields (``--width``, ``--height``, ``--num-frames``, ``--texture-dir``, ``--motion-scale``, ...).
+``--mixture FILE`` takes a mixture preset instead (what ``flowsynth tune`` writes): the stream is
+``flowsynth.datasets.Mixture.from_preset(FILE, outputs, seed)``, and the file alone sets the configs (no config flags;
+``--width``, ``--height`` and ``--num-frames`` only when they equal the file's).
 ``flowsynth export --help`` lists every flag with its type, default and meaning (from the field
 docstrings in flowsynth/scene/config.py).
 
@@ -31,7 +34,7 @@ import time
 import traceback
 from pathlib import Path
 
-from flowsynth._flags import add_config_flags, add_layers_flags, integer, layers_only_fields
+from flowsynth._flags import SIZE_FIELDS, add_config_flags, add_layers_flags, integer, layers_only_fields
 from flowsynth.errors import ConfigError, FlowsynthError, StorageError
 
 __all__ = ["PREVIEW_BOUNCING", "PREVIEW_LAYERS", "build_config", "main"]
@@ -40,7 +43,7 @@ PREVIEW_BOUNCING = ("rgb", "flow_fw", "flow_bw", "occ_fw", "depth", "normals", "
                     "object_valid")
 """What ``flowsynth preview`` shows of a BouncingThings sample without ``--outputs``."""
 PREVIEW_LAYERS = ("rgb", "flow_fw", "flow_bw", "valid_fw", "occ_fw", "occ_bw", "instance")
-"""What it shows of a Layers sample (``--dataset layers``)."""
+"""What it shows of a Layers sample (``--dataset layers``), and of a mixture with a Layers source."""
 
 
 def _config_fields():
@@ -86,11 +89,14 @@ def _flag(name: str) -> str:
 
 def build_config(args: argparse.Namespace):
     """BouncingThingsConfig from ``--preset NAME``, overridden by ``--config FILE``, then by field flags; with
-    ``--dataset layers`` a LayersConfig from ``--config FILE``, then its fields' flags."""
+    ``--dataset layers`` a LayersConfig from ``--config FILE``, then its fields' flags; with ``--mixture FILE`` the
+    file's MixtureConfig."""
     from flowsynth.scene import BouncingThingsConfig
 
     from flowsynth.scene import PRESETS
 
+    if args.mixture is not None:
+        return _mixture_config(args)
     layers_given = [_flag(f.name) for f in layers_only_fields() if getattr(args, "layers_" + f.name) is not None]
     if args.dataset == "layers":
         return _layers_config(args)
@@ -110,6 +116,34 @@ def build_config(args: argparse.Namespace):
         if flags.get(name) is not None:
             raise ConfigError(f"--{name.replace('_', '-')}: {e}") from e
         raise
+
+
+def _mixture_config(args: argparse.Namespace):
+    """The MixtureConfig of ``--mixture FILE``; ConfigError naming a flag that would set what the file sets, or a
+    size flag that differs from the file's."""
+    from flowsynth.datasets import MixtureConfig
+
+    if args.dataset is not None:
+        raise ConfigError(f"--dataset {args.dataset}: a mixture preset names its sources' kinds; leave --dataset out "
+                          "with --mixture")
+    size = {_flag(n): getattr(args, "cfg_" + n) for n in SIZE_FIELDS}
+    given = ["--preset"] * (args.preset is not None) + ["--config"] * (args.config is not None)
+    given += [_flag(f.name) for f in _config_fields() if f.name not in SIZE_FIELDS
+              and getattr(args, "cfg_" + f.name) is not None]
+    given += [_flag(f.name) for f in layers_only_fields() if getattr(args, "layers_" + f.name) is not None]
+    if given:
+        raise ConfigError(f"{', '.join(given)}: the mixture preset {args.mixture} sets every source's config; leave "
+                          f"{'it' if len(given) == 1 else 'them'} out with --mixture (or edit the file)")
+    try:
+        cfg = MixtureConfig.from_file(args.mixture)
+    except ConfigError as e:
+        raise ConfigError(f"--mixture: {e}") from e
+    wrong = [f"{flag} {v}" for (flag, v), n in zip(size.items(), SIZE_FIELDS) if v is not None and v != getattr(cfg, n)]
+    if wrong:
+        raise ConfigError(f"{', '.join(wrong)}: the mixture preset {args.mixture} makes samples of --width "
+                          f"{cfg.width} --height {cfg.height} --num-frames {cfg.num_frames}; leave the size flags out "
+                          "with --mixture (or edit the file)")
+    return cfg
 
 
 def _layers_config(args: argparse.Namespace):
@@ -197,7 +231,11 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--json", default=None, help="also write the statistics to this JSON file [default: none]")
     _tune_parser(sub, _sub_kw)
     for sp in (ex, pv, st):
-        sp.add_argument("--dataset", choices=("bouncing", "layers"), default="bouncing",
+        sp.add_argument("--mixture", default=None, metavar="FILE",
+                        help="a mixture preset file (JSON; flowsynth tune writes one): the samples of "
+                             "flowsynth.datasets.Mixture.from_preset(FILE, outputs, seed); takes no --dataset, "
+                             "--preset, --config or config flags [default: none]")
+        sp.add_argument("--dataset", choices=("bouncing", "layers"), default=None,
                         help="what to generate: bouncing (3D scenes, BouncingThings) or layers (FlyingChairs-style 2D "
                              "layers, flowsynth.datasets.Layers: a LayersConfig from --config and the flags of its "
                              "fields) [default bouncing]")
@@ -256,30 +294,42 @@ def _tune(args) -> None:
 
 
 def _preview(args, cfg) -> None:
-    from flowsynth.datasets import make_stream
+    from flowsynth.datasets import config_kind, make_stream
     from flowsynth.memory import check_sample_memory
     from flowsynth.viz import sample_preview, save_png
 
-    outputs = [k for k in args.outputs.split(",") if k] if args.outputs is not None else \
-        list(PREVIEW_LAYERS) if args.dataset == "layers" else list(PREVIEW_BOUNCING)
+    kind = config_kind(cfg)
+    kinds = {config_kind(c) for _, c in cfg.sources} if kind == "mixture" else {kind}
+    outputs = _outputs(args) or (list(PREVIEW_LAYERS) if "layers" in kinds else list(PREVIEW_BOUNCING))
     check_sample_memory(cfg)
     ds = make_stream(cfg, outputs if cfg.num_frames > 1 else
                      [k for k in outputs if "_fw" not in k and "_bw" not in k], seed=args.seed)
-    img = sample_preview(ds.sample(args.index))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    sample = ds.sample(args.index)
     # what made the picture, so a stale one can be told apart (scripts/make_preview.py, tests/test_cli.py)
     text = {"flowsynth:config": json.dumps(cfg.to_dict(), sort_keys=True), "flowsynth:seed": str(args.seed),
             "flowsynth:index": str(args.index)}
-    if args.dataset != "bouncing":
-        text["flowsynth:dataset"] = args.dataset
+    title = None
+    if kind != "bouncing":
+        text["flowsynth:dataset"] = kind
+    if kind == "mixture":
+        name, src = cfg.sources[int(sample["source"])]
+        text["flowsynth:source"] = name
+        title = f"sample {args.index} of {Path(args.mixture).name}: source {name!r} ({config_kind(src)})"
+    img = sample_preview(sample, title=title)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     save_png(args.out, img, text=text)
     print(f"wrote {args.out} ({img.shape[1]}x{img.shape[0]})")
+
+
+def _outputs(args) -> list[str] | None:
+    """The keys of ``--outputs`` (comma-separated), None when it is not given."""
+    return None if args.outputs is None else [k for k in args.outputs.split(",") if k]
 
 
 def _dry_run(args, cfg) -> None:
     from flowsynth.export import estimate
 
-    sizes = estimate(cfg, args.num, seed=args.seed, outputs=args.outputs, layout=args.layout,
+    sizes = estimate(cfg, args.num, seed=args.seed, outputs=_outputs(args), layout=args.layout,
                      occlusion=args.occlusion, exr_compression=args.exr_compression, shard_size=args.shard_size)
     rows = [(k, v, v * args.num) for k, v in sorted(sizes.per_sample.items(), key=lambda kv: -kv[1])]
     if sizes.index:
@@ -297,7 +347,7 @@ def _export(args, cfg) -> None:
     from flowsynth.io import layouts
 
     start = time.perf_counter()
-    root = export_dataset(cfg, args.out, args.num, seed=args.seed, outputs=args.outputs, workers=args.workers,
+    root = export_dataset(cfg, args.out, args.num, seed=args.seed, outputs=_outputs(args), workers=args.workers,
                           layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
                           exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress,
                           engine=args.engine, address=args.address, shard_size=args.shard_size)

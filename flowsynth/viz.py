@@ -237,17 +237,20 @@ def draw_boxes(
     return np.asarray(im)
 
 
-def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, scale: int = 1) -> np.ndarray:
+def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, scale: int = 1, *,
+                  title: str | None = None) -> np.ndarray:
     """Lay labelled images out on a grid, label text above each tile (Pillow's default font).
 
     Args:
         tiles: (label, (H, W, 3) uint8) pairs; sizes may differ (cells fit the largest).
         columns: tiles per row.
         scale: integer nearest-neighbour upscaling of every tile.
+        title: a line of text above the grid (None: none).
 
     Returns:
         (H', W', 3) uint8 RGB on dark grey: W' = min(columns, len(tiles)) * (tile W + 2) + 2,
-        H' = rows * (label height + tile H + 4) + 2 [px] with tile H, W the largest scaled size.
+        H' = rows * (label height + tile H + 4) + 2 [px] with tile H, W the largest scaled size, plus the title's
+        line height + 2 with a title (W' widened to the title's width + 4 if it is wider).
     """
     if not tiles or columns < 1 or scale < 1:
         raise ConfigError("contact_sheet needs at least one tile, columns >= 1 and scale >= 1")
@@ -260,11 +263,15 @@ def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, sca
     cell_w = max(im.shape[1] for im in imgs) + _PAD
     rows = -(-len(tiles) // columns)
     cols = min(columns, len(tiles))
-    sheet = Image.new("RGB", (cols * cell_w + _PAD, rows * cell_h + _PAD), (32, 32, 32))
+    top = int(font.getbbox((title or "") + "Ag")[3]) + _PAD if title else 0
+    width = max(cols * cell_w + _PAD, int(font.getbbox(title)[2]) + 2 * _PAD if title else 0)
+    sheet = Image.new("RGB", (width, top + rows * cell_h + _PAD), (32, 32, 32))
     draw = ImageDraw.Draw(sheet)
+    if title:
+        draw.text((_PAD, _PAD), title, fill=(255, 255, 255), font=font)
     for k, ((label, _), im) in enumerate(zip(tiles, imgs, strict=True)):
         x = _PAD + (k % columns) * cell_w
-        y = _PAD + (k // columns) * cell_h
+        y = top + _PAD + (k // columns) * cell_h
         draw.text((x, y), label, fill=(255, 255, 255), font=font)
         sheet.paste(Image.fromarray(np.ascontiguousarray(im)), (x, y + label_h))
     return np.asarray(sheet)
@@ -291,8 +298,10 @@ def _rgb_tile(rgb: np.ndarray) -> np.ndarray:
     return u8.transpose(1, 2, 0)
 
 
-def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 1) -> np.ndarray:
-    """Contact sheet of the first frame / pair of a flowsynth sample dict.
+def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 1,
+                   title: str | None = None) -> np.ndarray:
+    """Contact sheet of the first frame / pair of a flowsynth sample dict, under ``title`` if given (what the sample
+    is: ``flowsynth preview`` names a mixture sample's source there).
 
     Uses whichever of these keys are present: ``rgb`` (T,3,H,W) frames 0 and 1; ``flow_fw`` /
     ``flow_bw`` (T-1,2,H,W) pair 0 with one shared ``max_flow``; masks ``valid_fw``, ``occ_fw``,
@@ -361,4 +370,4 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
                                                                                s["occluded"])))
     if not tiles:
         raise ConfigError(f"sample_preview: no previewable key (rgb, flow_fw, depth, ...) in {sorted(s)}")
-    return contact_sheet(tiles, columns=columns, scale=scale)
+    return contact_sheet(tiles, columns=columns, scale=scale, title=title)

@@ -1,5 +1,5 @@
-"""Crash-safe, resumable, parallel export of generated samples (BouncingThings or Layers) to disk, in any registered
-layout.
+"""Crash-safe, resumable, parallel export of generated samples (BouncingThings, Layers or a Mixture of both) to disk,
+in any registered layout.
 
 The entry point is :func:`export_dataset` (what ``flowsynth export`` runs; exported by the folder,
 ``flowsynth.export.export_dataset``, which also keeps its deprecated old name ``flowsynth.export.export``).
@@ -8,7 +8,8 @@ What a layout writes is its own business (``flowsynth/io/layouts/``: native, fly
 sintel, ...). This module does the bookkeeping that is the same for every layout::
 
     DIR/
-      manifest.json       config, seed, outputs, layout and its options, versions, num,
+      manifest.json       config (a mixture's: its preset), dataset (its kind, but for BouncingThings),
+                          seed, outputs, layout and its options, versions, num,
                           samples: {"NNNNN": {path: {"size": bytes, "sha256": hex}}},
                           cameras: {"NNNNN": {K, width, height, model, dist}}, index: {...},
                           stats (flowsynth.stats over the samples the last run generated)
@@ -107,7 +108,8 @@ def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compressio
         require_ray()
     # a layout's default set: the outputs of it the dataset's kind gives (a Layers sample has no depth)
     outputs = stream_outputs(cfg, lay.default_outputs if outputs is None else outputs, drop_unknown=outputs is None)
-    lay.check(cfg, outputs, num)
+    for source in [c for _, c in cfg.sources] if config_kind(cfg) == "mixture" else [cfg]:
+        lay.check(source, outputs, num)  # a mixture's every source (a layout may read fields a mixture lacks)
     cfg.check_files()  # the meshes and textures it names (a config reads no file when it is made)
     check_sample_memory(cfg, processes=min(workers or 1, num))
     return lay, outputs
@@ -162,8 +164,10 @@ def export_dataset(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outp
     """Export samples 0..num-1 of ``cfg``'s stream to ``out``; resumes if interrupted.
 
     Args:
-        cfg: a ``BouncingThingsConfig`` (``BouncingThings(cfg, outputs, seed)``) or a ``LayersConfig``
-            (``Layers(cfg, outputs, seed)``): ``flowsynth.datasets.make_stream``.
+        cfg: a ``BouncingThingsConfig`` (``BouncingThings(cfg, outputs, seed)``), a ``LayersConfig``
+            (``Layers(cfg, outputs, seed)``) or a ``MixtureConfig`` (``Mixture(cfg, outputs=outputs, seed=seed)``,
+            the stream of ``Mixture.from_preset``): ``flowsynth.datasets.make_stream``. The manifest records its
+            ``to_dict()`` (a mixture's preset) as ``config``.
         layout: a name of ``flowsynth.io.layouts.names()``; ``outputs=None`` takes its defaults.
         exr_compression: lossless compression of EXR files, ``flowsynth.io.layouts.EXR_COMPRESSIONS``.
         shard_size: samples per shard of a layout that writes shards (``webdataset``; None: its default).
@@ -176,7 +180,7 @@ def export_dataset(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outp
             measured ``stats.seconds_per_sample``.
 
     Raises ConfigError for invalid arguments (``engine="ray"`` without Ray installed included) and
-    ExportError when ``out`` holds an export of another config/seed/outputs/layout (pass
+    ExportError when ``out`` holds an export of another config (a mixture: another preset)/seed/outputs/layout (pass
     ``overwrite=True`` to replace it) or something else; both before anything is written. StorageError
     (an ExportError) when a file cannot be written: finished samples are kept, temporaries removed, and
     the same call resumes. Returns the output folder.

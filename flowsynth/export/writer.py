@@ -46,11 +46,11 @@ def camera_record(provenance: str) -> dict | None:
 
 
 class ExportWriter:
-    """Generate and write units of ``cfg``'s stream (``flowsynth.datasets.make_stream``: BouncingThings or Layers) in
-    ``layout``.
+    """Generate and write units of ``cfg``'s stream (``flowsynth.datasets.make_stream``: BouncingThings, Layers or
+    Mixture) in ``layout``.
 
     Args:
-        cfg: the export's ``BouncingThingsConfig`` or ``LayersConfig``.
+        cfg: the export's ``BouncingThingsConfig``, ``LayersConfig`` or ``MixtureConfig``.
         outputs: resolved output keys (``flowsynth.plan.make_plan(...).outputs``).
         seed: dataset seed.
         occlusion: occlusion method (``flowsynth.plan.OCCLUSION_METHODS``).
