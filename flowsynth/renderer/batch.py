@@ -24,7 +24,7 @@ import torch
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.kernels import wp_runtime
 from flowsynth.options import RenderOptions
-from flowsynth.plan import GAP_KEYS, Plan, make_plan, split_gap_key
+from flowsynth.plan import Plan, make_plan, split_gap_key
 from flowsynth.raycast import SceneAccel, cast_gbuffer, resolve_device, scene_arrays
 from flowsynth.scene import Scene, check_lens_outputs
 
@@ -85,7 +85,7 @@ def batches(key: str, plan: Plan) -> bool:
     frame gap, and rgb only without motion blur (``plan.shutter`` 0)."""
     if key == "rgb":
         return plan.shutter == 0
-    return key in BATCH_KEYS or (split_gap_key(key) or ("",))[0] in GAP_KEYS
+    return key in BATCH_KEYS or split_gap_key(key) is not None
 
 
 def batch_outputs(scenes: Sequence[Scene], clips: list, accel: SceneAccel, gb, plan: Plan) -> dict[str, torch.Tensor]:
@@ -179,7 +179,7 @@ def batch_tables(scene: Scene, plan: Plan, threads: int | None = 1) -> dict:
 def check_batch_plan(plan: Plan) -> None:
     """ConfigError unless a batch renders every output of ``plan``: keys of ``BATCH_KEYS`` (and the flow family at
     any frame gap), and rgb without motion blur."""
-    unknown = [k for k in plan.outputs if k not in BATCH_KEYS and (split_gap_key(k) or ("",))[0] not in GAP_KEYS]
+    unknown = [k for k in plan.outputs if k not in BATCH_KEYS and split_gap_key(k) is None]
     if unknown:
         raise ConfigError(f"render_batch does not render {unknown}; it renders {sorted(BATCH_KEYS)} (and the flow "
                           "family at every frame gap). Render the others per scene with fs.render")
