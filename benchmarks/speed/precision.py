@@ -121,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from flowsynth.errors import DependencyError
+    from flowsynth.training import FP16_DEVICES, PRECISIONS
 
     try:
         device = torch.device(a.device)
@@ -129,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     if device.type == "cuda" and not torch.cuda.is_available():
         p.error(f"--device {a.device}: CUDA is not available here")
     batch_size = 2 if a.quick else BATCH
-    precisions = ("fp32", "bf16", "fp16") if device.type == "cuda" else ("fp32", "bf16")
+    precisions = tuple(x for x in PRECISIONS if x != "fp16" or device.type in FP16_DEVICES)
     batch = random_batch(batch_size, a.device)
     try:
         configs = [Config(prec, fmt, t, batch, a.device)
