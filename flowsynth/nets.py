@@ -13,6 +13,7 @@ from flowsynth.errors import DependencyError
 __all__ = ["raft_small"]
 
 INSTALL = 'pip install --no-deps "torchvision==0.28.0"'  # --no-deps: its wheel would pull a CUDA torch
+META = "torchvision._meta_registrations"  # the module that registers torchvision's C++ operators with torch
 
 
 def raft_small(weights=None):
@@ -20,13 +21,28 @@ def raft_small(weights=None):
     ``net(img1, img2, num_flow_updates=N)`` on (B, 3, H, W) images in [-1, 1] with H, W multiples of 8 and at least
     128, returning the list of its N (B, 2, H, W) flow estimates [px].
 
-    A torchvision wheel built against another torch lacks its C++ operators; its models need none of them, so the
-    module that registers them (``torchvision._meta_registrations``) is stood in for by an empty one before the
-    import. Raises DependencyError when torchvision is not installed.
+    torchvision is imported as it is. Only where that import fails on torchvision's C++ operators
+    ("operator torchvision::nms does not exist": a wheel built against another torch lacks them) are the
+    half-imported torchvision modules dropped and ``torchvision._meta_registrations`` stood in for by an empty module
+    before a second import: the models need none of the operators. Raises DependencyError when torchvision is not
+    installed.
     """
-    sys.modules.setdefault("torchvision._meta_registrations", types.ModuleType("torchvision._meta_registrations"))
     try:
-        from torchvision.models.optical_flow import raft_small as build
+        try:
+            build = _import_raft()
+        except (ImportError, RuntimeError) as e:
+            if "torchvision::" not in str(e):
+                raise
+            for name in [n for n, m in sys.modules.items() if m is not None and n.split(".")[0] == "torchvision"]:
+                del sys.modules[name]
+            sys.modules[META] = types.ModuleType(META)
+            build = _import_raft()
     except ImportError as e:
         raise DependencyError(f"RAFT-small needs torchvision, which is not installed ({e}): {INSTALL}") from e
     return build(weights=weights)
+
+
+def _import_raft():
+    from torchvision.models.optical_flow import raft_small as build
+
+    return build
