@@ -10,7 +10,8 @@ next ``iter()`` on the same dataset object (num_workers=0, or persistent workers
 this shard produced, so no sample repeats. With a finite ``length`` L, epoch e covers indices
 [start + e L, start + (e + 1) L): every epoch sees new samples. The epoch counter advances on each ``iter()`` of the
 same object; with non-persistent workers (fresh copies every epoch) call ``set_epoch(e)`` before each epoch, as
-with ``DistributedSampler``.
+with ``DistributedSampler``. An endless stream has no epochs: ``set_epoch`` on it raises ConfigError, as
+``DeviceBatches.set_epoch`` does, since starting it over would repeat its samples.
 
 Resuming. ``state_dict()`` / ``load_state_dict()`` follow torchdata's ``StatefulDataLoader`` protocol: each
 worker's copy reports its own position, and a restored loader continues with exactly the samples an uninterrupted
@@ -40,11 +41,16 @@ def _shard() -> tuple[int, int]:
     return rank * nw + wid, world * nw
 
 
+def _count(name: str, v) -> int:
+    """``v`` as an int; ConfigError naming ``name`` unless it is an integer >= 0."""
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+        raise ConfigError(f"{name} must be an integer >= 0, got {v!r}")
+    return int(v)
+
+
 def check_index(i) -> int:
     """``i`` as an int; ConfigError unless it is an integer >= 0 (a sample index)."""
-    if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or i < 0:
-        raise ConfigError(f"sample index must be an integer >= 0, got {i!r}")
-    return int(i)
+    return _count("sample index", i)
 
 
 class IndexStream(IterableDataset):
@@ -53,13 +59,11 @@ class IndexStream(IterableDataset):
 
     def _init_stream(self, seed: int, length: int | None, start: int) -> None:
         """Check and keep ``seed`` (>= 0), ``length`` (None or >= 1) and ``start`` (>= 0); ConfigError otherwise."""
-        for name, v in (("seed", seed), ("start", start)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-                raise ConfigError(f"{name} must be an integer >= 0, got {v!r}")
+        self.seed, self.start = _count("seed", seed), _count("start", start)
         if length is not None and (isinstance(length, bool) or not isinstance(length, (int, np.integer))
                                    or length < 1):
             raise ConfigError(f"length must be None (endless) or an integer >= 1, got {length!r}")
-        self.seed, self.length, self.start = int(seed), None if length is None else int(length), int(start)
+        self.length = None if length is None else int(length)
         self._epoch = 0
         self._pos = 0  # samples this shard has produced in the current epoch (endless: ever)
 
@@ -73,8 +77,12 @@ class IndexStream(IterableDataset):
         return self.length
 
     def set_epoch(self, epoch: int) -> None:
-        """Start the next ``iter()`` at ``epoch`` (finite length; needed with non-persistent workers)."""
-        self._epoch, self._pos = int(epoch), 0
+        """Start the next ``iter()`` at the beginning of ``epoch`` (an integer >= 0; needed with non-persistent
+        workers). ConfigError for an endless stream, which has no epochs: it continues where it stopped."""
+        if self.length is None:
+            raise ConfigError(f"set_epoch needs a finite stream (length=...): an endless {type(self).__name__} "
+                              "has no epochs and continues where it stopped")
+        self._epoch, self._pos = _count("epoch", epoch), 0
 
     def _indices(self, g: int, G: int, epoch: int, pos: int) -> Iterator[tuple[int, int]]:
         m = pos
@@ -103,8 +111,18 @@ class IndexStream(IterableDataset):
         return {"epoch": self._epoch, "pos": self._pos, "seed": self.seed, "start": self.start}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore a position saved by ``state_dict``; refuses a state of another seed or start."""
-        if state.get("seed") != self.seed or state.get("start") != self.start:
-            raise ConfigError(f"state was saved with seed={state.get('seed')}, start={state.get('start')}; "
+        """Restore a position saved by ``state_dict``. ConfigError for a state that is not a dict, misses a key, was
+        saved with another seed or start, or holds an epoch or position that is not an integer >= 0 (a position
+        past a finite epoch's ``length`` included)."""
+        if not isinstance(state, dict):
+            raise ConfigError(f"state must be the dict state_dict() returned, got {type(state).__name__}")
+        missing = [k for k in ("epoch", "pos", "seed", "start") if k not in state]
+        if missing:
+            raise ConfigError(f"state misses {missing}: pass what {type(self).__name__}.state_dict() returned")
+        if state["seed"] != self.seed or state["start"] != self.start:
+            raise ConfigError(f"state was saved with seed={state['seed']}, start={state['start']}; "
                               f"this dataset has seed={self.seed}, start={self.start}")
-        self._epoch, self._pos = int(state["epoch"]), int(state["pos"])
+        epoch, pos = _count("state's epoch", state["epoch"]), _count("state's pos", state["pos"])
+        if self.length is not None and pos > self.length:
+            raise ConfigError(f"state's pos {pos} is past the epoch's {self.length} samples (length)")
+        self._epoch, self._pos = epoch, pos
