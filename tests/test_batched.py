@@ -1,4 +1,5 @@
-"""Batches on the device (issue 52, item 3): ``fs.render_batch`` (``fs.datasets.DeviceBatches``: test_device_batches).
+"""``fs.render_batch``, B scenes rendered as one batch on one device, against B single renders (the stream over it,
+``fs.datasets.DeviceBatches``, is tested in test_device_batches).
 
 On the CPU a batch of B scenes gives, scene by scene, exactly what B single renders give (``torch.equal``): every
 kernel computes each pixel from the same inputs in the same steps, whether it runs over one clip or over the batch's
