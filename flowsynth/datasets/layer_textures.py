@@ -5,14 +5,13 @@ the default config otherwise; frame 0 does not depend on num_frames) and seed ``
 any training stream, quantised to 8 bits as the learning benchmark's ``chairs2d`` arm was textured (its frames went
 through uint8 pools). A frame is rendered the first time a draw picks it, then kept for the life of the process
 (``fs.clear_caches`` empties it): a DataLoader worker renders the frames its samples pick. What that costs: one
-frame at 256x192 took 0.26 s on a busy 2-core CPU (plus about 7 s the first time a process loads the kernels), so the
-default 600 frames (as many as the learning benchmark's 2D pools were textured from: one frame for every two pairs
-of a 1200-pair pool) add about 160 s per process, spread over its first samples; 3 bytes a pixel each (88 MB at
-256x192).
+BouncingThings frame rendered per bank frame, the first time a process picks it (and the render kernels loaded once
+per process), 3 bytes a pixel kept; measured in docs/decisions/0023-raft-judge.md.
 
 With ``texture_dir``: every image of the folder (``flowsynth.appearance.list_textures``: sorted by name), cut to the
-stream's aspect ratio about its centre and resized to its size with torch (bilinear, antialiased), read once per
-process.
+stream's aspect ratio about its centre and resized to its size with torch (bilinear, antialiased). The bank lists the
+folder and reads all its images the first time it is used, and keeps them: images added, removed or changed later
+are not seen by that bank (a new ``Layers`` lists the folder again).
 """
 
 from __future__ import annotations
@@ -20,7 +19,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from flowsynth.caches import register
@@ -32,7 +30,6 @@ TEXTURE_SEED = 7_340_033
 """Seed of the BouncingThings stream the default bank's frames come from."""
 
 _FRAMES: dict = register("layers.bank_frames", {})  # (width, height, seed, j) -> (3, H, W) uint8
-_FOLDERS: dict = register("layers.texture_dirs", {})  # (files, sizes, mtimes, width, height) -> (m, 3, H, W) float32
 
 
 class TextureBank:
@@ -44,26 +41,44 @@ class TextureBank:
         seed: seed of the BouncingThings stream of the default bank.
         texture_dir: a folder of images, or None for the default bank.
 
-    Holds no image itself (the per-process caches do), so it pickles small to DataLoader workers.
+    ``len(bank)``: ``size``, or the number of images in ``texture_dir``. With ``texture_dir``, the first ``len`` or
+    ``bank[j]`` lists the folder (ConfigError when it is missing or holds no image) and the first ``bank[j]`` reads
+    every image of that listing (AssetError naming a file Pillow cannot read); both are kept by this bank, so later
+    lookups read no file and see no change to the folder. A pickled bank (a DataLoader worker's copy) carries the
+    listing but no image: each process reads the images once. The default bank's frames are kept per process, not
+    here.
     """
 
     def __init__(self, width: int, height: int, size: int, seed: int, texture_dir: str | None) -> None:
         self.width, self.height, self.size, self.seed, self.texture_dir = width, height, size, seed, texture_dir
+        self._files: list[Path] | None = None  # texture_dir's listing, once listed
+        self._images: torch.Tensor | None = None  # (m, 3, height, width) float32, once read
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_images": None}
 
     def __len__(self) -> int:
         if self.texture_dir is None:
             return self.size
-        from flowsynth.appearance import list_textures
-
-        return len(list_textures(self.texture_dir))
+        return len(self._listing())
 
     def __getitem__(self, j: int) -> torch.Tensor:
         if self.texture_dir is not None:
-            return self._folder()[j]
+            if self._images is None:
+                self._images = torch.stack([fit_image(read_image(f), self.width, self.height)
+                                            for f in self._listing()])
+            return self._images[j]
         key = (self.width, self.height, self.seed, int(j))
         if key not in _FRAMES:
             _FRAMES[key] = self._render(int(j))
         return _FRAMES[key].to(torch.float32) / 255.0
+
+    def _listing(self) -> list[Path]:
+        if self._files is None:
+            from flowsynth.appearance import list_textures
+
+            self._files = list_textures(self.texture_dir)
+        return self._files
 
     def _render(self, j: int) -> torch.Tensor:
         from flowsynth.datasets.bouncing import BouncingThings
@@ -73,30 +88,16 @@ class TextureBank:
         rgb = BouncingThings(cfg, outputs=["rgb"], seed=self.seed).sample(j)["rgb"][0]
         return (rgb * 255).round().clamp(0, 255).to(torch.uint8)
 
-    def _folder(self) -> torch.Tensor:
-        from flowsynth.appearance import list_textures
-
-        files = list_textures(self.texture_dir)
-        stats = [os.stat(f) for f in files]
-        key = (tuple(map(str, files)), tuple(s.st_size for s in stats), tuple(s.st_mtime_ns for s in stats),
-               self.width, self.height)
-        if key not in _FOLDERS:
-            _FOLDERS.clear()  # one folder at a time: a changed file replaces the old images
-            _FOLDERS[key] = torch.stack([fit_image(read_image(f), self.width, self.height) for f in files])
-        return _FOLDERS[key]
-
 
 def read_image(path: str | os.PathLike) -> torch.Tensor:
-    """An image file as (3, h, w) float32 sRGB in [0, 1] (Pillow; grey and RGBA become RGB). Raises AssetError when
-    Pillow cannot read it."""
-    from PIL import Image, UnidentifiedImageError
+    """An image file as (3, h, w) float32 sRGB in [0, 1] (``flowsynth.io.read_rgb_png``: Pillow; grey and RGBA become
+    RGB). Raises AssetError when Pillow cannot read it."""
+    from flowsynth.io import read_rgb_png
 
     try:
-        with Image.open(path) as im:
-            a = np.asarray(im.convert("RGB"), np.float32) / 255.0
-    except (OSError, UnidentifiedImageError) as e:
+        return torch.from_numpy(read_rgb_png(path))
+    except OSError as e:  # PIL's UnidentifiedImageError is one
         raise AssetError(f"image {str(Path(path))!r} cannot be decoded by Pillow: {e}") from e
-    return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))
 
 
 def fit_image(img: torch.Tensor, width: int, height: int) -> torch.Tensor:
