@@ -25,6 +25,7 @@ from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layer_textures import TEXTURE_SEED, TextureBank
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError, ShapeError
+from flowsynth.scene import config_from_dict
 
 __all__ = ["LAYERS_OUTPUTS", "Layers", "LayersConfig", "layer_outputs", "layers_pairs"]
 
@@ -34,6 +35,8 @@ LAYERS_OUTPUTS = ("rgb", "flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw",
 PAIR_KEYS = tuple(k for k in LAYERS_OUTPUTS if k.endswith(("_fw", "_bw")))
 LAYERS_SALT = 0x1A7E  # keeps a sample's draws apart from every other generator seeded by (seed, i)
 MIN_SIZE = 32  # [px] the smallest width and height: the smallest shape, 6 px at 128 px wide, is 1.5 px there
+MAX_MOTION = 200.0
+"""The largest motion_scale x (num_frames - 1) (``LayersConfig.motion_scale`` says why)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,14 +51,20 @@ class LayersConfig:
     """Frames per sample T >= 1; frame t shows every layer moved t times by its affine motion (2 or more for
     flow)."""
     motion_scale: float = 1.0
-    """Multiplies every shift, rotation and log-zoom range of the motions (>= 0; 0: nothing moves)."""
+    """Multiplies every shift, rotation and log-zoom range of the motions (>= 0; 0: nothing moves), with
+    motion_scale x max(num_frames - 1, 1) <= ``MAX_MOTION`` (200). Why: a shape's log-zoom a frame is at most
+    0.1 x motion_scale, so no frame's map (M^t, t < num_frames) scales by more than e^20 (5e8) or less than e^-20:
+    each stays invertible (determinant >= e^-40 in float64), and coordinates and flow, that zoom times the image size
+    and the shifts, stay far inside float32 (largest value 3.4e38, e^88.7). At motion_scale 1000 and 2 frames,
+    exp(100) overflows float32."""
     texture_dir: str | None = None
     """A folder of images the background and the shapes are cut from (each image fitted to the frame); None: the
     default bank of flowsynth frames (``texture_bank`` of them)."""
     texture_bank: int = 600
     """Frames in the default texture bank [count, >= 1]: frame 0 of BouncingThings samples 0..texture_bank-1 at
-    this width and height, rendered once per process when first picked (about 0.26 s each at 256x192). The
-    default is as many frames as the learning benchmark's 2D pools were textured from (600 for 1200 pairs)."""
+    this width and height, each rendered once per process, the first time a draw picks it, and kept (3 bytes a
+    pixel). The default is as many frames as the learning benchmark's 2D pools were textured from (600 for 1200
+    pairs); what rendering them costs: docs/decisions/0023-raft-judge.md."""
     texture_seed: int = TEXTURE_SEED
     """Seed of the BouncingThings stream of the default bank (>= 0): keep it apart from the training streams'."""
 
@@ -66,11 +75,7 @@ class LayersConfig:
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
             object.__setattr__(self, name, int(v))
-        m = self.motion_scale
-        if isinstance(m, bool) or not isinstance(m, (int, float, np.floating, np.integer)) or not math.isfinite(m) \
-                or m < 0:
-            raise ConfigError(f"motion_scale must be a finite number >= 0, got {m!r}")
-        object.__setattr__(self, "motion_scale", float(m))
+        object.__setattr__(self, "motion_scale", check_motion_scale(self.motion_scale, self.num_frames))
         if self.texture_dir is not None:
             if not isinstance(self.texture_dir, (str, bytes)) and not hasattr(self.texture_dir, "__fspath__"):
                 raise ConfigError(f"texture_dir must be a folder path or None, got {self.texture_dir!r}")
@@ -92,13 +97,21 @@ class LayersConfig:
     def from_dict(cls, d: dict[str, Any]) -> LayersConfig:
         """A config from a dict such as ``to_dict()`` wrote; missing keys take defaults. ConfigError on keys that
         are not fields (listing the valid ones)."""
-        if not isinstance(d, dict):
-            raise ConfigError(f"from_dict expects a dict, got {type(d).__name__}")
-        names = [f.name for f in dataclasses.fields(cls)]
-        unknown = sorted(set(d) - set(names))
-        if unknown:
-            raise ConfigError(f"unknown LayersConfig field(s) {unknown}; valid fields: {names}")
-        return cls(**d)
+        return config_from_dict(cls, d)
+
+
+def check_motion_scale(m, num_frames: int) -> float:
+    """``m`` as a float; ConfigError unless it is a number >= 0 with m x max(num_frames - 1, 1) <= ``MAX_MOTION``
+    (``LayersConfig.motion_scale``)."""
+    if isinstance(m, bool) or not isinstance(m, (int, float, np.floating, np.integer)) or not math.isfinite(m) \
+            or m < 0:
+        raise ConfigError(f"motion_scale must be a finite number >= 0, got {m!r}")
+    steps = max(num_frames - 1, 1)
+    if float(m) * steps > MAX_MOTION:
+        raise ConfigError(f"motion_scale x max(num_frames - 1, 1) must be <= {MAX_MOTION:g} (beyond it the zoom of "
+                          f"the last frame overflows), got {float(m)!r} x {steps}; lower motion_scale to "
+                          f"{MAX_MOTION / steps:g} or less")
+    return float(m)
 
 
 def layer_outputs(outputs: Sequence[str], *, drop_unknown: bool = False) -> tuple[str, ...]:
@@ -179,7 +192,8 @@ def layers_pairs(n: int, seed: int, sources: torch.Tensor, motion_scale: float =
         n: number of pairs, >= 1.
         seed: the generator's seed.
         sources: (m, 3, H, W) float images in [0, 1], the backgrounds and textures (H, W >= 32).
-        motion_scale: multiplies every shift, rotation and log-zoom range.
+        motion_scale: multiplies every shift, rotation and log-zoom range; 0 to ``MAX_MOTION``
+            (``LayersConfig.motion_scale``).
         outputs: keys of ``LAYERS_OUTPUTS``.
 
     Returns:
@@ -195,6 +209,7 @@ def layers_pairs(n: int, seed: int, sources: torch.Tensor, motion_scale: float =
     if H < MIN_SIZE or W < MIN_SIZE:
         raise ShapeError(f"sources must be at least {MIN_SIZE}x{MIN_SIZE} px, got {W}x{H}")
     keys = layer_outputs(outputs)
+    motion_scale = check_motion_scale(motion_scale, 2)
     src = sources.to(torch.float32)
     rng = np.random.default_rng(seed)
     items = [render_layers(draw_pair(rng, W, H, len(src), motion_scale), src.__getitem__, W, H, 2, keys)

@@ -23,7 +23,7 @@ from typing import Any
 from flowsynth.errors import AssetError, ConfigError
 from flowsynth.options import OPTION_NAMES, RENDER_MODES, RenderOptions, is_int
 
-__all__ = ["CAMERA_MOTIONS", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig"]
+__all__ = ["CAMERA_MOTIONS", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig", "config_from_dict"]
 
 MOTIONS = ("physics", "kinematic", "static")
 CAMERA_MOTIONS = ("static", "moving")
@@ -259,13 +259,20 @@ class BouncingThingsConfig:
 
         Raises ConfigError on keys that are not fields (listing the valid ones).
         """
-        if not isinstance(d, dict):
-            raise ConfigError(f"from_dict expects a dict, got {type(d).__name__}")
-        names = [f.name for f in dataclasses.fields(cls)]
-        unknown = sorted(set(d) - set(names))
-        if unknown:
-            raise ConfigError(f"unknown BouncingThingsConfig field(s) {unknown}; valid fields: {names}")
-        return cls(**d)
+        return config_from_dict(cls, d)
+
+
+def config_from_dict(cls: type, d: dict[str, Any]):
+    """``cls(**d)`` for a config dataclass ``cls`` (``BouncingThingsConfig``, ``LayersConfig``): ``d`` as its
+    ``to_dict()`` wrote it, missing keys taking the defaults. Raises ConfigError when ``d`` is not a dict or holds keys
+    that are not fields of ``cls`` (naming them and the valid ones), and whatever ``cls`` raises for bad values."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"from_dict expects a dict, got {type(d).__name__}")
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(d) - set(names))
+    if unknown:
+        raise ConfigError(f"unknown {cls.__name__} field(s) {unknown}; valid fields: {names}")
+    return cls(**d)
 
 
 # Config fields that are render options (flowsynth.options.RenderOptions), under the same names.
