@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -65,6 +66,15 @@ def _device(name: str) -> torch.device:
 
 def _px(score: float | None) -> str:
     return "diverged" if score is None else f"{score:.3f} px"
+
+
+def _remove_temporaries(work: Path, out: Path) -> None:
+    """Delete the temporaries a killed run left: ``flowsynth.io.atomic_path`` writes ``.NAME.tmp-XXXXXXXX.EXT``
+    beside each file and renames it over the file when whole, so one a SIGKILL interrupted stays (a partial state is
+    tens of MB). Every such file in ``work`` is this tune's; beside the preset ``out``, only ``out``'s own."""
+    own = re.compile(rf"\.{re.escape(out.stem)}\.tmp-[0-9a-f]{{8}}{re.escape(out.suffix)}")
+    for p in [*work.glob(".*.tmp-*"), *(p for p in out.parent.glob(".*.tmp-*") if own.fullmatch(p.name))]:
+        p.unlink(missing_ok=True)
 
 
 def _load(path: Path, identity: dict) -> dict | None:
@@ -138,10 +148,11 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
                 "recipe": recipe.to_dict(), "precision": precision}
     work.mkdir(parents=True, exist_ok=True)
     state = _load(work / "state.pt", identity)
+    _remove_temporaries(work, out)  # after _load: a tune of other settings is refused and left as it is
     settings = {k: (sources(k, recipe.res), seed) for k in keys}
     settings[keys[0] + TWIN] = (sources(keys[0], recipe.res), seed + TWIN_SEED)
 
-    logged = [None]  # the step of the last checkpoint logged
+    logged = [None if state is None else state["step"]]  # the step of the last checkpoint logged (resumed: its)
 
     def save(st: dict) -> None:
         with atomic_path(work / "state.pt") as tmp:
