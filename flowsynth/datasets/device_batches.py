@@ -21,11 +21,11 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterator, Sequence
 
-import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler, get_worker_info
 
 from flowsynth.datasets.bouncing import stream_plan
+from flowsynth.datasets.stream import count, read_position
 from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
 from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan
@@ -68,12 +68,6 @@ class _From(Sampler):
 def scene_list(scenes: list) -> list:
     """A DataLoader's collate function that keeps a batch's scenes as a list (module level: workers pickle it)."""
     return list(scenes)
-
-
-def _count(name: str, v, lo: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-        raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
-    return int(v)
 
 
 class DeviceBatches:
@@ -119,10 +113,10 @@ class DeviceBatches:
         cfg = BouncingThingsConfig() if cfg is None else cfg
         if not isinstance(cfg, BouncingThingsConfig):
             raise ConfigError(f"cfg must be a BouncingThingsConfig, got {type(cfg).__name__}")
-        self.batch_size, self.num_workers = _count("batch_size", batch_size, 1), _count("num_workers", num_workers, 0)
-        self.seed, self.start = _count("seed", seed, 0), _count("start", start, 0)
+        self.batch_size, self.num_workers = count("batch_size", batch_size, 1), count("num_workers", num_workers, 0)
+        self.seed, self.start = count("seed", seed, 0), count("start", start, 0)
         if length is not None:
-            length = _count("length (samples per epoch; None: endless)", length, 1)
+            length = count("length (samples per epoch; None: endless)", length, 1)
         if cfg.camera_dist_max is not None:
             raise ConfigError("camera_dist_max draws a lens per sample, and a batch needs one camera: leave "
                               "camera_dist_max None, or stream with BouncingThings")
@@ -149,7 +143,7 @@ class DeviceBatches:
         if self.length is None:
             raise ConfigError("set_epoch needs a finite stream (length=...): an endless stream has no epochs and "
                               "continues where it stopped")
-        self._epoch, self._pos = _count("epoch", epoch, 0), 0
+        self._epoch, self._pos = count("epoch", epoch, 0), 0
 
     def state_dict(self) -> dict:
         """The position: {"epoch", "pos" (samples of the epoch already yielded), "seed", "start"}, the keys of
@@ -160,16 +154,7 @@ class DeviceBatches:
     def load_state_dict(self, state: dict) -> None:
         """Resume from a position saved by ``state_dict`` (or by a single-shard ``BouncingThings``). ConfigError for
         a state of another seed or start, a missing key, or a position outside the epoch."""
-        missing = [k for k in ("epoch", "pos", "seed", "start") if k not in state]
-        if missing:
-            raise ConfigError(f"state misses {missing}: pass what DeviceBatches.state_dict() returned")
-        if state["seed"] != self.seed or state["start"] != self.start:
-            raise ConfigError(f"state was saved with seed={state['seed']}, start={state['start']}; this stream has "
-                              f"seed={self.seed}, start={self.start}")
-        epoch, pos = _count("state's epoch", state["epoch"], 0), _count("state's pos", state["pos"], 0)
-        if self.length is not None and pos > self.length:
-            raise ConfigError(f"state's pos {pos} is past the epoch's {self.length} samples (length)")
-        self._epoch, self._pos = epoch, pos
+        self._epoch, self._pos = read_position(state, "DeviceBatches", self.seed, self.start, self.length)
 
     def _first(self) -> int:
         """The index of the next sample to yield."""

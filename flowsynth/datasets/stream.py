@@ -28,7 +28,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["IndexStream", "check_index"]
+__all__ = ["IndexStream", "check_index", "count", "read_position"]
 
 
 def _shard() -> tuple[int, int]:
@@ -41,16 +41,35 @@ def _shard() -> tuple[int, int]:
     return rank * nw + wid, world * nw
 
 
-def _count(name: str, v) -> int:
-    """``v`` as an int; ConfigError naming ``name`` unless it is an integer >= 0."""
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-        raise ConfigError(f"{name} must be an integer >= 0, got {v!r}")
+def count(name: str, v, lo: int = 0) -> int:
+    """``v`` as an int; ConfigError naming ``name`` unless it is an integer >= ``lo``."""
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+        raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
     return int(v)
+
+
+def read_position(state, owner: str, seed: int, start: int, length: int | None) -> tuple[int, int]:
+    """The (epoch, pos) of a stream's saved ``state`` ({"epoch", "pos", "seed", "start"}: what ``owner``'s
+    ``state_dict`` returns), checked against the stream's ``seed``, ``start`` and ``length`` (None: endless).
+    ConfigError for a state that is not a dict, misses a key, was saved with another seed or start, or holds an epoch
+    or position that is not an integer >= 0 (a position past a finite epoch's ``length`` included)."""
+    if not isinstance(state, dict):
+        raise ConfigError(f"state must be the dict state_dict() returned, got {type(state).__name__}")
+    missing = [k for k in ("epoch", "pos", "seed", "start") if k not in state]
+    if missing:
+        raise ConfigError(f"state misses {missing}: pass what {owner}.state_dict() returned")
+    if state["seed"] != seed or state["start"] != start:
+        raise ConfigError(f"state was saved with seed={state['seed']}, start={state['start']}; "
+                          f"this {owner} has seed={seed}, start={start}")
+    epoch, pos = count("state's epoch", state["epoch"]), count("state's pos", state["pos"])
+    if length is not None and pos > length:
+        raise ConfigError(f"state's pos {pos} is past the epoch's {length} samples (length)")
+    return epoch, pos
 
 
 def check_index(i) -> int:
     """``i`` as an int; ConfigError unless it is an integer >= 0 (a sample index)."""
-    return _count("sample index", i)
+    return count("sample index", i)
 
 
 class IndexStream(IterableDataset):
@@ -59,7 +78,7 @@ class IndexStream(IterableDataset):
 
     def _init_stream(self, seed: int, length: int | None, start: int) -> None:
         """Check and keep ``seed`` (>= 0), ``length`` (None or >= 1) and ``start`` (>= 0); ConfigError otherwise."""
-        self.seed, self.start = _count("seed", seed), _count("start", start)
+        self.seed, self.start = count("seed", seed), count("start", start)
         if length is not None and (isinstance(length, bool) or not isinstance(length, (int, np.integer))
                                    or length < 1):
             raise ConfigError(f"length must be None (endless) or an integer >= 1, got {length!r}")
@@ -82,7 +101,7 @@ class IndexStream(IterableDataset):
         if self.length is None:
             raise ConfigError(f"set_epoch needs a finite stream (length=...): an endless {type(self).__name__} "
                               "has no epochs and continues where it stopped")
-        self._epoch, self._pos = _count("epoch", epoch), 0
+        self._epoch, self._pos = count("epoch", epoch), 0
 
     def _indices(self, g: int, G: int, epoch: int, pos: int) -> Iterator[tuple[int, int]]:
         m = pos
@@ -114,15 +133,4 @@ class IndexStream(IterableDataset):
         """Restore a position saved by ``state_dict``. ConfigError for a state that is not a dict, misses a key, was
         saved with another seed or start, or holds an epoch or position that is not an integer >= 0 (a position
         past a finite epoch's ``length`` included)."""
-        if not isinstance(state, dict):
-            raise ConfigError(f"state must be the dict state_dict() returned, got {type(state).__name__}")
-        missing = [k for k in ("epoch", "pos", "seed", "start") if k not in state]
-        if missing:
-            raise ConfigError(f"state misses {missing}: pass what {type(self).__name__}.state_dict() returned")
-        if state["seed"] != self.seed or state["start"] != self.start:
-            raise ConfigError(f"state was saved with seed={state['seed']}, start={state['start']}; "
-                              f"this dataset has seed={self.seed}, start={self.start}")
-        epoch, pos = _count("state's epoch", state["epoch"]), _count("state's pos", state["pos"])
-        if self.length is not None and pos > self.length:
-            raise ConfigError(f"state's pos {pos} is past the epoch's {self.length} samples (length)")
-        self._epoch, self._pos = epoch, pos
+        self._epoch, self._pos = read_position(state, type(self).__name__, self.seed, self.start, self.length)
