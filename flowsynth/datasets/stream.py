@@ -86,10 +86,6 @@ class IndexStream(IterableDataset):
         self._epoch = 0
         self._pos = 0  # samples this shard has produced in the current epoch (endless: ever)
 
-    def sample(self, i: int) -> dict:
-        """Sample ``i`` (defined by each stream)."""
-        raise NotImplementedError
-
     def __len__(self) -> int:
         if self.length is None:
             raise TypeError(f"an endless {type(self).__name__} stream has no len(); pass length=...")
