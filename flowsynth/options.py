@@ -34,9 +34,15 @@ TRACK_SAMPLING = ("uniform", "objects", "edges")
 
 # ------------------------------------------------------------------------------------------ the rules
 
+def _numpy_kind(v: Any) -> str:
+    """The numpy dtype kind of a numpy scalar or 0-d array ("i", "u", "f", ...); "" for anything else (a torch
+    tensor, an array of more than one value, a plain Python value)."""
+    return getattr(getattr(v, "dtype", None), "kind", "") if getattr(v, "ndim", 1) == 0 else ""
+
+
 def is_int(v: Any) -> bool:
-    """An integer, Python's or numpy's, and not a bool."""
-    return not isinstance(v, bool) and (isinstance(v, int) or (hasattr(v, "dtype") and v.dtype.kind in "iu"))
+    """An integer, Python's or numpy's (a scalar), and not a bool."""
+    return not isinstance(v, bool) and (isinstance(v, int) or _numpy_kind(v) in ("i", "u"))
 
 
 def check_int(name: str, v: Any, lo: int, hi: int | None = None) -> int:
@@ -49,8 +55,7 @@ def check_int(name: str, v: Any, lo: int, hi: int | None = None) -> int:
 
 def check_number(name: str, v: Any, lo: float | None = None, hi: float | None = None) -> float:
     """``v`` as a finite float in [lo, hi] (None: unbounded on that side); ConfigError naming ``name`` otherwise."""
-    if isinstance(v, bool) or not (isinstance(v, (int, float)) or is_int(v) or
-                                   (hasattr(v, "dtype") and v.dtype.kind == "f" and v.ndim == 0)):
+    if isinstance(v, bool) or not (isinstance(v, (int, float)) or _numpy_kind(v) in ("i", "u", "f")):
         raise ConfigError(f"{name} must be a number, got {v!r}")
     x = float(v)
     if not math.isfinite(x) or (lo is not None and x < lo) or (hi is not None and x > hi):

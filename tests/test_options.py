@@ -222,3 +222,29 @@ def test_export_refuses_missing_files_before_writing(tmp_path, capsys):
                        "--num-frames", "2", "--motion", "static", "--assets", f"box,{tmp_path / 'gone.obj'}"])
     assert status == 2 and "gone.obj" in capsys.readouterr().err
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("bad", [np.array([1, 2]), np.array([1.0, 2.0]), True, "3"])
+def test_checks_refuse_arrays_bools_and_strings_with_config_errors(bad):
+    """Integer and number checks name the argument for anything but one integer or number: an array of two values
+    used to pass the integer check and fail later in int() with a TypeError."""
+    from flowsynth.options import check_int, check_number
+
+    with pytest.raises(fs.ConfigError, match="must be an integer"):
+        check_int("n", bad, 0)
+    with pytest.raises(fs.ConfigError, match="must be a number"):
+        check_number("x", bad)
+
+
+def test_checks_refuse_torch_scalars_and_take_numpy_scalars():
+    """A torch scalar has a dtype without numpy's ``kind``: a ConfigError, not an AttributeError."""
+    import torch
+
+    from flowsynth.options import check_int, check_number
+
+    with pytest.raises(fs.ConfigError, match="must be an integer"):
+        check_int("n", torch.tensor(3), 0)
+    with pytest.raises(fs.ConfigError, match="must be a number"):
+        check_number("x", torch.tensor(3.0))
+    assert check_int("n", np.int64(3), 0) == 3 and check_int("n", np.uint8(7), 0, 9) == 7
+    assert check_number("x", np.float32(2.5)) == 2.5 and check_number("x", np.array(4.0)) == 4.0
