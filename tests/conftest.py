@@ -87,3 +87,15 @@ def ray_cluster():
             os.environ.pop("PYTHONPATH", None)
         else:
             os.environ["PYTHONPATH"] = old
+
+
+@pytest.fixture
+def one_torch_thread():
+    """torch on one thread for the test: on a busy machine, OpenMP threads that wait for each other spin, and small
+    convolutions ran 10 to 30 times slower on two threads than on one. The caller's thread count comes back after."""
+    import torch
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)

@@ -41,14 +41,7 @@ H = W = 128  # RAFT's correlation pyramid needs 128 px a side
 UPDATES = 2
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One torch thread: on a busy machine, OpenMP threads that wait for each other spin, and these small convolutions
-    ran 10 to 30 times slower on two threads than on one."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # one torch thread: tests/conftest.py
 
 
 @pytest.fixture

@@ -48,13 +48,7 @@ H = W = 128  # RAFT's correlation pyramid needs 128 px a side
 UPDATES = 2
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One torch thread (tests/test_ensemble.py: small convolutions on a busy machine run slower on two)."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # one torch thread: tests/conftest.py
 
 
 @pytest.fixture

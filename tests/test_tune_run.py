@@ -42,13 +42,7 @@ def write_middlebury(root, names=("Alpha", "Beta"), h=128, w=160):
     return root
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """torch on one thread: these small steps spend more in two threads' hand-offs than they gain on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # one torch thread: tests/conftest.py
 
 
 class TinyFlow(torch.nn.Module):
