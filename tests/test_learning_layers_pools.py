@@ -105,3 +105,47 @@ def test_quick_run_on_the_2d_arms_records_the_layers(tmp_path, monkeypatch):
     for r in run["results"].values():
         assert [c["step"] for c in r["curve"]] == [0, 10, 20]
         assert all(math.isfinite(c["stereo"]) for c in r["curve"])
+
+
+def test_still_natural_replaces_the_default_pools_last_share(monkeypatch):
+    """``still_natural``: the default pool's first 85% unchanged; its last 15% the layers pairs of the still (motion
+    scale 0: zero flow everywhere) and near-still (sub-pixel) draws, with the pool's dtypes and valid everywhere."""
+    n, seed = 20, 2
+    s = _seed_pools(n, seed, 5.0)
+    g = torch.Generator().manual_seed(7)
+    sources = torch.rand(4, 3, H, W, generator=g)
+    img1, img2, flow, valid = pools.still_natural(s, sources)
+    k = round(0.15 * n)
+    assert s.info["still_natural"]["replaced"] == k == 3
+    for got, base in zip((img1, img2, flow, valid), s.pool):
+        assert got.dtype == base.dtype and got.shape == base.shape
+        assert torch.equal(got[:n - k], base[:n - k])
+    still = fs.datasets.layers_pairs(1, pools.STILL_SEED + seed, sources, 0.0)
+    near = fs.datasets.layers_pairs(2, pools.NEAR_STILL_SEED + seed, sources, pools.NEAR_STILL_SCALE)
+    u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
+    assert torch.equal(img1[n - k:], u8(torch.cat([still["rgb"][:, 0], near["rgb"][:, 0]])))
+    assert torch.equal(img2[n - k:], u8(torch.cat([still["rgb"][:, 1], near["rgb"][:, 1]])))
+    assert torch.equal(flow[n - k:], torch.cat([still["flow_fw"][:, 0], near["flow_fw"][:, 0]]))
+    assert bool((flow[n - k] == 0).all())  # still: no motion anywhere
+    mag = torch.linalg.vector_norm(flow[n - k + 1:], dim=1)
+    assert 0 < float(mag.max()) < 1.0  # near-still: sub-pixel, and not still
+    assert bool(valid.all())
+
+
+def test_natural_sources_are_centred_crops_averaged_2x2(monkeypatch, tmp_path):
+    """The still_natural textures: each PNG's centred 4:3 crop at RES, equal to OpenCV's area resize (the oracle)."""
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    ims = [rng.integers(0, 256, (512, 512, 3), dtype=np.uint8) for _ in range(2)]
+    for i, im in enumerate(ims):
+        cv2.imwrite(str(tmp_path / f"t{i}.png"), im)
+    monkeypatch.setattr(pools, "natural_folder", lambda: tmp_path)
+    got = pools.natural_sources()
+    w, h = pools.RES
+    assert got.shape == (2, 3, h, w)
+    for i, im in enumerate(ims):
+        rgb = cv2.cvtColor(im, cv2.COLOR_BGR2RGB)[64:448].astype(np.float32) / 255
+        want = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+        assert np.abs(got[i].permute(1, 2, 0).numpy() - want).max() < 1e-6

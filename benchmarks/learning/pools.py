@@ -180,8 +180,55 @@ def _textured(s: SeedPools, folder) -> tuple:
                                                    "texture_families": ["image"]})[0]
 
 
+# still_natural: the share of the default pool's pairs replaced, the near-still half's motion scale, and the seeds of
+# its two layers pools (offsets from the run's seed, apart from every other arm's draws)
+STILL_SHARE, NEAR_STILL_SCALE = 0.15, 0.05
+STILL_SEED, NEAR_STILL_SEED = 40_000, 41_000
+
+
+def natural_sources():
+    """The textures of ``sets.natural_folder()`` (96 PNGs of 512x512, in name order) as layers sources at ``RES``:
+    each image's centred 4:3 crop, averaged over 2x2 blocks (512x384 -> 256x192); float32 (96, 3, h, w) in [0, 1]."""
+    import cv2
+    import torch
+    import torch.nn.functional as F
+
+    w, h = RES
+    out = []
+    for f in sorted(natural_folder().glob("*.png")):
+        im = torch.from_numpy(cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2RGB)).permute(2, 0, 1).float() / 255
+        H, W = im.shape[-2:]
+        ch, cw = min(H, W * 3 // 4), min(W, H * 4 // 3)
+        y0, x0 = (H - ch) // 2, (W - cw) // 2
+        out.append(F.interpolate(im[None, :, y0:y0 + ch, x0:x0 + cw], size=(h, w), mode="area")[0])
+    return torch.stack(out)
+
+
+def still_natural(s: SeedPools, sources=None) -> tuple:
+    """The default pool with its last ``STILL_SHARE`` of pairs replaced by still and near-still FlyingChairs-style
+    pairs with natural image statistics (decision 0023's ``still_natural`` lever, against the default as W): half at
+    motion scale 0 (zero flow everywhere), half at ``NEAR_STILL_SCALE`` (sub-pixel motion), textured with
+    ``natural_sources()`` (or ``sources``), valid everywhere as every 2D pool. ``info["still_natural"]`` records the
+    counts."""
+    import torch
+
+    n = s.n
+    k = round(STILL_SHARE * n)
+    still, near = k // 2, k - k // 2
+    src = natural_sources() if sources is None else sources
+    parts = [layers_pool(m, seed + s.seed, src, scale) for m, seed, scale in
+             ((still, STILL_SEED, 0.0), (near, NEAR_STILL_SEED, NEAR_STILL_SCALE)) if m]
+    tail = tuple(torch.cat(x) for x in zip(*parts)) if parts else None
+    s.info["still_natural"] = {"replaced": k, "still": still, "near_still": near, "near_still_scale": NEAR_STILL_SCALE,
+                               "layers": LAYERS}
+    if tail is None:
+        return s.pool
+    tail = (_u8(tail[0]), _u8(tail[1]), tail[2], tail[3])
+    return tuple(torch.cat([f[:n - k], t]) for f, t in zip(s.pool, tail))
+
+
 ARM_POOLS = {f.__name__: f for f in (flowsynth, chairs2d_photos, chairs2d, flowsynth_photos, flowsynth_natural,
-                                     flowsynth_final, mixture, curriculum, control)}  # protocol.ARMS' makers
+                                     flowsynth_final, mixture, curriculum, control, still_natural)}  # protocol.ARMS' makers
 
 
 def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL) -> tuple[dict, dict, object]:

@@ -25,6 +25,8 @@ arms, ``trainers`` trains and tests the nets, ``runs`` runs the whole protocol.
   - ``curriculum``: chairs first, as FlowNet and RAFT train: the ``chairs2d`` pool for the first half of the steps,
     then the ``flowsynth`` pool (no files; both pools whole, so the arm holds 2 x POOL pairs; ``STAGES``).
   - ``control``: the flowsynth pool again, with another net seed (seed + ``CONTROL_SEED``): the judge's own noise.
+  - ``still_natural``: the ``flowsynth`` pool with its last 15% of pairs replaced by still (half) and near-still
+    (half, sub-pixel) 2D pairs textured with ``sets.natural_folder``'s images (``pools.still_natural``).
 - Judges (``judge_sets``): Motorcycle ("stereo": the whole stereo pair at half resolution, plain and mirrored,
   ``sets.motorcycle_full``) and, with ``--middlebury DIR``, the mean EPE over the Middlebury pairs found there
   ("middlebury", each pair also "mb_NAME"), at full resolution. Tested at step 0 and every ``EVERY`` steps; a net's
@@ -49,7 +51,7 @@ UPDATES, TEST_UPDATES = 8, 12
 POOL = 1200  # training pairs per arm
 SCALE = 512 // RES[0]  # flow_px is given at 512x384
 ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsynth_natural", "flowsynth_final",
-        "mixture", "curriculum", "control")
+        "mixture", "curriculum", "control", "still_natural")
 STAGES = {"curriculum": 2}  # arms trained in stages: the pool's k-th of n equal blocks feeds the k-th n-th of steps
 CONTROL_SEED = 100  # the control's net seed is the run's seed + this
 JUDGES = ("stereo", "middlebury")
