@@ -83,7 +83,7 @@ def tiny(float64, monkeypatch, tmp_path):
 def _args(tag: str, **kw) -> argparse.Namespace:
     base = {"threads": 1, "steps": 3, "every": 2, "arms": "flowsynth,curriculum", "middlebury": None, "seeds": "0,1",
             "tag": tag, "pool": 4, "workers": 0, "overrides": {}, "at_once": False, "ensemble": False, "jobs": 0,
-            "device": "cpu", "train_after": None}
+            "device": "cpu", "train_after": None, "precision": "fp32"}
     return argparse.Namespace(**{**base, **kw})
 
 

@@ -291,3 +291,39 @@ def test_plot_summary_draws_seeds_and_interval(tmp_path, monkeypatch):
         return
     path = summary.plot_summary(out, "summary")
     assert path == tmp_path / "summary.png" and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_bf16_run_is_not_pooled_with_protocol_0023(tmp_path, monkeypatch):
+    """A results file trained in bf16 (protocol 0025) is skipped by the 0023 readings: the same seed's arm in it does
+    not collide with the float32 one ("is in"), and it does not move the ratios."""
+    import json
+
+    monkeypatch.setattr(summary, "RESULTS_DIR", tmp_path)
+    _result(tmp_path / "learning_raft_s0.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)],
+                                                     "chairs2d_photos": [(6.0, 4.0), (6.0, 4.0)]})
+    before = summary.summarize("learning_raft_*.json", "flowsynth", "chairs2d_photos")["judges"]
+    h0 = tmp_path / "learning_raft_h0.json"
+    _result(h0, {}, {"flowsynth": [(1.0, 1.0), (1.0, 1.0)]})
+    with pytest.raises(SystemExit, match="is in"):  # as float32, the second default of seed 0 is an error
+        summary.summarize("learning_raft_*.json", "flowsynth", "chairs2d_photos")
+    h0.write_text(json.dumps({**json.loads(h0.read_text()), "precision": "bf16"}))
+    after = summary.summarize("learning_raft_*.json", "flowsynth", "chairs2d_photos")["judges"]
+    assert after == before and before["middlebury"]["ratios"] == [pytest.approx(0.5)]
+
+
+def test_train_in_bf16_steps_under_autocast():
+    """``precision="bf16"``: the first step's loss is the float32 step's to bf16's rounding, and not the same number
+    (the step really ran in bf16); the float32 default is unchanged by the argument's existence."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    h, w = protocol.CROP
+    pool = (torch.randint(256, (8, 3, h, w), dtype=torch.uint8, generator=g),
+            torch.randint(256, (8, 3, h, w), dtype=torch.uint8, generator=g),
+            torch.randn(8, 2, h, w, generator=g) * 3, torch.ones(8, 1, h, w, dtype=torch.bool))
+    losses = {p: trainers.train(pool, {}, 1, 0, 0, 1, threads=1, precision=p)["curve"][1]["train_loss"]
+              for p in ("fp32", "bf16")}
+    default = trainers.train(pool, {}, 1, 0, 0, 1, threads=1)["curve"][1]["train_loss"]
+    assert default == losses["fp32"]
+    assert losses["bf16"] != losses["fp32"]
+    assert losses["bf16"] == pytest.approx(losses["fp32"], rel=2e-2)

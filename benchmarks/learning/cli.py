@@ -108,6 +108,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=2, help="nets trained at once, each in a process of its own; 0: one "
                                                        "after another in this process")
     p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda)")
+    p.add_argument("--precision", default="fp32", choices=("fp32", "bf16"),
+                   help="the training step's precision (flowsynth.training): fp32 is protocol 0023, bf16 protocol "
+                        "0025; tests run in float32 either way")
     p.add_argument("--at-once", action="store_true", help="render every seed's pools, then train every net of every "
                    "seed at once, each in a process of its own (a lent GPU)")
     p.add_argument("--ensemble", action="store_true", help="train the nets (of each seed; with --at-once, of every "

@@ -28,7 +28,7 @@ from .trainers import train, train_many
 class NetJob:
     """One net of a run, what it trains on and where its files go: ``pool`` (``pools``' layout), ``seed`` (its batch
     draws), ``net_seed`` (its initial weights; the control's is seed + CONTROL_SEED), ``stages`` (STAGES), ``save``
-    (its weights' path) and ``progress`` (its progress file's path)."""
+    (its weights' path), ``progress`` (its progress file's path) and ``precision`` (its training step's)."""
 
     pool: tuple
     seed: int
@@ -36,29 +36,30 @@ class NetJob:
     stages: int
     save: str
     progress: str
+    precision: str = "fp32"
 
     @classmethod
-    def of(cls, arm: str, pool: tuple, seed: int, tag: str) -> NetJob:
-        """Arm ``arm``'s net of ``seed`` on ``pool`` in a run tagged ``tag``."""
+    def of(cls, arm: str, pool: tuple, seed: int, tag: str, precision: str = "fp32") -> NetJob:
+        """Arm ``arm``'s net of ``seed`` on ``pool`` in a run tagged ``tag``, trained in ``precision``."""
         stem = net_stem(tag, arm, seed)
         return cls(pool, seed, seed + CONTROL_SEED if arm == "control" else seed, STAGES.get(arm, 1),
-                   str(CACHE / f"{stem}.pt"), str(RESULTS_DIR / results_name("progress") / f"{stem}.json"))
+                   str(CACHE / f"{stem}.pt"), str(RESULTS_DIR / results_name("progress") / f"{stem}.json"), precision)
 
     def train(self, tests: dict, steps: int, every: int, threads: int, device: str) -> dict:
         """``trainers.train`` of this net (in this process)."""
         return train(self.pool, tests, steps, self.seed, self.net_seed, every, threads, device, self.save,
-                     self.progress, self.stages)
+                     self.progress, self.stages, self.precision)
 
 
 def train_all(arms: dict, tests: dict, steps: int, seed: int, every: int, jobs: int, threads: int, device: str,
-              tag: str) -> dict:
+              tag: str, precision: str = "fp32") -> dict:
     """Train the net of every arm of ``arms`` (name -> pool) for ``seed``, ``jobs`` at once in spawned processes of
     ``threads`` // ``jobs`` torch threads each (0: here, one after another): {arm: ``trainers.train``'s result}."""
     import torch.multiprocessing as tmp
     from concurrent.futures import ProcessPoolExecutor
 
     per = max(1, threads // max(jobs, 1))
-    nets = {name: NetJob.of(name, pool, seed, tag) for name, pool in arms.items()}
+    nets = {name: NetJob.of(name, pool, seed, tag, precision) for name, pool in arms.items()}
     if jobs == 0:
         return {name: job.train(tests, steps, every, per, device) for name, job in nets.items()}
     with ProcessPoolExecutor(min(jobs, len(arms)), mp_context=tmp.get_context("spawn")) as ex:
@@ -66,15 +67,16 @@ def train_all(arms: dict, tests: dict, steps: int, seed: int, every: int, jobs: 
         return {name: f.result() for name, f in futs.items()}
 
 
-def train_together(pools: dict, tests: dict, steps: int, every: int, threads: int, device: str, tag: str) -> dict:
+def train_together(pools: dict, tests: dict, steps: int, every: int, threads: int, device: str, tag: str,
+                   precision: str = "fp32") -> dict:
     """``--ensemble``: the nets of ``pools`` ((seed, arm) -> pool) trained at once in this process (``train_many``),
     each with what ``train_all`` gives it in a process of its own (``NetJob``): its pool, batch seed, net seed,
     stages, saved weights and progress file. Returns {(seed, arm): ``train_many``'s result}."""
     keys = list(pools)
-    nets = [NetJob.of(arm, pools[seed, arm], seed, tag) for seed, arm in keys]
+    nets = [NetJob.of(arm, pools[seed, arm], seed, tag, precision) for seed, arm in keys]
     out = train_many([j.pool for j in nets], tests, steps, [j.seed for j in nets], [j.net_seed for j in nets], every,
                      device=device, threads=threads, saves=[j.save for j in nets],
-                     progresses=[j.progress for j in nets], stages=[j.stages for j in nets])
+                     progresses=[j.progress for j in nets], stages=[j.stages for j in nets], precision=precision)
     step_s = out[0]["step_s"]
     print(f"ensemble of {len(keys)} nets: {steps} steps, {steps / step_s:.2f} steps/s in its training steps "
           f"({len(keys) * steps / step_s:.1f} net-steps/s), {out[0]['train_s']:.0f} s with the tests", flush=True)
@@ -102,7 +104,7 @@ class ResultsFile:
             "complete": complete, "seeds_planned": self.seeds, "net": NET, "steps": self.steps, "every": self.every,
             "batch": BATCH, "crop": CROP, "resolution": RES, "pool": a.pool or POOL, "lr": LR,
             "updates": [UPDATES, TEST_UPDATES], "judged_checkpoints": JUDGED, "device": a.device,
-            "trainer": self.trainer, "overrides": a.overrides, "flowsynth_config": cfg.to_dict(),
+            "trainer": self.trainer, "precision": a.precision, "overrides": a.overrides, "flowsynth_config": cfg.to_dict(),
             "machine": machine_info(), "runs": sorted(runs, key=lambda r: r["seed"])})
         seed, res = runs[-1]["seed"], runs[-1]["results"]
         rows = [{"seed": seed, "arm": arm, "judge": j, "zero flow": self.zero[j], "untrained": r["curve"][0][j],
@@ -130,7 +132,7 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
     runs = []
     if args.ensemble:
         res = train_together({(seed, name): pools[seed][name] for seed in seeds for name in names}, tests, steps,
-                             every, args.threads, args.device, args.tag)
+                             every, args.threads, args.device, args.tag, args.precision)
         for seed in seeds:
             runs.append({"seed": seed, "zero_flow_epe": results.zero, "results": {name: res[seed, name]
                                                                                   for name in names},
@@ -139,8 +141,8 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
         return
     done: dict = {seed: {} for seed in seeds}
     with ProcessPoolExecutor(len(seeds) * len(names), mp_context=tmp.get_context("spawn")) as ex:
-        futs = {ex.submit(NetJob.of(name, pools[seed][name], seed, args.tag).train, tests, steps, every, 1,
-                          args.device): (seed, name) for seed in seeds for name in names}
+        futs = {ex.submit(NetJob.of(name, pools[seed][name], seed, args.tag, args.precision).train, tests, steps,
+                          every, 1, args.device): (seed, name) for seed in seeds for name in names}
         for f in as_completed(futs):
             seed, name = futs[f]
             done[seed][name] = f.result()
@@ -154,7 +156,7 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
 def run(args) -> None:
     """Train the arms of every seed (``protocol``'s docstring) and write the results after each seed. ``args``: the
     command line's namespace (``cli``): seeds, arms, steps, every, pool, workers, threads, jobs, device, at_once,
-    ensemble, train_after, middlebury, overrides (the ``--set`` fields), tag. Raises SystemExit for an unknown arm."""
+    ensemble, train_after, middlebury, overrides (the ``--set`` fields), tag, precision. Raises SystemExit for an unknown arm."""
     import torch
 
     torch.set_num_threads(args.threads)
@@ -179,8 +181,9 @@ def run(args) -> None:
         if args.ensemble:
             res = {arm: r for (_, arm), r in train_together({(seed, arm): pool for arm, pool in arms.items()}, tests,
                                                             steps, every, args.threads, args.device,
-                                                            args.tag).items()}
+                                                            args.tag, args.precision).items()}
         else:
-            res = train_all(arms, tests, steps, seed, every, args.jobs, args.threads, args.device, args.tag)
+            res = train_all(arms, tests, steps, seed, every, args.jobs, args.threads, args.device, args.tag,
+                            args.precision)
         runs.append({"seed": seed, "zero_flow_epe": results.zero, "results": res, "data": info, "generation_s": gen_s})
         results.write(runs, cfg, seed == seeds[-1])

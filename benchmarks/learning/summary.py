@@ -12,13 +12,14 @@ from _common import RESULTS_DIR, plot_curves, print_table, pyplot, save_figure
 from .protocol import JUDGED, JUDGES, NET, score
 
 
-def _complete_runs(pattern: str, who: str):
+def _complete_runs(pattern: str, who: str, precision: str = "fp32"):
     """(file, its JSON, one seed's run) for every seed of the complete runs of this judge in the results/ files
-    matching ``pattern``, in name order; unfinished runs and other judges are skipped. All must share the protocol."""
+    matching ``pattern``, in name order; unfinished runs, other judges and runs trained in another ``precision`` (a
+    file without the key trained in fp32: protocol 0023) are skipped. All must share the protocol."""
     protocol = {}
     for f in sorted(RESULTS_DIR.glob(pattern)):
         d = json.loads(f.read_text())
-        if not d.get("complete") or d.get("net") != NET:
+        if not d.get("complete") or d.get("net") != NET or d.get("precision", "fp32") != precision:
             continue
         same = {k: d.get(k) for k in ("steps", "pool", "batch", "resolution", "every", "lr", "updates")}
         if protocol and same != protocol:

@@ -62,7 +62,7 @@ def draw(pools: list, gens: list, stages: list, step: int, steps: int, drawers=N
 
 def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: list, every: int, device: str = "cpu",
                threads: int = 0, saves: list | None = None, progresses: list | None = None,
-               stages: list | None = None, batched: bool = True) -> list[dict]:
+               stages: list | None = None, batched: bool = True, precision: str = "fp32") -> list[dict]:
     """Train K RAFT-small nets at once in this process for ``steps`` steps of the protocol's recipe, testing each
     (``evaluate`` on ``tests``) at step 0, every ``every`` steps and at the end.
 
@@ -71,7 +71,8 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     of its own seeded ``seeds[k]``. ``saves[k]``: a path for its final weights, each tested checkpoint's beside them
     (``protocol.checkpoint_path``); ``progresses[k]``: a JSON path rewritten with its curve after every test (a run
     cut short keeps its curve). ``batched``: one vmapped step of the K nets (``Ensemble``), or a loop of
-    ``flowsynth.training.train_step``s (the reference). ``threads``: torch threads (0: leave as is).
+    ``flowsynth.training.train_step``s (the reference). ``threads``: torch threads (0: leave as is). ``precision``:
+    the training step's (``flowsynth.training.PRECISIONS``; tests run in float32 whatever it is).
 
     Returns per net {"curve": [{"step", "train_loss" (the mean loss of the last ``every`` steps; None at step 0),
     judge set: EPE [px], ...}], "train_s", "net_seed", "parameters", "at_once": K, "step_s"}: ``train_s`` [s] the
@@ -94,7 +95,7 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     for s in net_seeds:
         torch.manual_seed(s)
         nets.append(raft_small().to(device))
-    ens = Ensemble(nets, LR, steps, updates=UPDATES, batched=batched)
+    ens = Ensemble(nets, LR, steps, updates=UPDATES, batched=batched, precision=precision)
     gens = [torch.Generator().manual_seed(s) for s in seeds]
     t = time.perf_counter()
     curves = [[{"step": 0, "train_loss": None, **evaluate(net, tests, device)}] for net in nets]
@@ -145,10 +146,11 @@ def _checkpoint(ens, step: int, steps: int, every: int, losses: list, curves: li
 
 
 def train(pool: tuple, tests: dict, steps: int, seed: int, net_seed: int, every: int, threads: int = 0,
-          device: str = "cpu", save: str | None = None, progress: str | None = None, stages: int = 1) -> dict:
+          device: str = "cpu", save: str | None = None, progress: str | None = None, stages: int = 1,
+          precision: str = "fp32") -> dict:
     """One net of ``train_many``: ``train_many([pool], tests, steps, [seed], [net_seed], every, ...)[0]``, stepped by
     ``flowsynth.training.train_step`` (``batched=False``), without the ensemble's fields (``ENSEMBLE_ONLY``). Returns
     {"curve", "train_s", "net_seed", "parameters"} as ``train_many`` says."""
     out = train_many([pool], tests, steps, [seed], [net_seed], every, device=device, threads=threads,
-                     saves=[save], progresses=[progress], stages=[stages], batched=False)[0]
+                     saves=[save], progresses=[progress], stages=[stages], batched=False, precision=precision)[0]
     return {k: v for k, v in out.items() if k not in ENSEMBLE_ONLY}
