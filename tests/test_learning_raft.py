@@ -327,3 +327,41 @@ def test_train_in_bf16_steps_under_autocast():
     assert default == losses["fp32"]
     assert losses["bf16"] != losses["fp32"]
     assert losses["bf16"] == pytest.approx(losses["fp32"], rel=2e-2)
+
+
+def test_equivalence_reads_protocol_0025s_rule(tmp_path, monkeypatch):
+    """The three conditions of 0025 on hand-made scores: ratios, their geometric mean, the band from seed 0's
+    control, and the direction of default / baseline; a missing net is an error."""
+    import json
+
+    monkeypatch.setattr(summary, "RESULTS_DIR", tmp_path)
+    _result(tmp_path / "learning_raft_s0.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)],
+                                                     "chairs2d_photos": [(6.0, 4.0), (6.0, 4.0)],
+                                                     "control": [(3.3, 2.2), (3.3, 2.2)]})
+    _result(tmp_path / "learning_raft_s1.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)],
+                                                     "chairs2d_photos": [(6.0, 4.0), (6.0, 4.0)]}, seed=1)
+    with pytest.raises(SystemExit, match="lacks bf16 seed 0 flowsynth"):
+        summary.equivalence("learning_raft_*.json")
+
+    def bf16(name, arms, seed):
+        _result(tmp_path / name, {}, arms, seed)
+        d = json.loads((tmp_path / name).read_text())
+        (tmp_path / name).write_text(json.dumps({**d, "precision": "bf16"}))
+
+    bf16("learning_raft_h0.json", {"flowsynth": [(3.06, 2.1), (3.06, 2.1)],
+                                   "chairs2d_photos": [(6.0, 4.0), (6.0, 4.0)]}, 0)
+    bf16("learning_raft_h1.json", {"flowsynth": [(2.94, 1.9), (2.94, 1.9)],
+                                   "chairs2d_photos": [(6.0, 4.0), (6.0, 4.0)]}, 1)
+    out = summary.equivalence("learning_raft_*.json")
+    mb = out["middlebury"]
+    assert mb["ratios"] == {"flowsynth s0": pytest.approx(1.05), "chairs2d_photos s0": pytest.approx(1.0),
+                            "flowsynth s1": pytest.approx(0.95), "chairs2d_photos s1": pytest.approx(1.0)}
+    assert mb["geometric_mean"] == pytest.approx((1.05 * 0.95) ** 0.25)
+    assert mb["single_band"] == [pytest.approx(1.1 ** -2.5), pytest.approx(1.1 ** 2.5)]  # c = 2.2 / 2.0
+    assert out["equivalent"] and all(mb["held"].values())
+    # the baseline of seed 1 scores 1.5 in bf16: default / baseline flips above 1, and its ratio leaves the band
+    bf16("learning_raft_h1.json", {"flowsynth": [(2.94, 1.9), (2.94, 1.9)],
+                                   "chairs2d_photos": [(6.0, 1.5), (6.0, 1.5)]}, 1)
+    out = summary.equivalence("learning_raft_*.json")
+    assert not out["equivalent"] and all(out["stereo"]["held"].values())
+    assert out["middlebury"]["held"] == {"1 geometric mean": False, "2 every ratio": False, "3 same direction": False}

@@ -5,6 +5,7 @@ diagnoses.
     python benchmarks/learning [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400] [--middlebury DIR]
                                [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2] [--at-once] [--ensemble]
     python benchmarks/learning --summarize [--files 'learning_raft*.json'] [--arm flowsynth] [--against chairs2d_photos]
+    python benchmarks/learning --equivalence [--files 'learning_raft_*.json']   # protocol 0025's rule (bf16)
     python benchmarks/learning --screen [--files 'learning_raft_s0*.json']       # rule 4 for every lever of seed 0
     python benchmarks/learning --diagnose --nets A.pt,B.pt [--middlebury DIR]   # where the saved nets fail
     python benchmarks/learning --diagnose-checkpoints [--files 'learning_raft_l*.json'] [--middlebury DIR]  # every
@@ -32,7 +33,7 @@ from .diagnose import diagnose, figures, pool_stats
 from .ensemble_rate import ensemble_rate
 from .protocol import ARMS, EVERY, POOL, STEPS, results_name
 from .runs import run
-from .summary import plot_judge_curves, plot_summary, screen, summarize
+from .summary import equivalence, plot_judge_curves, plot_summary, screen, summarize
 
 TRAINING_ONLY = ("quick", "at_once", "ensemble", "train_after")  # flags a reading refuses
 
@@ -84,7 +85,11 @@ def _ensemble_rate(args) -> None:
     ensemble_rate(args.ensemble_rate, args.steps or 20, device=args.device, threads=args.threads, tag=args.tag)
 
 
-READINGS = {"summarize": _summarize, "screen": _screen, "plot": _plot, "stats": _stats, "diagnose": _diagnose,
+def _equivalence(args) -> None:
+    write_json(results_name("equivalence", args.tag), equivalence(args.files))
+
+
+READINGS = {"summarize": _summarize, "equivalence": _equivalence, "screen": _screen, "plot": _plot, "stats": _stats, "diagnose": _diagnose,
             "diagnose_checkpoints": _diagnose_checkpoints, "figures": _figures, "ensemble_rate": _ensemble_rate}
 
 
@@ -132,6 +137,9 @@ def parser() -> argparse.ArgumentParser:
     readings = p.add_argument_group("readings", "each trains nothing; at most one, and none of --quick, --at-once, "
                                     "--ensemble, --train-after with it").add_mutually_exclusive_group()
     readings.add_argument("--summarize", action="store_true", help="pool the seeds of --files")
+    readings.add_argument("--equivalence", action="store_true", help="protocol 0025's rule: bf16 / fp32 scores of "
+                          "the default and the photo baseline, seeds 0-1, in the --files results "
+                          "(results/learning_raft_equivalence[_TAG].json)")
     readings.add_argument("--screen", action="store_true", help="rule 4 for every lever of seed 0 in the --files "
                           "results, against the default and its control (results/learning_raft_screens.json)")
     readings.add_argument("--plot", default=None, metavar="NAME", help="results/NAME_JUDGE.png, the learning curves "

@@ -201,3 +201,59 @@ def plot_judge_curves(name: str, pattern: str) -> list:
                                logy=True, title=f"{judge}: the learning curves ({pattern})")
             paths += [path] if path else []
     return paths
+
+
+# protocol 0025's equivalence rule (docs/decisions/0025-protocol-bf16.md): the geometric mean's band per judge, the
+# width of a single ratio's band in units of |log c| (c: seed 0's control / default ratio in float32), the arms, seeds
+EQUIV_MEAN = {"stereo": (0.95, 1.05), "middlebury": (0.90, 1.11)}
+EQUIV_SINGLE = 2.5
+EQUIV_ARMS, EQUIV_SEEDS = ("flowsynth", "chairs2d_photos"), (0, 1)
+
+
+def _scores(pattern: str, precision: str) -> dict:
+    """{(seed, arm): curve} of the complete runs with no ``--set`` in results/``pattern`` trained in ``precision``;
+    an arm twice on one seed is an error."""
+    out, where = {}, {}
+    for f, d, r in _complete_runs(pattern, "--equivalence", precision):
+        if d.get("overrides"):
+            continue
+        for arm, res in r["results"].items():
+            key = (r["seed"], arm)
+            if key in out:
+                raise SystemExit(f"--equivalence: seed {key[0]}'s {arm} in {precision} is in {where[key]} and {f.name}")
+            out[key], where[key] = res["curve"], f.name
+    return out
+
+
+def equivalence(pattern: str) -> dict:
+    """Protocol 0025's rule over the results/``pattern`` files: per judge and (arm, seed) of ``EQUIV_ARMS`` x
+    ``EQUIV_SEEDS``, the score ratio bf16 / fp32; (1) their geometric mean inside ``EQUIV_MEAN``; (2) each inside
+    exp(+-``EQUIV_SINGLE`` |log c|); (3) default / baseline on the same side of 1 in both precisions, per judge and
+    seed. Raises SystemExit when a net of the rule is missing."""
+    import numpy as np
+
+    fp32, bf16 = _scores(pattern, "fp32"), _scores(pattern, "bf16")
+    need = [(s, a) for s in EQUIV_SEEDS for a in EQUIV_ARMS]
+    missing = [f"{p} seed {s} {a}" for p, got in (("fp32", fp32), ("bf16", bf16)) for s, a in need if (s, a) not in got]
+    missing += [f"fp32 seed 0 {a}" for a in ("control",) if (0, a) not in fp32]
+    if missing:
+        raise SystemExit(f"--equivalence: results/{pattern} lacks {', '.join(missing)}")
+    out, rows = {}, []
+    for j in JUDGES:
+        c = score(fp32[0, "control"], j) / score(fp32[0, "flowsynth"], j)
+        band = (float(np.exp(-EQUIV_SINGLE * abs(np.log(c)))), float(np.exp(EQUIV_SINGLE * abs(np.log(c)))))
+        ratios = {f"{a} s{s}": score(bf16[s, a], j) / score(fp32[s, a], j) for s, a in need}
+        gm = float(np.exp(np.mean(np.log(list(ratios.values())))))
+        side = {s: [score(p[s, "flowsynth"], j) < score(p[s, "chairs2d_photos"], j) for p in (fp32, bf16)]
+                for s in EQUIV_SEEDS}
+        held = {"1 geometric mean": EQUIV_MEAN[j][0] <= gm <= EQUIV_MEAN[j][1],
+                "2 every ratio": all(band[0] <= r <= band[1] for r in ratios.values()),
+                "3 same direction": all(a == b for a, b in side.values())}
+        out[j] = {"ratios": ratios, "geometric_mean": gm, "mean_band": list(EQUIV_MEAN[j]), "control_ratio": c,
+                  "single_band": list(band), "held": held}
+        rows.append({"judge": j, **{k: round(v, 3) for k, v in ratios.items()}, "geo mean": round(gm, 3),
+                     **{k: "yes" if v else "NO" for k, v in held.items()}})
+    out["equivalent"] = all(all(o["held"].values()) for o in out.values())
+    print(f"bf16 / fp32 score ratios (protocol 0025's rule): {'equivalent' if out['equivalent'] else 'NOT equivalent'}")
+    print_table(rows, list(rows[0]))
+    return out
