@@ -122,7 +122,7 @@ def test_still_natural_replaces_the_default_pools_last_share(monkeypatch):
         assert torch.equal(got[:n - k], base[:n - k])
     still = fs.datasets.layers_pairs(1, pools.STILL_SEED + seed, sources, 0.0)
     near = fs.datasets.layers_pairs(2, pools.NEAR_STILL_SEED + seed, sources, pools.NEAR_STILL_SCALE)
-    u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)  # noqa: E731
+    u8 = lambda x: (x * 255).round().clamp(0, 255).to(torch.uint8)
     assert torch.equal(img1[n - k:], u8(torch.cat([still["rgb"][:, 0], near["rgb"][:, 0]])))
     assert torch.equal(img2[n - k:], u8(torch.cat([still["rgb"][:, 1], near["rgb"][:, 1]])))
     assert torch.equal(flow[n - k:], torch.cat([still["flow_fw"][:, 0], near["flow_fw"][:, 0]]))

@@ -5,7 +5,7 @@ diagnoses.
     python benchmarks/learning [--seeds 0,1] [--arms flowsynth,chairs2d_photos] [--steps 2400] [--middlebury DIR]
                                [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2] [--at-once] [--ensemble]
     python benchmarks/learning --summarize [--files 'learning_raft*.json'] [--arm flowsynth] [--against chairs2d_photos]
-    python benchmarks/learning --equivalence [--files 'learning_raft_*.json']   # protocol 0025's rule (bf16)
+    python benchmarks/learning --equivalence [--files 'learning_raft_*.json']  # protocol 0025's rule
     python benchmarks/learning --screen [--files 'learning_raft_s0*.json']       # rule 4 for every lever of seed 0
     python benchmarks/learning --diagnose --nets A.pt,B.pt [--middlebury DIR]   # where the saved nets fail
     python benchmarks/learning --diagnose-checkpoints [--files 'learning_raft_l*.json'] [--middlebury DIR]  # every
@@ -89,8 +89,9 @@ def _equivalence(args) -> None:
     write_json(results_name("equivalence", args.tag), equivalence(args.files))
 
 
-READINGS = {"summarize": _summarize, "equivalence": _equivalence, "screen": _screen, "plot": _plot, "stats": _stats, "diagnose": _diagnose,
-            "diagnose_checkpoints": _diagnose_checkpoints, "figures": _figures, "ensemble_rate": _ensemble_rate}
+READINGS = {"summarize": _summarize, "equivalence": _equivalence, "screen": _screen, "plot": _plot, "stats": _stats,
+            "diagnose": _diagnose, "diagnose_checkpoints": _diagnose_checkpoints, "figures": _figures,
+            "ensemble_rate": _ensemble_rate}
 
 
 def _given(value) -> bool:

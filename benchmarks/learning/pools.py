@@ -228,7 +228,7 @@ def still_natural(s: SeedPools, sources=None) -> tuple:
 
 
 ARM_POOLS = {f.__name__: f for f in (flowsynth, chairs2d_photos, chairs2d, flowsynth_photos, flowsynth_natural,
-                                     flowsynth_final, mixture, curriculum, control, still_natural)}  # protocol.ARMS' makers
+                                     flowsynth_final, mixture, curriculum, control, still_natural)}  # ARMS' makers
 
 
 def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL) -> tuple[dict, dict, object]:

@@ -104,7 +104,8 @@ class ResultsFile:
             "complete": complete, "seeds_planned": self.seeds, "net": NET, "steps": self.steps, "every": self.every,
             "batch": BATCH, "crop": CROP, "resolution": RES, "pool": a.pool or POOL, "lr": LR,
             "updates": [UPDATES, TEST_UPDATES], "judged_checkpoints": JUDGED, "device": a.device,
-            "trainer": self.trainer, "precision": a.precision, "overrides": a.overrides, "flowsynth_config": cfg.to_dict(),
+            "trainer": self.trainer, "precision": a.precision, "overrides": a.overrides,
+            "flowsynth_config": cfg.to_dict(),
             "machine": machine_info(), "runs": sorted(runs, key=lambda r: r["seed"])})
         seed, res = runs[-1]["seed"], runs[-1]["results"]
         rows = [{"seed": seed, "arm": arm, "judge": j, "zero flow": self.zero[j], "untrained": r["curve"][0][j],
@@ -156,7 +157,8 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
 def run(args) -> None:
     """Train the arms of every seed (``protocol``'s docstring) and write the results after each seed. ``args``: the
     command line's namespace (``cli``): seeds, arms, steps, every, pool, workers, threads, jobs, device, at_once,
-    ensemble, train_after, middlebury, overrides (the ``--set`` fields), tag, precision. Raises SystemExit for an unknown arm."""
+    ensemble, train_after, middlebury, overrides (the ``--set`` fields), tag, precision. Raises SystemExit for an
+    unknown arm."""
     import torch
 
     torch.set_num_threads(args.threads)
