@@ -144,8 +144,8 @@ class Layers(IndexStream):
     Each item is a dict of tensors with the shapes and dtypes of ``BouncingThings``' keys of the same names:
     ``rgb`` (T, 3, H, W) float32 in [0, 1]; ``flow_*`` (T-1, 2, H, W) float32 [px]; ``valid_*``, ``occ_*``,
     ``oof_*`` (T-1, 1, H, W) bool; ``instance``, ``category`` (T, 1, H, W) int32 (``layer_render.render_layers``).
-    Unlike BouncingThings' flow, which is 0 where not valid, a layer's flow is exact at every pixel, and
-    ``valid`` means that its target lies in the image.
+    ``valid_*`` means what it means in every dataset, that the flow is defined: every pixel sees a layer, so it is
+    True everywhere and the flow is exact at every pixel; a target that leaves the image is ``oof_*``.
 
     Raises ConfigError for a config of another type, outputs a Layers sample does not have, per-pair outputs with
     num_frames < 2, or a bad seed, length or start.
