@@ -145,9 +145,9 @@ def render_layers(draw: PairDraw, texture: Callable[[int], torch.Tensor], width:
             ``valid_fw`` / ``valid_bw`` (T-1, 1, H, W) bool: the flow is defined, True at every pixel (each sees
             a layer, and 2D layers have nothing behind a camera: docs/conventions.md's meaning, as BouncingThings');
             ``oof_fw`` / ``oof_bw``: the target leaves the image [-1/2, W - 1/2) x [-1/2, H - 1/2);
-            ``occ_fw`` / ``occ_bw``: ``oof``, or a layer above the pixel's own covers its target in the other frame; ``instance`` (T, 1, H, W) int32:
-            the layer (0 = background, k = the k-th shape drawn, higher on top); ``category`` (T, 1, H, W) int32
-            (``CATEGORY_NAMES``).
+            ``occ_fw`` / ``occ_bw``: ``oof``, or a layer above the pixel's own covers its target in the other frame;
+            ``instance`` (T, 1, H, W) int32: the layer (0 = background, k = the k-th shape drawn, higher on top);
+            ``category`` (T, 1, H, W) int32 (``CATEGORY_NAMES``).
 
     Returns:
         {key: tensor} for ``outputs``.

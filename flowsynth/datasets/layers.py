@@ -27,7 +27,7 @@ from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.scene import config_from_dict
 
-__all__ = ["LAYERS_OUTPUTS", "Layers", "LayersConfig", "layer_outputs", "layers_pairs"]
+__all__ = ["LAYERS_OUTPUTS", "Layers", "LayersConfig", "layer_outputs", "layers_pairs", "refuse_scene_options"]
 
 LAYERS_OUTPUTS = ("rgb", "flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw",
                   "instance", "category")
@@ -112,6 +112,22 @@ def check_motion_scale(m, num_frames: int) -> float:
                           f"the last frame overflows), got {float(m)!r} x {steps}; lower motion_scale to "
                           f"{MAX_MOTION / steps:g} or less")
     return float(m)
+
+
+def refuse_scene_options(occlusion: str = "exact", device: str = "cpu", threads: int | None = None, *,
+                         what: str = "a Layers stream") -> None:
+    """ConfigError for a ``BouncingThings`` stream option that ``what``, a stream of 2D layers only, cannot honour:
+    its occlusion is exact, from the layer order (``occlusion`` must be "exact"), it renders with torch on the CPU
+    (``device`` "cpu") with torch's own threads (``threads`` None: set ``torch.set_num_threads`` instead)."""
+    if occlusion != "exact":
+        raise ConfigError(f"{what} cannot honour occlusion={occlusion!r}, a BouncingThings option: 2D layers' "
+                          "occlusion is exact, from the layer order; leave it at 'exact'")
+    if device != "cpu":
+        raise ConfigError(f"{what} cannot honour device={device!r}, a BouncingThings option: 2D layers render "
+                          "with torch on the CPU; leave it at 'cpu'")
+    if threads is not None:
+        raise ConfigError(f"{what} cannot honour threads={threads!r}, a BouncingThings option (its ray launches): "
+                          "2D layers render with torch's threads; leave it None (torch.set_num_threads sets those)")
 
 
 def layer_outputs(outputs: Sequence[str], *, drop_unknown: bool = False) -> tuple[str, ...]:
