@@ -110,6 +110,25 @@ def test_the_default_bank_is_flowsynth_frames():
     assert torch.equal(s["rgb"][0][:, bg], ds.textures[d.background][:, bg])
 
 
+def test_valid_means_one_thing_in_a_mixture_of_both_kinds(photos):
+    """docs/conventions.md's valid_fw, the flow is defined, in both kinds of a Mixture: a pixel whose target leaves
+    the image (oof_fw) is still valid where it sees a surface in front of the target camera. So in samples of either
+    source some pixels are valid and out of frame at once; a layered sample is valid everywhere (every pixel sees a
+    layer), a BouncingThings one never where it sees nothing (instance 0)."""
+    things = fs.BouncingThingsConfig(width=64, height=48, num_frames=2, num_objects=(1, 2), render_mode="flat")
+    mix = Mixture({"things": things, "chairs": _cfg(photos)}, outputs=["valid_fw", "oof_fw", "instance"], seed=0)
+    both = {0: 0, 1: 0}
+    for i in range(8):
+        s, k = mix.sample(i), mix.source(i)
+        valid, oof = s["valid_fw"][0, 0], s["oof_fw"][0, 0]
+        both[k] += int((valid & oof).sum())
+        if k == 1:
+            assert bool(valid.all())
+        else:
+            assert not bool((valid & (s["instance"][0, 0] == 0)).any())
+    assert both[0] > 0 and both[1] > 0, both
+
+
 def test_mixture_of_both_kinds_and_its_preset_round_trip(photos, tmp_path):
     """A Mixture of a BouncingThings and a Layers config: sample i is its source's own sample i (the keys every
     source gives), both sources occur, a DataLoader batches them; to_preset / from_preset give the same sources and
