@@ -207,7 +207,8 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--dry-run", action="store_true",
                     help="print the bytes each output costs per sample and in total; write nothing [flag, default off]")
     ex.add_argument("--occlusion", choices=OCCLUSION_METHODS, default="exact",
-                    help="occ_* by exact visibility rays or a depth-buffer test [default exact]")
+                    help="occ_* by exact visibility rays or a depth-buffer test (BouncingThings sources; part of the "
+                         "export's identity, so a resume keeps it) [default exact]")
     ex.add_argument("--verify", action="store_true",
                     help="on resume, check every file's sha256 against the manifest, not only presence and size "
                          "[flag, default off]")
@@ -351,9 +352,10 @@ def _export(args, cfg) -> None:
                           layout=args.layout, overwrite=args.overwrite, occlusion=args.occlusion,
                           exr_compression=args.exr_compression, verify=args.verify, progress=not args.no_progress,
                           engine=args.engine, address=args.address, shard_size=args.shard_size)
-    print(f"exported {args.num} sample{'s' if args.num != 1 else ''} to {root} in "
-          f"{time.perf_counter() - start:.1f} s, layout {args.layout}; load it in Python with "
-          f"{layouts.get(args.layout).load_hint(root)}")
+    run = json.loads((Path(root) / "manifest.json").read_text())["run"]
+    print(f"{root} holds {args.num} sample{'s' if args.num != 1 else ''}: {run['present']} present (whole), "
+          f"{run['written']} written ({run['repaired']} of them repaired) in {time.perf_counter() - start:.1f} s, "
+          f"layout {args.layout}; load it in Python with {layouts.get(args.layout).load_hint(root)}")
 
 
 def _stats(args, cfg) -> None:

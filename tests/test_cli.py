@@ -83,11 +83,20 @@ def test_exit_codes_documented_in_docstring_help_and_readme(capsys):
 
 
 def test_closing_summary_is_singular_and_says_how_to_load(tmp_path, capsys, small_flags):
-    assert main(["export", "--out", str(tmp_path / "one"), "--num", "1", "--no-progress", "--outputs", "depth",
-                 *small_flags]) == 0
+    """The closing line says what the run did: a first run wrote its sample, a re-run found it and wrote nothing, a
+    re-run after a file was deleted wrote it again as a repair; and how to load the export."""
+    argv = ["export", "--out", str(tmp_path / "one"), "--num", "1", "--no-progress", "--outputs", "depth",
+            *small_flags]
+    assert main(argv) == 0
     out = capsys.readouterr().out
-    assert "exported 1 sample to " in out and "1 samples" not in out
+    assert "holds 1 sample: 0 present (whole), 1 written (0 of them repaired)" in out and "1 samples" not in out
     assert "layout native" in out and re.search(r" in \d+\.\d s", out)
+    assert main(argv) == 0
+    assert "holds 1 sample: 1 present (whole), 0 written (0 of them repaired)" in capsys.readouterr().out
+    (tmp_path / "one" / "00000" / "depth_0000.exr").unlink()
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "holds 1 sample: 0 present (whole), 1 written (1 of them repaired)" in out
     hint = out.split("load it in Python with ")[1].strip()
     ds = eval(hint, {"flowsynth": fs})
     assert len(ds) == 1 and ds.root == tmp_path / "one"

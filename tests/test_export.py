@@ -210,7 +210,7 @@ def test_cli_bad_inputs(tmp_path, capsys):
                  *SMALL]) == 0
     assert main(["export", "--out", str(tmp_path / "c"), "--num", "1", "--no-progress", "--outputs", "depth",
                  "--seed", "9", *SMALL]) == 2
-    assert "different config" in capsys.readouterr().err
+    assert "other settings: seed is 0 there, 9 here; resume it" in capsys.readouterr().err
     assert main(["export", "--out", str(tmp_path / "c"), "--num", "1", "--no-progress", "--outputs", "depth",
                  "--seed", "9", "--overwrite", *SMALL]) == 0
     blocker = tmp_path / "file"

@@ -260,14 +260,15 @@ def _top_bf(draw, mats, t: int, x: float, y: float, w: int, h: int) -> int:
 @pytest.mark.parametrize("seed", [1, 2])
 def test_occlusion_validity_and_layers_against_brute_force(seed):
     """instance, valid, oof and occ both ways over 3 frames, per pixel: the topmost layer by a loop over the layers
-    (a shape counts in frame 0's image), the target by the pixel's layer's motion, occluded when out of the image or
-    when the topmost layer at the target in the other frame is another one. Equal on every pixel."""
+    (a shape counts in frame 0's image), the target by the pixel's layer's motion, out of frame when the target leaves
+    the image, occluded when out of the image or when the topmost layer at the target in the other frame is another
+    one; valid everywhere (docs/conventions.md: the flow is defined, also out of frame). Equal on every pixel."""
     w, h, T = 48, 36, 3
     src, _ = _affine_sources(4, h, w)
     draw = draw_pair(np.random.default_rng(seed), w, h, len(src), motion_scale=2.0)
     out = render_layers(draw, src.__getitem__, w, h, T, LAYERS_OUTPUTS)
     mats = [np.vstack([np.array(m), [0, 0, 1]]) for m in [draw.motion] + [la.motion for la in draw.layers]]
-    occluded = 0
+    occluded = left = 0
     for t in range(T):
         lay = np.array([[_top_bf(draw, mats, t, x, y, w, h) for x in range(w)] for y in range(h)])
         np.testing.assert_array_equal(out["instance"][t, 0].numpy(), lay)
@@ -280,9 +281,11 @@ def test_occlusion_validity_and_layers_against_brute_force(seed):
                     tx, ty = m[0] @ (x, y, 1.0), m[1] @ (x, y, 1.0)
                     inside = -0.5 <= tx < w - 0.5 and -0.5 <= ty < h - 0.5
                     occ = not inside or _top_bf(draw, mats, r, tx, ty, w, h) != lay[y, x]
-                    assert bool(out[f"valid_{d}"][t, 0, y, x]) == inside
+                    assert bool(out[f"valid_{d}"][t, 0, y, x])  # the flow is defined at every pixel
                     assert bool(out[f"oof_{d}"][t, 0, y, x]) == (not inside)
                     assert bool(out[f"occ_{d}"][t, 0, y, x]) == occ, (d, t, x, y)
                     np.testing.assert_allclose(out[f"flow_{d}"][t, :, y, x].numpy(), [tx - x, ty - y], atol=FLOW_TOL)
                     occluded += occ and inside
+                    left += not inside
     assert occluded > 0, "no pixel occluded inside the image: the layer test went untested"
+    assert left > 0, "no target leaves the image: valid and oof there went untested"

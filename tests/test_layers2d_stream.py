@@ -110,6 +110,25 @@ def test_the_default_bank_is_flowsynth_frames():
     assert torch.equal(s["rgb"][0][:, bg], ds.textures[d.background][:, bg])
 
 
+def test_valid_means_one_thing_in_a_mixture_of_both_kinds(photos):
+    """docs/conventions.md's valid_fw, the flow is defined, in both kinds of a Mixture: a pixel whose target leaves
+    the image (oof_fw) is still valid where it sees a surface in front of the target camera. So in samples of either
+    source some pixels are valid and out of frame at once; a layered sample is valid everywhere (every pixel sees a
+    layer), a BouncingThings one never where it sees nothing (instance 0)."""
+    things = fs.BouncingThingsConfig(width=64, height=48, num_frames=2, num_objects=(1, 2), render_mode="flat")
+    mix = Mixture({"things": things, "chairs": _cfg(photos)}, outputs=["valid_fw", "oof_fw", "instance"], seed=0)
+    both = {0: 0, 1: 0}
+    for i in range(8):
+        s, k = mix.sample(i), mix.source(i)
+        valid, oof = s["valid_fw"][0, 0], s["oof_fw"][0, 0]
+        both[k] += int((valid & oof).sum())
+        if k == 1:
+            assert bool(valid.all())
+        else:
+            assert not bool((valid & (s["instance"][0, 0] == 0)).any())
+    assert both[0] > 0 and both[1] > 0, both
+
+
 def test_mixture_of_both_kinds_and_its_preset_round_trip(photos, tmp_path):
     """A Mixture of a BouncingThings and a Layers config: sample i is its source's own sample i (the keys every
     source gives), both sources occur, a DataLoader batches them; to_preset / from_preset give the same sources and
@@ -203,7 +222,8 @@ def test_export_to_every_layout_read_back_by_readers_nobody_here_wrote(photos, t
         ref = s[k // 2]
         np.testing.assert_array_equal(valid, ref["valid_fw"][k % 2, 0].numpy())
         assert np.abs(flow - ref["flow_fw"][k % 2].numpy())[:, valid].max() <= HALF_STEP + 1e-6
-    assert not all(ref["valid_fw"].all() for ref in s), "every target in the image: valid went untested"
+    assert all(ref["valid_fw"].all() for ref in s)  # the flow is defined everywhere: KITTI's mask holds it all
+    assert any(ref["oof_fw"].any() for ref in s), "no target leaves the image: out-of-frame flow went untested"
     root = export_dataset(cfg, tmp_path / "sintel", 2, seed=1, layout="sintel", progress=False)
     ds = tv.Sintel(root=root, split="train", pass_name="clean")
     flows = sorted(ds[k][2].tobytes() for k in range(4))
@@ -263,5 +283,10 @@ def test_stats_of_a_layers_stream(photos):
 
     st = dataset_stats(_cfg(photos), 4, seed=0)
     assert st["flow"]["mean"] > 0.5 and 0 < st["occluded_fraction"] < 1
-    assert st["out_of_frame_fraction"] == 0  # valid means the target lies in the image
+    # valid everywhere (the flow is defined), so the share out of frame is oof_fw's share of all pixels
+    stream = Layers(_cfg(photos), ["valid_fw", "oof_fw"], seed=0)
+    masks = [stream.sample(i) for i in range(4)]
+    assert all(m["valid_fw"].all() for m in masks)
+    oof = sum(int(m["oof_fw"].sum()) for m in masks) / sum(m["oof_fw"].numel() for m in masks)
+    assert 0 < oof < 1 and st["out_of_frame_fraction"] == pytest.approx(oof, rel=1e-12)
     assert "background" in st["category_share"] and abs(sum(st["category_share"].values()) - 1) < 1e-9

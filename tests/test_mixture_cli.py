@@ -99,7 +99,8 @@ def test_export_read_back_by_torchvision_and_exported_then_resumed(preset, tmp_p
     full = Mixture.from_preset(preset, outputs=outs, seed=2)
     for i in range(4):
         got, want = back[i], full.sample(i)
-        assert set(got) == {*outs, "index", "seed", "provenance"}
+        assert set(got) == {*outs, "index", "seed", "source", "provenance"}
+        assert int(got["source"]) == full.source(i)
         assert got["provenance"] == want["provenance"]
         _close(got, want, outs)
 
@@ -115,7 +116,7 @@ def test_export_read_back_by_torchvision_and_exported_then_resumed(preset, tmp_p
     other = Mixture(MixtureConfig.from_file(preset).configs, {"things": 3, "chairs": 1}).to_preset(tmp_path / "o.json")
     capsys.readouterr()
     assert main([*argv[:2], str(other), *argv[3:]]) == 2
-    assert "different config" in capsys.readouterr().err
+    assert "config.weights.things is 1.0 there, 3.0 here" in capsys.readouterr().err
     assert json.loads((native / "manifest.json").read_text())["config"] == manifest["config"]
 
 

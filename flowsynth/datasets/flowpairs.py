@@ -34,7 +34,8 @@ class FlowPairs(Dataset):
     ``max_flow``. ``mask="visible"`` is ``valid_fw & ~occ_fw``: the pixels whose surface is seen in both
     frames, for evaluation in the style of KITTI "noc" or Sintel "matched" EPE, or to train on matched
     pixels only. It costs the visibility rays of exact occlusion. For a Layers sample (a mixture's included)
-    ``valid_fw`` is where the flow's target lies in the image, and ``occ_fw`` comes from the layer order.
+    ``valid_fw`` is True at every pixel (its flow is defined everywhere, out of frame too), and ``occ_fw`` comes
+    from the layer order.
 
     Args:
         cfg: a BouncingThingsConfig (default config when None), LayersConfig or MixtureConfig (a preset file:

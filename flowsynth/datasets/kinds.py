@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from flowsynth.datasets.bouncing import BouncingThings
-from flowsynth.datasets.layers import Layers, layer_outputs
+from flowsynth.datasets.layers import Layers, layer_outputs, refuse_scene_options
 from flowsynth.errors import ConfigError
 
 __all__ = ["KINDS", "config_from", "config_kind", "make_stream", "stream_outputs"]
@@ -72,8 +72,8 @@ def make_stream(cfg, outputs: Sequence[str], seed: int = 0, length: int | None =
                 occlusion: str = "exact", device: str = "cpu", threads: int | None = None):
     """``BouncingThings``, ``Layers`` or ``Mixture`` of ``cfg``'s kind. ``occlusion``, ``device`` and ``threads``
     are BouncingThings' (a mixture passes them to its BouncingThings sources; a Layers stream renders with torch on
-    the CPU, its occlusion exact from the layer order: ConfigError for ``occlusion="depth"`` or another device
-    there)."""
+    the CPU, its occlusion exact from the layer order: ConfigError for ``occlusion="depth"``, another device or
+    ``threads`` there, and for a mixture of Layers sources only, ``layers.refuse_scene_options``)."""
     kind = config_kind(cfg)
     if kind == "bouncing":
         return BouncingThings(cfg, outputs, seed, length, start=start, occlusion=occlusion, device=device,
@@ -83,9 +83,5 @@ def make_stream(cfg, outputs: Sequence[str], seed: int = 0, length: int | None =
 
         return Mixture(cfg, None, outputs, seed, length, start=start, occlusion=occlusion, device=device,
                        threads=threads)
-    if occlusion != "exact":
-        raise ConfigError(f"a Layers stream's occlusion is exact, from the layer order; occlusion={occlusion!r} is "
-                          "BouncingThings'")
-    if device != "cpu":
-        raise ConfigError(f"a Layers stream renders on the CPU with torch; device={device!r} is BouncingThings'")
+    refuse_scene_options(occlusion, device, threads)
     return Layers(cfg, outputs, seed, length, start=start)

@@ -142,11 +142,12 @@ def render_layers(draw: PairDraw, texture: Callable[[int], torch.Tensor], width:
         num_frames: T >= 1 (>= 2 for the per-pair keys).
         outputs: keys among ``rgb`` (T, 3, H, W) float32; ``flow_fw`` / ``flow_bw`` (T-1, 2, H, W) float32 [px],
             exact for every pixel (M p - p for the layer M of pixel p), also where the target leaves the image;
-            ``valid_fw`` / ``valid_bw`` (T-1, 1, H, W) bool: the target lies in the image
-            [-1/2, W - 1/2) x [-1/2, H - 1/2); ``oof_fw`` / ``oof_bw``: it does not; ``occ_fw`` / ``occ_bw``: ``oof``,
-            or a layer above the pixel's own covers its target in the other frame; ``instance`` (T, 1, H, W) int32:
-            the layer (0 = background, k = the k-th shape drawn, higher on top); ``category`` (T, 1, H, W) int32
-            (``CATEGORY_NAMES``).
+            ``valid_fw`` / ``valid_bw`` (T-1, 1, H, W) bool: the flow is defined, True at every pixel (each sees
+            a layer, and 2D layers have nothing behind a camera: docs/conventions.md's meaning, as BouncingThings');
+            ``oof_fw`` / ``oof_bw``: the target leaves the image [-1/2, W - 1/2) x [-1/2, H - 1/2);
+            ``occ_fw`` / ``occ_bw``: ``oof``, or a layer above the pixel's own covers its target in the other frame;
+            ``instance`` (T, 1, H, W) int32: the layer (0 = background, k = the k-th shape drawn, higher on top);
+            ``category`` (T, 1, H, W) int32 (``CATEGORY_NAMES``).
 
     Returns:
         {key: tensor} for ``outputs``.
@@ -169,7 +170,7 @@ def render_layers(draw: PairDraw, texture: Callable[[int], torch.Tensor], width:
             tx, ty = maps.move(lay, src, xs, ys, step)
             inside = (tx >= -0.5) & (tx < width - 0.5) & (ty >= -0.5) & (ty < height - 0.5)
             per.setdefault("flow", []).append(torch.stack([tx - xs, ty - ys]).to(torch.float32))
-            per.setdefault("valid", []).append(inside[None])
+            per.setdefault("valid", []).append(torch.ones_like(inside)[None])
             per.setdefault("oof", []).append(~inside[None])
             if f"occ_{direction}" in outputs:
                 per.setdefault("occ", []).append((~inside | maps.covered_above(dst, tx, ty, lay))[None])

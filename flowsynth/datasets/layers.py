@@ -27,7 +27,7 @@ from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.scene import config_from_dict
 
-__all__ = ["LAYERS_OUTPUTS", "Layers", "LayersConfig", "layer_outputs", "layers_pairs"]
+__all__ = ["LAYERS_OUTPUTS", "Layers", "LayersConfig", "layer_outputs", "layers_pairs", "refuse_scene_options"]
 
 LAYERS_OUTPUTS = ("rgb", "flow_fw", "flow_bw", "valid_fw", "valid_bw", "occ_fw", "occ_bw", "oof_fw", "oof_bw",
                   "instance", "category")
@@ -114,6 +114,22 @@ def check_motion_scale(m, num_frames: int) -> float:
     return float(m)
 
 
+def refuse_scene_options(occlusion: str = "exact", device: str = "cpu", threads: int | None = None, *,
+                         what: str = "a Layers stream") -> None:
+    """ConfigError for a ``BouncingThings`` stream option that ``what``, a stream of 2D layers only, cannot honour:
+    its occlusion is exact, from the layer order (``occlusion`` must be "exact"), it renders with torch on the CPU
+    (``device`` "cpu") with torch's own threads (``threads`` None: set ``torch.set_num_threads`` instead)."""
+    if occlusion != "exact":
+        raise ConfigError(f"{what} cannot honour occlusion={occlusion!r}, a BouncingThings option: 2D layers' "
+                          "occlusion is exact, from the layer order; leave it at 'exact'")
+    if device != "cpu":
+        raise ConfigError(f"{what} cannot honour device={device!r}, a BouncingThings option: 2D layers render "
+                          "with torch on the CPU; leave it at 'cpu'")
+    if threads is not None:
+        raise ConfigError(f"{what} cannot honour threads={threads!r}, a BouncingThings option (its ray launches): "
+                          "2D layers render with torch's threads; leave it None (torch.set_num_threads sets those)")
+
+
 def layer_outputs(outputs: Sequence[str], *, drop_unknown: bool = False) -> tuple[str, ...]:
     """``outputs`` checked against ``LAYERS_OUTPUTS`` (duplicates dropped, order kept). Raises ConfigError naming
     what a Layers sample gives for any other key, or with ``drop_unknown`` leaves those out (a layout's defaults)."""
@@ -144,8 +160,8 @@ class Layers(IndexStream):
     Each item is a dict of tensors with the shapes and dtypes of ``BouncingThings``' keys of the same names:
     ``rgb`` (T, 3, H, W) float32 in [0, 1]; ``flow_*`` (T-1, 2, H, W) float32 [px]; ``valid_*``, ``occ_*``,
     ``oof_*`` (T-1, 1, H, W) bool; ``instance``, ``category`` (T, 1, H, W) int32 (``layer_render.render_layers``).
-    Unlike BouncingThings' flow, which is 0 where not valid, a layer's flow is exact at every pixel, and
-    ``valid`` means that its target lies in the image.
+    ``valid_*`` means what it means in every dataset, that the flow is defined: every pixel sees a layer, so it is
+    True everywhere and the flow is exact at every pixel; a target that leaves the image is ``oof_*``.
 
     Raises ConfigError for a config of another type, outputs a Layers sample does not have, per-pair outputs with
     num_frames < 2, or a bad seed, length or start.

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from flowsynth.datasets.bouncing import BouncingThings
-from flowsynth.datasets.layers import Layers, LayersConfig
+from flowsynth.datasets.layers import Layers, LayersConfig, refuse_scene_options
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
 
@@ -216,7 +216,8 @@ class Mixture(IndexStream):
             ``(until, weights)`` stages (module docstring).
         outputs, seed, length, start: as ``BouncingThings``; every source must give every output.
         occlusion, device, threads: the BouncingThings sources' (a Layers source renders with torch on the CPU,
-            its occlusion exact from the layer order).
+            its occlusion exact from the layer order); ConfigError for any but the defaults when no source is a
+            BouncingThings config (``layers.refuse_scene_options``): nothing would honour them.
 
     Attributes: ``config`` (its ``MixtureConfig``), ``names``, ``configs`` (name -> config), ``weights`` (the
     preset's form), ``parts`` (each source's own stream), ``outputs``.
@@ -239,6 +240,8 @@ class Mixture(IndexStream):
         self.weights = self.config.weights
         self.stages = _stages(self.weights, self.names)
         self._init_stream(seed, length, start)
+        if all(source_kind(c) == "layers" for _, c in items):
+            refuse_scene_options(occlusion, device, threads, what="a Mixture of Layers sources only")
         self.parts = []
         for name, c in items:
             try:

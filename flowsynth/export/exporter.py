@@ -9,10 +9,13 @@ sintel, ...). This module does the bookkeeping that is the same for every layout
 
     DIR/
       manifest.json       config (a mixture's: its preset), dataset (its kind, but for BouncingThings),
-                          seed, outputs, layout and its options, versions, num,
+                          seed, outputs, layout and its options, occlusion (the method): the export's
+                          identity, which a resume must match; versions, num,
                           samples: {"NNNNN": {path: {"size": bytes, "sha256": hex}}},
                           cameras: {"NNNNN": {K, width, height, model, dist}}, index: {...},
-                          stats (flowsynth.stats over the samples the last run generated)
+                          stats (flowsynth.stats over the samples the last run generated),
+                          run: {"present", "written", "repaired"}: samples the last run found whole,
+                          wrote, and wrote again because their files were incomplete or damaged
       .journal.jsonl      records of samples finished since manifest.json was last rewritten
       ...                 the layout's files (paths in the manifest are relative to DIR)
 
@@ -70,6 +73,9 @@ ENGINES = ("local", "ray")  # where samples are made: worker processes here, or 
 MANIFEST = "manifest.json"
 JOURNAL = ".journal.jsonl"
 _MANIFEST_EVERY = 16  # samples between manifest rewrites
+# identity keys a manifest written before they were recorded lacks, read as their default (what such an export used
+# unless it was given another value, which it did not record)
+_UNRECORDED = {"occlusion": "exact"}
 
 
 def _versions() -> dict:
@@ -125,12 +131,15 @@ def _place(src: Path, dst: Path) -> None:
             os.replace(p, q)
 
 
-def _write_manifest(root: Path, identity: dict, num: int, samples: dict, index: dict | None = None,
+def _write_manifest(root: Path, identity: dict, num: int, samples: dict, run: dict, index: dict | None = None,
                     stats: dict | None = None) -> None:
-    """``samples``: index -> record ``{"files": ..., "camera": ...}``, as the journal holds them."""
+    """``samples``: index -> record ``{"files": ..., "camera": ...}``, as the journal holds them; ``run``: the
+    samples this run found whole (``present``, all of them in ``samples`` then) and ``repaired``."""
     from flowsynth.io import write_json
 
     body = dict(identity, num=num, versions=_versions(),
+                run={"present": run["present"], "written": len(samples) - run["present"],
+                     "repaired": run["repaired"]},
                 samples={f"{i:05d}": samples[i]["files"] for i in sorted(samples)},
                 cameras={f"{i:05d}": samples[i]["camera"] for i in sorted(samples)}, index=index or {})
     if stats is None and (root / MANIFEST).is_file():  # a run that generated nothing keeps the last stats
@@ -179,19 +188,26 @@ def export_dataset(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outp
             folder every node reaches. Both engines write the same files, and the same manifest up to its
             measured ``stats.seconds_per_sample``.
 
-    Raises ConfigError for invalid arguments (``engine="ray"`` without Ray installed included) and
-    ExportError when ``out`` holds an export of another config (a mixture: another preset)/seed/outputs/layout (pass
-    ``overwrite=True`` to replace it) or something else; both before anything is written. StorageError
+    The manifest's ``run`` says what this call did: how many samples it found whole, wrote and repaired.
+
+    Raises ConfigError for invalid arguments (``engine="ray"`` without Ray installed included, ``address`` with
+    the local engine, an occlusion method no source of the dataset can honour) and
+    ExportError when ``out`` holds an export of other settings (config, a mixture's preset, seed, outputs, layout and
+    its options, occlusion: the message names each that differs, with both values; pass ``overwrite=True`` to
+    replace it) or something else; both before anything is written. StorageError
     (an ExportError) when a file cannot be written: finished samples are kept, temporaries removed, and
     the same call resumes. Returns the output folder.
     """
     from flowsynth.datasets import config_kind
 
+    if engine == "local" and address is not None:
+        raise ConfigError(f"address={address!r} (--address) names a Ray cluster; it needs engine='ray' (--engine ray)"
+                          ", or leave it out")
     lay, outputs = _resolve(cfg, num, outputs, layout, workers, exr_compression, engine, shard_size)
     _check_dataset(cfg, outputs, seed, occlusion)
     root = Path(out)
     identity = {"config": cfg.to_dict(), "seed": seed, "outputs": list(outputs), "layout": lay.name,
-                "layout_options": lay.options()}
+                "layout_options": lay.options(), "occlusion": occlusion}
     if config_kind(cfg) != "bouncing":  # BouncingThings' manifests name no kind (older exports resume as they are)
         identity["dataset"] = config_kind(cfg)
     old = _check_folder(root, identity, overwrite)
@@ -206,16 +222,18 @@ def export_dataset(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outp
         elif old is not None:  # another export, overwrite=True
             _clear(root, old.get("layout"))
         units = lay.units(num)
-        samples.update(_verified(root, records, units, "full" if verify else "quick"))
+        found, repaired = _verified(root, records, units, "full" if verify else "quick")
+        samples.update(found)
+        run = {"present": len(samples), "repaired": repaired}
         _report_foreign(root, records, old)
         if (root / MANIFEST).exists():  # a resumed export: the manifest says what passed the check
-            _write_manifest(root, identity, num, samples)
+            _write_manifest(root, identity, num, samples, run)
             (root / JOURNAL).unlink(missing_ok=True)  # its records are in the manifest now
         todo = [u for u in units if any(i not in samples for i in u)]
         writer = ExportWriter(cfg, outputs, seed, occlusion, lay)
-        _run(todo, root, writer, workers, progress, identity, num, samples, engine, address)
+        _run(todo, root, writer, workers, progress, identity, num, samples, run, engine, address)
         index = file_records(root, lay.finish(root, num, cfg))
-        _write_manifest(root, identity, num, samples, index)
+        _write_manifest(root, identity, num, samples, run, index)
     except OSError as e:
         if isinstance(e, ExportError) and not isinstance(e, StorageError):
             raise
@@ -227,8 +245,26 @@ def export_dataset(cfg, out: str | os.PathLike, num: int, *, seed: int = 0, outp
     return root
 
 
+def _saved(old: dict, identity: dict) -> dict:
+    """The identity a manifest ``old`` records, over ``identity``'s keys (``_UNRECORDED`` fills what it lacks)."""
+    return {k: old.get(k, _UNRECORDED.get(k)) for k in identity}
+
+
 def _same(old: dict, identity: dict) -> bool:
-    return {k: old.get(k) for k in identity} == json.loads(json.dumps(identity))
+    return _saved(old, identity) == json.loads(json.dumps(identity))
+
+
+def _differences(old: dict, identity: dict) -> str:
+    """Each identity field in which the manifest ``old`` differs from this export's, with both values."""
+    from flowsynth.io import json_differences
+
+    def short(v) -> str:
+        text = json.dumps(v)
+        return text if len(text) <= 100 else text[:97] + "..."
+
+    diff = [f"{path} is {short(a)} there, {short(b)} here"
+            for path, a, b in json_differences(_saved(old, identity), json.loads(json.dumps(identity)))]
+    return "; ".join(diff[:8]) + (f"; ... ({len(diff) - 8} more)" if len(diff) > 8 else "")
 
 
 def _check_dataset(cfg, outputs, seed, occlusion) -> None:
@@ -256,8 +292,8 @@ def _check_folder(root: Path, identity: dict, overwrite: bool) -> dict | None:
         except ValueError as e:
             raise ExportError(f"{manifest} is not valid JSON ({e}); move it away or pass --overwrite") from e
         if not _same(old, identity) and not overwrite:
-            raise ExportError(f"{root} holds an export with a different config/seed/outputs/layout; "
-                              "choose another --out or pass --overwrite to replace it")
+            raise ExportError(f"{root} holds an export of other settings: {_differences(old, identity)}; resume it "
+                              "with its own settings, choose another --out, or pass --overwrite to replace it")
         return old
     if any(not p.name.startswith(".tmp-") for p in root.iterdir()) and not overwrite:
         raise ExportError(f"{root} is not empty and holds no flowsynth manifest; choose an empty folder "
@@ -265,8 +301,9 @@ def _check_folder(root: Path, identity: dict, overwrite: bool) -> dict | None:
     return None
 
 
-def _verified(root: Path, records: dict, units: list[range], mode: str) -> dict[int, dict]:
-    """The records of the samples of ``units`` whose unit is complete; says which will be written again.
+def _verified(root: Path, records: dict, units: list[range], mode: str) -> tuple[dict[int, dict], int]:
+    """The records of the samples of ``units`` whose unit is complete, and how many samples of recorded units will
+    be written again (the repairs); says which.
 
     A unit is complete when each of its samples has a record with a camera and files that pass the ``mode``
     check, and the samples recorded with each of those files are exactly the unit's (a shard written for
@@ -278,7 +315,7 @@ def _verified(root: Path, records: dict, units: list[range], mode: str) -> dict[
     for i, rec in records.items():
         for rel in rec["files"]:
             owners.setdefault(rel, set()).add(i)
-    samples, redo = {}, []
+    samples, redo, repaired = {}, [], 0
     for unit in units:
         if not any(i in records for i in unit):
             continue
@@ -292,11 +329,12 @@ def _verified(root: Path, records: dict, units: list[range], mode: str) -> dict[
             samples.update({i: records[i] for i in unit})
         else:
             redo.append(f"{_unit_name(unit)} ({problem})")
+            repaired += len(unit)
     if redo:
         what = "sample" if all(len(u) == 1 for u in units) else "shard"
         _note(f"{len(redo)} incomplete or damaged {what}{'s' if len(redo) != 1 else ''} will be written "
               f"again: {_first(redo)}")
-    return samples
+    return samples, repaired
 
 
 def _unit_name(unit: range) -> str:
@@ -336,7 +374,7 @@ def _kill_for_tests(placed: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-def _run(todo: list[range], root, writer: ExportWriter, workers, progress, identity, num, samples, engine,
+def _run(todo: list[range], root, writer: ExportWriter, workers, progress, identity, num, samples, run, engine,
          address) -> None:
     bar = tqdm(total=num, initial=num - sum(len(u) for u in todo), unit="sample", disable=not progress,
                dynamic_ncols=True)
@@ -360,7 +398,7 @@ def _run(todo: list[range], root, writer: ExportWriter, workers, progress, ident
         for indices, staging, files, stats, cameras in results:
             if journal is None:  # the first unit is about to be placed: now the folder is an export
                 if not (root / MANIFEST).exists():
-                    _write_manifest(root, identity, num, samples)
+                    _write_manifest(root, identity, num, samples, run)
                 journal = open(root / JOURNAL, "a")  # closed in finally
             # record first, then move: a record whose files are not all in place fails the resume check;
             # one write for the whole unit (a torn line leaves the unit incomplete, so it is written again)
@@ -377,7 +415,7 @@ def _run(todo: list[range], root, writer: ExportWriter, workers, progress, ident
             _kill_for_tests(len(records))
             placed, before = placed + len(indices), placed
             if placed // _MANIFEST_EVERY != before // _MANIFEST_EVERY:
-                _write_manifest(root, identity, num, samples)
+                _write_manifest(root, identity, num, samples, run)
                 journal.seek(0)
                 journal.truncate()
     finally:
@@ -394,7 +432,7 @@ def _run(todo: list[range], root, writer: ExportWriter, workers, progress, ident
             from flowsynth.stats import summarize
 
             records.sort(key=lambda x: x[0])
-            _write_manifest(root, identity, num, samples,
+            _write_manifest(root, identity, num, samples, run,
                             stats=summarize([r for _, r in records], writer.cfg) if records else None)
             (root / JOURNAL).unlink(missing_ok=True)
 
@@ -444,7 +482,9 @@ def estimate(cfg, num: int, *, seed: int = 0, outputs=None, layout: str = "nativ
     from flowsynth.datasets import make_stream
 
     lay, outputs = _resolve(cfg, num, outputs, layout, 1, exr_compression, shard_size=shard_size)
-    sample = make_stream(cfg, outputs, seed, occlusion=occlusion).sample(0)
+    # the keys the writer writes: the outputs and what every exported sample keeps (ExportWriter.kept)
+    sample = ExportWriter(cfg, outputs, seed, occlusion, lay).kept(make_stream(cfg, outputs, seed,
+                                                                               occlusion=occlusion).sample(0))
     per_sample: dict[str, int] = {}
     with tempfile.TemporaryDirectory(prefix="flowsynth-dry-run-") as tmp:
         for rel, key in lay.write(sample, 0, Path(tmp)).items():

@@ -32,8 +32,8 @@ from flowsynth.errors import ExportError, StorageError
 
 __all__ = ["ExportWriter", "camera_record", "run_job"]
 
-# keys every exported sample keeps besides the requested outputs (cameras, provenance, index, seed)
-_ALWAYS_KEPT = ("index", "seed", "K", "cam_T_world", "provenance")
+# keys every exported sample keeps besides the requested outputs (cameras, provenance, index, seed, a mixture's source)
+_ALWAYS_KEPT = ("index", "seed", "source", "K", "cam_T_world", "provenance")
 
 
 def camera_record(provenance: str) -> dict | None:
@@ -87,6 +87,11 @@ class ExportWriter:
         self._ds = make_stream(self.cfg, cheap_stats_outputs(self.outputs), self.seed, occlusion=self.occlusion)
         return self
 
+    def kept(self, sample: dict) -> dict:
+        """What of ``sample`` the layout writes: the outputs and the keys every exported sample keeps (index, seed,
+        a mixture's ``source``, the camera, provenance); the extra keys the statistics read are dropped."""
+        return {k: v for k, v in sample.items() if k in self.keep}
+
     def start_worker(self) -> None:
         """Initializer of a worker process: open this writer and make it the one :func:`run_job` uses."""
         global _PROCESS_WRITER
@@ -101,7 +106,7 @@ class ExportWriter:
             sample = self._ds.sample(i)
             stats.append(sample_record(sample, time.perf_counter() - t))
             cameras.append(camera_record(sample["provenance"]))
-            yield i, {k: v for k, v in sample.items() if k in self.keep}
+            yield i, self.kept(sample)
 
     def __call__(self, job: tuple[Sequence[int], str]) -> tuple[tuple[int, ...], str, dict, list[dict], list[dict]]:
         """Write the unit ``job = (indices, root)`` into a staging folder under root (module docstring)."""

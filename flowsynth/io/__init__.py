@@ -7,7 +7,7 @@ from flowsynth.io.atomic import atomic_path, atomic_write_bytes
 from flowsynth.io.exr import CHANNEL_NAMES, read_exr, read_tensor_exr, write_exr, write_tensor_exr
 from flowsynth.io.flo import read_flo, read_middlebury, write_flo
 from flowsynth.io.integrity import VERIFY_MODES, file_records, foreign_files, read_manifest, sample_problem
-from flowsynth.io.jsonio import coco_boxes, read_json, to_jsonable, write_json
+from flowsynth.io.jsonio import coco_boxes, json_differences, read_json, to_jsonable, write_json
 from flowsynth.io.kitti import KITTI_FLOW_SCALE, read_kitti_flow, write_kitti_flow
 from flowsynth.io.png import (
     ZLIB_LEVEL,
@@ -35,6 +35,7 @@ __all__ = [
     "encode_png16",
     "file_records",
     "foreign_files",
+    "json_differences",
     "layouts",
     "read_exr",
     "read_flo",

@@ -20,7 +20,7 @@ import numpy as np
 from flowsynth.errors import ExportError, ShapeError
 from flowsynth.io.atomic import atomic_write_bytes
 
-__all__ = ["coco_boxes", "read_json", "to_jsonable", "write_json"]
+__all__ = ["coco_boxes", "json_differences", "read_json", "to_jsonable", "write_json"]
 
 
 def _finite(value: float, where: str) -> float:
@@ -203,3 +203,18 @@ def coco_boxes(
     ids = sorted({int(c) for c in cats[valid]} | {int(c) for c in names})
     categories = [{"id": c, "name": names.get(c, f"category_{c}"), "supercategory": "object"} for c in ids]
     return {"images": images, "annotations": annotations, "categories": categories}
+
+
+def json_differences(old: Any, new: Any, where: str = "") -> list[tuple[str, Any, Any]]:
+    """Where two JSON-like values differ: ``[(path, old value, new value)]``, paths such as ``config.width`` or
+    ``config.sources[1].config.texture_bank``, in order. Dicts are compared key by key (a key one side lacks has the
+    value None there), lists of one length item by item; anything else whole. What a refusal to resume names, so a
+    user sees which setting to change (``flowsynth export``'s manifest identity, a tune's)."""
+    if isinstance(old, Mapping) and isinstance(new, Mapping):
+        out = []
+        for k in [*old, *(k for k in new if k not in old)]:
+            out += json_differences(old.get(k), new.get(k), f"{where}.{k}" if where else str(k))
+        return out
+    if isinstance(old, list) and isinstance(new, list) and len(old) == len(new) and old != new:
+        return [d for n, (a, b) in enumerate(zip(old, new)) for d in json_differences(a, b, f"{where}[{n}]")]
+    return [] if old == new else [(where, old, new)]

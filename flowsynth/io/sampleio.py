@@ -17,7 +17,8 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 | valid_*, occ_*, oof_*, motion,        | KEY_TTTT.png            | 16-bit greyscale PNG, 0/1           |
 | disparity_occ, disparity_occ_right    |                         |                                     |
 | any of these per-pair keys at gap K   | KEY_kK_TTTT.*           | as the key at gap 1 (TTTT = pair t) |
-| K, cam_T_world, object tables, index  | meta.json               | JSON (float32 values, exact)        |
+| K, cam_T_world, object tables, index, | meta.json               | JSON (float32 values, exact)        |
+| seed, source (a mixture's)            |                         |                                     |
 | provenance                            | meta.json               | JSON object (Scene.from_meta reads) |
 | a lens camera's model, coefficients  | meta.json               | camera_model, camera_dist (OpenCV)  |
 | box2d_visible (when requested)        | boxes_coco.json         | COCO-style detection boxes          |
@@ -63,8 +64,9 @@ _EXR = {"depth": "depth", "distance": "distance", "normals": "normals", "positio
 _RGB = ("rgb", "rgb_right", "rgb_final")
 _U16 = (("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.startswith("flow_"))
         + ("disparity_occ", "disparity_occ_right"))
-# Keys stored as JSON arrays in meta.json: cameras, object tables, and the sample's index and seed.
-META_KEYS = CAMERA_KEYS + TABLE_KEYS + ("index", "seed")
+# Keys stored as JSON arrays in meta.json: cameras, object tables, the sample's index and seed, and a mixture sample's
+# source (int64, the position of its config in the preset).
+META_KEYS = CAMERA_KEYS + TABLE_KEYS + ("index", "seed", "source")
 # The sample's provenance (flowsynth.scene.scene.provenance_json: a JSON string), stored in meta.json as a JSON object.
 PROVENANCE_KEY = "provenance"
 

@@ -52,6 +52,9 @@ class Layout(ABC):
     """Smallest ``num_frames`` the layout can store."""
     owned: ClassVar[tuple[str, ...]] = ()
     """Top-level entries of the export root that belong to the layout (removed by ``--overwrite``)."""
+    writes_exr: ClassVar[bool] = False
+    """Whether the layout writes EXR files; one that does not refuses an ``exr_compression`` other than "zip"
+    (the default), which it could not honour."""
     pair_digits: ClassVar[int | None] = None
     """Digits of the frame-pair numbers in file names, for layouts that number pairs across the export
     (num * (num_frames - 1) must stay below 10**pair_digits); None: no such limit."""
@@ -59,6 +62,9 @@ class Layout(ABC):
     def __init__(self, *, exr_compression: str = "zip") -> None:
         if exr_compression not in EXR_COMPRESSIONS:
             raise ConfigError(f"exr_compression must be one of {EXR_COMPRESSIONS}, got {exr_compression!r}")
+        if exr_compression != "zip" and not self.writes_exr:
+            raise ConfigError(f"layout {self.name} writes no EXR files, so --exr-compression {exr_compression} would "
+                              "change nothing; leave it out (or export with --layout native or webdataset)")
         self.exr_compression = exr_compression
 
     def options(self) -> dict:

@@ -40,6 +40,7 @@ class Native(Layout):
     """Every requested output of a sample in folder ``NNNNN/`` (5-digit, 0-based index)."""
 
     name = "native"
+    writes_exr = True
     summary = "one folder per sample, every output lossless; read with flowsynth.datasets.Exported"
     # images, flow both ways with occlusion, ids, and what boxes_coco.json needs
     default_outputs = ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "instance", "box2d_visible",

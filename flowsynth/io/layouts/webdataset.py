@@ -101,6 +101,7 @@ class WebDataset(Layout):
     """
 
     name = "webdataset"
+    writes_exr = True
     summary = ("tar shards shard-NNNNNN.tar of --shard-size samples, files keyed by the 8-digit index (images "
                "as native, tensors .npy); flowsynth.datasets.Shards, webdataset.WebDataset, ray.data.read_webdataset")
     default_outputs = Native.default_outputs
