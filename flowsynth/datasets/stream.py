@@ -39,7 +39,8 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["LAYOUT_KEYS", "IndexStream", "StreamPosition", "check_index", "count", "rank_world", "shard_indices"]
+__all__ = ["LAYOUT_KEYS", "IndexStream", "StreamPosition", "check_index", "count", "rank_world", "read_state",
+           "shard_indices", "shard_size"]
 
 LAYOUT_KEYS = ("rank", "world_size", "worker", "num_workers")
 """The keys of a shard layout (``StreamPosition.shard_layout``), which every saved state holds."""
