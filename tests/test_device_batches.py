@@ -90,7 +90,8 @@ def test_state_round_trip_and_stateful_dataloader():
     assert isinstance(batches, Stateful)
     next(iter(batches))
     state = batches.state_dict()
-    assert state == {"epoch": 0, "pos": 2, "seed": 2, "start": 0}
+    assert state == {"epoch": 0, "pos": 2, "seed": 2, "start": 0, "rank": 0, "world_size": 1, "worker": 0,
+                     "num_workers": 1}
 
     ds = _stream(length=5)
     loader = StatefulDataLoader(ds, batch_size=2)
@@ -124,7 +125,7 @@ def test_state_round_trip_and_stateful_dataloader():
     (dict(batch_size=0), "batch_size must be an integer >= 1"),
     (dict(num_workers=-1), "num_workers must be an integer >= 0"),
     (dict(num_workers=1.5), "num_workers must be"),
-    (dict(length=0), "length .samples per epoch; None: endless. must be an integer >= 1"),
+    (dict(length=0), r"length must be None \(endless\) or an integer >= 1"),
     (dict(seed=-1), "seed must be"),
     (dict(start=True), "start must be"),
     (dict(device="gpu"), "device 'gpu' is not available"),
@@ -143,8 +144,8 @@ def test_bad_positions_say_what_to_do():
     batches = DeviceBatches(CFG, ["depth"], 2, seed=2, length=4)
     good = batches.state_dict()
     for state, match in (({**good, "seed": 3}, "seed=3"), ({**good, "start": 1}, "start=1"),
-                         ({"epoch": 0, "seed": 2, "start": 0}, r"misses \['pos'\]"),
-                         ({**good, "pos": 5}, "past the epoch's 4 samples"), ({**good, "epoch": -1}, "epoch")):
+                         ({k: v for k, v in good.items() if k != "pos"}, r"misses \[.pos.\]"),
+                         ({**good, "pos": 5}, "past the 4 samples shard 0 of 1"), ({**good, "epoch": -1}, "epoch")):
         with pytest.raises(fs.ConfigError, match=match):
             batches.load_state_dict(state)
     assert batches.state_dict() == good  # a refused state moves nothing

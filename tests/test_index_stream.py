@@ -62,16 +62,21 @@ def test_load_state_dict_resumes_and_refuses_a_bad_state():
     assert _take(resumed) == whole[2:]
     ds = Indices(length=6, seed=2)
     for bad, match in (({k: v for k, v in state.items() if k != "pos"}, r"misses \['pos'\]"),
-                       ({}, r"misses \['epoch', 'pos', 'seed', 'start'\]"),
+                       ({}, r"misses \['epoch', 'pos', 'seed', 'start', 'rank', 'world_size', 'worker', "
+                            r"'num_workers'\]"),
+                       ({k: v for k, v in state.items() if k != "worker"}, r"misses \['worker'\]"),
                        ([0, 2, 2, 0], "must be the dict"),
                        ({**state, "seed": 3}, "seed=3"),
                        ({**state, "start": 1}, "start=1"),
                        ({**state, "epoch": -1}, "epoch must be"),
                        ({**state, "pos": 2.5}, "pos must be"),
-                       ({**state, "pos": 7}, "past the epoch's 6 samples")):
+                       ({**state, "pos": 7}, r"past the 6 samples shard 0 of 1 .rank 0 of 1, worker 0 of 1. "
+                                             r"reads of the epoch's 6"),
+                       ({**state, "rank": 1}, "no shard"), ({**state, "num_workers": 0}, "num_workers must be")):
         with pytest.raises(fs.ConfigError, match=match):
             ds.load_state_dict(bad)
     assert _take(ds) == whole  # refused states leave the position
     endless = Indices()
-    endless.load_state_dict({"epoch": 0, "pos": 10**6, "seed": 0, "start": 0})
+    endless.load_state_dict({"epoch": 0, "pos": 10**6, "seed": 0, "start": 0, "rank": 0, "world_size": 1,
+                             "worker": 0, "num_workers": 1})
     assert _take(endless, 2) == [10**6, 10**6 + 1]

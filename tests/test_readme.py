@@ -20,5 +20,6 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch, capsys):
     assert out[2] == "torch.Size([1, 2, 96, 128]) torch.bool"  # the 2D layers block: one pair, its occlusion
     assert out[3] == "['things', 'layers']"  # the mixture of both kinds, back from its preset file
     assert float(out[4].split("(")[1].split(")")[0]) == 3.5
-    assert out[-2] == "2 torch.Size([1, 2, 192, 256])"
-    assert out[-1] == "(2, 1, 2, 96, 128) True"  # a device batch's sample 1 is the stream's sample 1
+    assert out[-3] == "2 torch.Size([1, 2, 192, 256])"
+    assert out[-2] == "(2, 1, 2, 96, 128) True"  # a device batch's sample 1 is the stream's sample 1
+    assert out[-1] == str([list(range(8)), list(range(8, 16))])  # the DDP block, one process: each epoch whole

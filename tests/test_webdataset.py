@@ -286,6 +286,10 @@ def test_shards_take_rank_from_torch_distributed(exported, monkeypatch):
     for r in range(2):
         monkeypatch.setattr(dist, "get_rank", lambda group=None, r=r: r)
         assert list(Shards(exported).shards()) == explicit[r]
+    monkeypatch.setenv("RANK", "1")  # torchrun's environment comes first: a spawned worker has no process group
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setattr(dist, "is_initialized", lambda: False)
+    assert list(Shards(exported).shards()) == explicit[1]
     with pytest.raises(fs.ConfigError, match="rank"):
         Shards(exported, rank=2, world_size=2)
 

@@ -1,12 +1,14 @@
 """``DeviceBatches``: the BouncingThings stream in batches of B samples, rendered together on one device.
 
 ``DeviceBatches(cfg, outputs, batch_size, num_workers, seed=..., length=...)`` yields what
-``loader(BouncingThings(cfg, outputs, seed=..., length=...), batch_size, num_workers)`` yields, epoch for epoch: the
-same samples in the same batches (on the CPU the same bits; scene sampling and physics run on the CPU whatever the
-device, so a sample's scene does not depend on it), with the tensors on ``device``. The scenes come from
-``num_workers`` CPU processes (``flowsynth.datasets.loader`` over ``SceneSet``: forkserver workers, which survive a
-parent that has initialised CUDA), while this process renders each batch with ``fs.render_batch``: every per-pixel
-stage once per batch.
+``loader(BouncingThings(cfg, outputs, seed=..., length=...), batch_size)`` yields on the same rank, epoch for epoch:
+the same samples in the same batches (on the CPU the same bits; scene sampling and physics run on the CPU whatever
+the device, so a sample's scene does not depend on it), with the tensors on ``device``. Its shard, epochs and
+positions are ``IndexStream``'s (``flowsynth.datasets.stream``), with this process as the one consumer of its rank:
+under torchrun each rank reads its own indices, and a state of either stream resumes in the other when both read the
+same shard. The scenes come from ``num_workers`` CPU processes (``flowsynth.datasets.loader`` over ``SceneSet``:
+forkserver workers, which survive a parent that has initialised CUDA), while this process renders each batch with
+``fs.render_batch``: every per-pixel stage once per batch.
 
     batches = fs.datasets.DeviceBatches(cfg, ["depth", "flow_fw", "occ_fw"], 16, 8, device="cuda")
     for batch in batches:              # batch["flow_fw"]: (16, T-1, 2, H, W) float32 on the GPU
@@ -25,7 +27,7 @@ import torch
 from torch.utils.data import Dataset, Sampler, get_worker_info
 
 from flowsynth.datasets.bouncing import stream_plan
-from flowsynth.datasets.stream import count, read_position
+from flowsynth.datasets.stream import StreamPosition, count, shard_indices, shard_size
 from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
 from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan
@@ -55,14 +57,19 @@ class SceneSet(Dataset):
         return scene, batch_tables(scene, self.plan, threads=1 if in_worker else self.plan.threads)
 
 
-class _From(Sampler):
-    """first, first + 1, ... without end."""
+class _ShardSampler(Sampler):
+    """The indices of shard g of G from position ``pos`` of ``epoch`` on, epoch after epoch, without end
+    (``flowsynth.datasets.stream.shard_indices``; a shard with no index in a finite epoch yields none)."""
 
-    def __init__(self, first: int) -> None:
-        self.first = first
+    def __init__(self, start: int, length: int | None, g: int, G: int, epoch: int, pos: int) -> None:
+        self.start, self.length, self.g, self.G, self.epoch, self.pos = start, length, g, G, epoch, pos
 
     def __iter__(self) -> Iterator[int]:
-        return itertools.count(self.first)
+        if self.length is not None and shard_size(self.length, self.g, self.G) == 0:
+            return
+        for e in itertools.count(self.epoch):
+            for i, _ in shard_indices(self.start, self.length, self.g, self.G, e, self.pos if e == self.epoch else 0):
+                yield i
 
 
 def scene_list(scenes: list) -> list:
@@ -70,7 +77,7 @@ def scene_list(scenes: list) -> list:
     return list(scenes)
 
 
-class DeviceBatches:
+class DeviceBatches(StreamPosition):
     """Batches of ``batch_size`` BouncingThings samples as tensors on ``device``.
 
     Args:
@@ -90,14 +97,18 @@ class DeviceBatches:
         ConfigError: bad arguments, an output ``render_batch`` does not render, a config with a lens per sample or
         motion-blurred rgb, a device Warp does not find.
 
-    Epoch e of a finite stream holds samples start + e L .. start + (e + 1) L - 1 (L = ``length``), in ``len()`` =
-    ceil(L / B) batches of B in order, the last one short when B does not divide L: what a DataLoader with
-    ``batch_size`` B yields over ``BouncingThings(..., length=L)``'s epoch e. An endless stream holds start, start + 1,
-    ... in batches of B. Either way each sample is yielded once: an epoch broken off (the loop stopped reading)
-    resumes at the next ``iter()`` with the first sample not yet yielded, a finite epoch read to its end is followed
-    by the next epoch, and an endless stream continues where it stopped. ``set_epoch`` and ``load_state_dict``
-    move the position; the scene workers start at the first ``iter()`` and stay while the position follows on (their
-    prefetched scenes are kept for the next batches), else restart at the new position.
+    Rank r of W (``flowsynth.datasets.stream.rank_world``: torchrun's ``RANK`` and ``WORLD_SIZE``, else the process
+    group) reads shard r of W: epoch e of a finite stream holds the samples start + e L + k, k = r, r + W, ... < L
+    (L = ``length``), in ``len()`` = ceil(n / B) batches of B in order (n of them, on one rank all L), the last one
+    short when B does not divide n: what a DataLoader with ``batch_size`` B and at most one worker yields over
+    ``BouncingThings(..., length=L)``'s epoch e on that rank. An endless stream holds start + r, start + r + W, ... in
+    batches of B. Either way each sample is yielded once on one rank: an epoch broken off (the loop stopped reading)
+    resumes at the next ``iter()`` with the first sample not yet yielded (none, when its last batch was read), a
+    finite epoch read to its end is followed by the next epoch, and an endless stream continues where it stopped.
+    ``set_epoch`` and ``load_state_dict`` (``IndexStream``'s: a state names its shard, and a position inside an
+    epoch resumes only in that shard) move the position; the scene workers start at the first ``iter()`` and stay
+    while the position follows on (their prefetched scenes are kept for the next batches), else restart at the new
+    position.
 
     Each batch is a dict: every output (B, ...) (per-frame keys (B, T, C, H, W), per-pair (B, T-1, C, H, W), ``K``
     (B, 3, 3), ``cam_T_world`` (B, T, 4, 4)), ``index`` and ``seed`` (B,) int64, all on ``device``, and
@@ -114,91 +125,77 @@ class DeviceBatches:
         if not isinstance(cfg, BouncingThingsConfig):
             raise ConfigError(f"cfg must be a BouncingThingsConfig, got {type(cfg).__name__}")
         self.batch_size, self.num_workers = count("batch_size", batch_size, 1), count("num_workers", num_workers, 0)
-        self.seed, self.start = count("seed", seed, 0), count("start", start, 0)
-        if length is not None:
-            length = count("length (samples per epoch; None: endless)", length, 1)
+        self._init_stream(seed, length, start)
         if cfg.camera_dist_max is not None:
             raise ConfigError("camera_dist_max draws a lens per sample, and a batch needs one camera: leave "
                               "camera_dist_max None, or stream with BouncingThings")
         self.plan = stream_plan(cfg, outputs, occlusion, threads)
         check_batch_plan(self.plan)
         self.device = resolve_device(device)  # here: the scenes' workers start by forkserver, never by fork
-        self.cfg, self.length, self.outputs = cfg, length, self.plan.outputs
+        self.cfg, self.outputs = cfg, self.plan.outputs
         self.scenes = SceneSet(cfg, self.seed, self.plan)
-        self._epoch, self._pos = 0, 0  # the next sample to yield: position _pos of epoch _epoch
         self._source = None  # the scene workers' iterator (a DataLoader's), and the scenes taken from it not yet used
         self._held: list = []
-        self._next = None  # the index of the scene the source gives next (None: no source)
+        self._next = None  # the (g, G, epoch, pos) of the scene the source gives next (None: no source)
 
     def __len__(self) -> int:
-        """Batches per epoch: ceil(length / batch_size). TypeError for an endless stream."""
+        """Batches per epoch on this rank: ceil(n / batch_size), n the samples of its shard (module docstring).
+        TypeError for an endless stream."""
         if self.length is None:
             raise TypeError("an endless DeviceBatches stream has no len(); pass length=... (samples per epoch)")
-        return -(-self.length // self.batch_size)
-
-    # -- position ----------------------------------------------------------------------------------
-    def set_epoch(self, epoch: int) -> None:
-        """Start the next ``iter()`` at the beginning of ``epoch`` (>= 0). ConfigError for an endless stream, which
-        has no epochs: it continues where it stopped."""
-        if self.length is None:
-            raise ConfigError("set_epoch needs a finite stream (length=...): an endless stream has no epochs and "
-                              "continues where it stopped")
-        self._epoch, self._pos = count("epoch", epoch, 0), 0
-
-    def state_dict(self) -> dict:
-        """The position: {"epoch", "pos" (samples of the epoch already yielded), "seed", "start"}, the keys of
-        ``BouncingThings.state_dict`` (one shard: no workers, no ranks), so either stream resumes from the other's
-        state. It does not depend on ``batch_size``."""
-        return {"epoch": self._epoch, "pos": self._pos, "seed": self.seed, "start": self.start}
-
-    def load_state_dict(self, state: dict) -> None:
-        """Resume from a position saved by ``state_dict`` (or by a single-shard ``BouncingThings``). ConfigError for
-        a state of another seed or start, a missing key, or a position outside the epoch."""
-        self._epoch, self._pos = read_position(state, "DeviceBatches", self.seed, self.start, self.length)
-
-    def _first(self) -> int:
-        """The index of the next sample to yield."""
-        return self.start + (self._epoch * self.length if self.length is not None else 0) + self._pos
+        layout = self.shard_layout()
+        g = layout["rank"] * layout["num_workers"] + layout["worker"]
+        return -(-shard_size(self.length, g, layout["world_size"] * layout["num_workers"]) // self.batch_size)
 
     # -- iteration ---------------------------------------------------------------------------------
     def __iter__(self) -> Iterator[dict]:
-        if self.length is not None and self._pos >= self.length:  # the last epoch was read to its end
-            self._epoch, self._pos = self._epoch + 1, 0
-        while self.length is None or self._pos < self.length:
-            n = self.batch_size if self.length is None else min(self.batch_size, self.length - self._pos)
-            first = self._first()
-            out = self._render(self._take(first, n), first)
-            self._pos += n
+        g, G = self._begin()
+        epoch = self._epoch
+        todo = shard_indices(self.start, self.length, g, G, epoch, self._pos)
+        while chunk := list(itertools.islice(todo, self.batch_size)):
+            indices = [i for i, _ in chunk]
+            out = self._render(self._take((g, G, epoch, self._pos), indices), indices)
+            self._pos = chunk[-1][1]
             yield out
-        self._epoch, self._pos = self._epoch + 1, 0
+        self._epoch, self._pos = epoch + 1, 0
 
-    def _take(self, first: int, n: int) -> list:
-        """Scenes ``first`` .. ``first`` + n - 1 (with their tables), from the scene workers."""
-        if self._next != first:  # a new position (the first iter(), set_epoch, load_state_dict): start the workers
+    def _follow(self, g: int, G: int, epoch: int, pos: int) -> tuple[int, int, int, int]:
+        """The position (g, G, epoch, pos) as the scene source counts it: the end of a finite epoch is the start of
+        the next."""
+        if self.length is not None and pos >= shard_size(self.length, g, G):
+            return g, G, epoch + 1, 0
+        return g, G, epoch, pos
+
+    def _take(self, at: tuple[int, int, int, int], indices: list[int]) -> list:
+        """The scenes (with their tables) of ``indices``, the samples of shard g of G from position ``at`` =
+        (g, G, epoch, pos) on, from the scene workers."""
+        at = self._follow(*at)
+        if self._next != at:  # a new position (the first iter(), set_epoch, load_state_dict): start the workers
             self.close()
             self._source = iter(loader(self.scenes, batch_size=self.batch_size, num_workers=self.num_workers,
-                                       sampler=_From(first), collate_fn=scene_list, persistent_workers=False))
-            self._next = first
+                                       sampler=_ShardSampler(self.start, self.length, *at),
+                                       collate_fn=scene_list, persistent_workers=False))
         self._next, items = None, []  # None until the scenes are taken (an error leaves no position)
-        while len(items) < n:
+        while len(items) < len(indices):
             if not self._held:
                 self._held = next(self._source)
-            k = min(n - len(items), len(self._held))
+            k = min(len(indices) - len(items), len(self._held))
             items += self._held[:k]
             self._held = self._held[k:]
-        self._next = first + n
+        g, G, epoch, pos = at
+        self._next = self._follow(g, G, epoch, pos + len(indices))
         return items
 
     def close(self) -> None:
         """Stop the scene workers (and drop their prefetched scenes); the next ``iter()`` starts them again."""
         self._source, self._held, self._next = None, [], None
 
-    def _render(self, items: list[tuple[Scene, dict]], first: int) -> dict:
-        """The batch of ``items`` (``SceneSet``'s (scene, tables)), samples ``first`` .., rendered on the device."""
+    def _render(self, items: list[tuple[Scene, dict]], indices: list[int]) -> dict:
+        """The batch of ``items`` (``SceneSet``'s (scene, tables)), samples ``indices``, rendered on the device."""
         scenes = [scene for scene, _ in items]
         out = render_batch_plan(scenes, self.plan, device=self.device, prepared=[t for _, t in items])
         like = out[self.plan.outputs[0]]
-        out["index"] = torch.arange(first, first + len(scenes), dtype=torch.int64, device=like.device)
+        out["index"] = torch.tensor(indices, dtype=torch.int64, device=like.device)
         out["seed"] = torch.full((len(scenes),), self.seed, dtype=torch.int64, device=like.device)
         out["provenance"] = [provenance_json(s) for s in scenes]
         return out

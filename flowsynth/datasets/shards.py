@@ -13,8 +13,9 @@ What readers of WebDataset shards do (the ``webdataset`` package's ``shardshuffl
    ``shuffle``, through a buffer of ``buffer`` samples that yields a random one of them as each new one
    arrives (random draws from ``(seed, epoch, g)``), the rest shuffled at the end.
 
-Rank and world size come from ``rank`` / ``world_size`` when given, else from ``torch.distributed`` when it
-is initialised, else 0 and 1; the worker from ``torch.utils.data.get_worker_info()``.
+Rank and world size come from ``rank`` / ``world_size`` when given, else from ``RANK`` and ``WORLD_SIZE`` in the
+environment (torchrun's, which every worker inherits), else from ``torch.distributed`` when it is initialised, else
+0 and 1 (``flowsynth.datasets.stream.rank_world``); the worker from ``torch.utils.data.get_worker_info()``.
 
 Epochs: each ``iter()`` on the same object (num_workers=0, or persistent workers) starts the next epoch;
 with non-persistent workers call ``set_epoch(e)`` before each epoch, as with ``DistributedSampler``.
@@ -29,6 +30,7 @@ import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
+from flowsynth.datasets.stream import rank_world
 from flowsynth.errors import ConfigError, ExportError
 from flowsynth.io import read_manifest
 
@@ -44,8 +46,8 @@ class Shards(IterableDataset):
         shuffle: shuffle shards and samples (seeded, per epoch); False: shard order, samples in order.
         seed: seed of the shuffles; every rank must pass the same.
         buffer: samples held for the sample shuffle (memory: that many samples), >= 1.
-        rank, world_size: this process's rank among world_size; None: from ``torch.distributed``
-            when it is initialised, else 0 of 1. Give both or neither.
+        rank, world_size: this process's rank among world_size; None: from ``RANK`` and ``WORLD_SIZE``, else
+            ``torch.distributed`` when it is initialised, else 0 of 1. Give both or neither.
 
     Yields:
         the stream's sample dicts (``BouncingThings.sample`` keys, dtypes and shapes, for the exported
@@ -62,7 +64,8 @@ class Shards(IterableDataset):
         if isinstance(buffer, bool) or not isinstance(buffer, int) or buffer < 1:
             raise ConfigError(f"buffer must be an integer >= 1, got {buffer!r}")
         if (rank is None) != (world_size is None):
-            raise ConfigError("give both rank and world_size, or neither (then torch.distributed says)")
+            raise ConfigError("give both rank and world_size, or neither (then RANK and WORLD_SIZE, or "
+                              "torch.distributed, say)")
         if world_size is not None and not (isinstance(world_size, int) and isinstance(rank, int)
                                            and world_size >= 1 and 0 <= rank < world_size):
             raise ConfigError(f"need 0 <= rank < world_size, got rank={rank!r}, world_size={world_size!r}")
@@ -78,9 +81,7 @@ class Shards(IterableDataset):
         """(g, G): this consumer's position among every rank's workers."""
         rank, world = self.rank, self.world_size
         if rank is None:
-            dist = torch.distributed
-            initialised = dist.is_available() and dist.is_initialized()
-            rank, world = (dist.get_rank(), dist.get_world_size()) if initialised else (0, 1)
+            rank, world = rank_world()
         info = get_worker_info()
         wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
         return rank * nw + wid, world * nw
