@@ -98,7 +98,8 @@ class PoolRenderer:
         w, h = next(iter(sources[0].values())).width, next(iter(sources[0].values())).height
         if out is None:
             out = _empty(n, (w, h))
-        chunks = [(lo, min(lo + CHUNK, n)) for lo in range(0, n, CHUNK)]
+        size = min(CHUNK, -(-n // max(self.workers, 1)))  # every worker has a part of a small pool
+        chunks = [(lo, min(lo + size, n)) for lo in range(0, n, size)]
         if self.workers == 0:
             results = (_render_chunk(sources, seed, lo, hi) for lo, hi in chunks)
         else:

@@ -32,7 +32,7 @@ from pathlib import Path
 from flowsynth.errors import ConfigError
 
 __all__ = ["CORR_BYTES", "NET_BYTES", "PIXEL_BYTES", "TEST_PIXEL_BYTES", "UPDATE_BYTES", "check", "estimate",
-           "testing_bytes", "training_bytes"]
+           "memory_to_test", "memory_to_train"]
 
 NET_BYTES = 64 << 20
 """Training memory of one RAFT-small net besides its batch [bytes]: weights, gradients, AdamW moments, workspace."""
@@ -47,13 +47,13 @@ CORR_BYTES = 5.5
 GIB = float(1 << 30)
 
 
-def training_bytes(recipe, nets: int) -> int:
+def memory_to_train(recipe, nets: int) -> int:
     """Training memory of ``nets`` nets of ``recipe`` stepped at once [bytes]."""
     ch, cw = recipe.crop
     return nets * (NET_BYTES + recipe.batch * ch * cw * (PIXEL_BYTES + recipe.updates * UPDATE_BYTES))
 
 
-def testing_bytes(size: tuple[int, int]) -> int:
+def memory_to_test(size: tuple[int, int]) -> int:
     """Memory of testing one net on one pair of ``size`` = (H, W) [bytes], padded as ``training.predict`` pads."""
     h, w = (max(-(-x // 8) * 8, 128) for x in size)
     return int(TEST_PIXEL_BYTES * h * w + CORR_BYTES * (h * w / 64) ** 2)
@@ -78,7 +78,7 @@ def estimate(recipe, nets: int, sizes: dict[str, tuple[int, int]], *, sources: l
     render = (workers * sample if workers else sample - BASE_BYTES) + max(2 * workers, 1) * CHUNK * w * h * POOL_BYTES
     pairs = sum(hh * ww * POOL_BYTES for hh, ww in sizes.values())
     largest = max(sizes.values(), key=lambda s: s[0] * s[1])
-    work = {"training": training_bytes(recipe, nets), "testing": testing_bytes(largest)}
+    work = {"training": memory_to_train(recipe, nets), "testing": memory_to_test(largest)}
     host = {"process": BASE_BYTES, "validation pairs": pairs, "rendering": render}
     on_device = device != "cpu"
     if not on_device:

@@ -29,9 +29,11 @@ from flowsynth.tune.trainer import QUICK, RECIPE, EnsembleTrainer, Pair, Recipe
 
 __all__ = ["DEFAULT_BUDGET", "DEFAULT_CANDIDATES", "tune", "work_dir"]
 
-DEFAULT_CANDIDATES = 8
+DEFAULT_CANDIDATES = 6
+"""The most whose rung 0 (7 nets with the twin) trains at the judge's recipe on the CPU of an 8 GiB machine
+(``flowsynth.tune.resources``: about 6.5 GiB at the peak; 8 candidates need 8.1)."""
 DEFAULT_BUDGET = plan_cost(DEFAULT_CANDIDATES, 300)
-"""[net-steps] 10500: 8 candidates halved over rungs ending at steps 300, 600, 1200 and 2400 (the judge's length)."""
+"""[net-steps] 9600: 6 candidates halved over rungs ending at steps 300, 600, 1200 and 2400 (the judge's length)."""
 QUICK_CANDIDATES = 2
 RAFT_MIN = 128  # [px] RAFT-small's correlation pyramid needs crops of at least this a side
 GO_ON = "pass --no-resource-check to go on anyway"  # the message's last words: how to skip check_resources
