@@ -6,8 +6,8 @@ A pool is pairs 0 .. n-1 of ``Mixture(*sources, seed=seed)`` (frames 0 and 1 of 
 number of workers): img1, img2 uint8 (n, 3, H, W), flow float32 (n, 2, H, W) [px], valid bool (n, 1, H, W);
 ``POOL_BYTES`` a pixel a pair.
 
-A cached pool is two files in the cache folder, named by a hash of the pool's identity (its sources, seed, size and
-flowsynth's version): ``KEY.npy``, the four tensors' bytes one after another as one uint8 array, and ``KEY.json``,
+A cached pool is two files in the cache folder, named by a hash of the pool's identity (its sources, seed and size;
+not the library's version: a tune resumed under another version trains on the pools it began with): ``KEY.npy``, the four tensors' bytes one after another as one uint8 array, and ``KEY.json``,
 the identity, the tune's identity and each tensor's dtype, shape and offset. Both are written atomically
 (``flowsynth.io.atomic_path``), the ``.npy`` first: a pool without its ``.json`` was cut short and is rendered again.
 """
@@ -149,11 +149,9 @@ def render_pool(sources: tuple[dict, dict], seed: int, n: int, workers: int = 0,
 
 
 def _pool_identity(sources: tuple[dict, dict], seed: int, n: int) -> dict:
-    import flowsynth
-
     configs, weights = sources
     return {"configs": {k: c.to_dict() for k, c in configs.items()}, "weights": dict(weights), "seed": seed, "n": n,
-            "outputs": list(OUTPUTS), "version": flowsynth.__version__}
+            "outputs": list(OUTPUTS)}
 
 
 class PoolCache:
