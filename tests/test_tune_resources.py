@@ -224,3 +224,23 @@ def test_pool_cache_reads_what_it_wrote_and_refuses_another_tune(tmp_path):
         PoolCache(tmp_path / "pools", {"seed": 1, "pairs": ["a"]}).check()
     cache.clear()
     assert not (tmp_path / "pools").exists()
+
+
+@linux
+def test_a_cgroup_limit_bounds_the_memory_a_process_may_use(tmp_path, monkeypatch):
+    """cgroup v2: memory.max less what the group holds beyond its file pages (memory.current less memory.stat's
+    file); no limit ("max") is None; ``available_memory_bytes`` takes the smaller of that and the system's."""
+    with open("/proc/self/cgroup") as f:
+        own = next((line.split(":", 2)[2].strip() for line in f if line.startswith("0::")), None)
+    if own is None:
+        pytest.skip("no cgroup v2 line in /proc/self/cgroup")
+    folder = tmp_path / own.lstrip("/")
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "memory.current").write_text(str(3 << 30))
+    (folder / "memory.stat").write_text(f"anon {2 << 30}\nfile {1 << 30}\nkernel 0\n")
+    (folder / "memory.max").write_text("max\n")
+    assert memory.cgroup_room_bytes(str(tmp_path)) is None
+    (folder / "memory.max").write_text(f"{4 << 30}\n")
+    assert memory.cgroup_room_bytes(str(tmp_path)) == 2 << 30
+    monkeypatch.setattr(memory, "cgroup_room_bytes", lambda: 1 << 20)
+    assert memory.available_memory_bytes() == 1 << 20

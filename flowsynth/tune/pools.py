@@ -7,7 +7,8 @@ number of workers): img1, img2 uint8 (n, 3, H, W), flow float32 (n, 2, H, W) [px
 ``POOL_BYTES`` a pixel a pair.
 
 A cached pool is two files in the cache folder, named by a hash of the pool's identity (its sources, seed and size;
-not the library's version: a tune resumed under another version trains on the pools it began with): ``KEY.npy``, the four tensors' bytes one after another as one uint8 array, and ``KEY.json``,
+not the library's version: a tune resumed under another version trains on the pools it began with): ``KEY.npy``,
+the four tensors' bytes one after another as one uint8 array (each at a multiple of ``ALIGN``), and ``KEY.json``,
 the identity, the tune's identity and each tensor's dtype, shape and offset. Both are written atomically
 (``flowsynth.io.atomic_path``), the ``.npy`` first: a pool without its ``.json`` was cut short and is rendered again.
 """
