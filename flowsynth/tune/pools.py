@@ -191,7 +191,7 @@ class PoolCache:
         identity = _pool_identity(sources, seed, n)
         data, meta = self.paths(sources, seed, n)
         w, h = next(iter(sources[0].values())).width, next(iter(sources[0].values())).height
-        if meta.is_file():
+        if meta.is_file() and data.is_file():
             saved = json.loads(meta.read_text())
             if saved["pool"] != identity or saved["tune"] != self.tune:
                 raise ConfigError(f"{meta} describes another pool or tune than its name says; remove it")
