@@ -140,7 +140,8 @@ class EnsembleTrainer:
         return {"step": self.step, "keys": list(self.keys), "nets": {**self.nets, **nets}, "shared": shared}
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from ``state_dict()``'s state (the pools are rendered again when first needed)."""
+        """Continue from ``state_dict()``'s state (the pools are read from the cache, or rendered again, when first
+        needed)."""
         self.step, self.keys, self.ens = state["step"], list(state["keys"]), None
         self.nets, self.shared = dict(state["nets"]), state["shared"]
         self.gens = {}
