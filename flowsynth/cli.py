@@ -283,6 +283,9 @@ def _tune_parser(sub, sub_kw: dict) -> None:
                     help="processes rendering the training pools [int, default 0: this one]")
     tn.add_argument("--quick", action="store_true",
                     help="a tiny recipe that checks a tune runs; its winner means little [flag, default off]")
+    tn.add_argument("--no-resource-check", action="store_true",
+                    help="go on when the memory and disk the tune needs (estimated before any work, docs/tune.md) "
+                         "are more than this machine has [flag, default off: refused, exit 2]")
 
 
 def _tune(args) -> None:
@@ -290,7 +293,8 @@ def _tune(args) -> None:
 
     rep = tune(args.val, args.out, pairs=None if args.pairs is None else [p for p in args.pairs.split(",") if p],
                budget=args.budget, candidates=args.candidates, pool=args.pool, seed=args.seed, device=args.device,
-               precision=args.precision, workers=args.workers, quick=args.quick)
+               precision=args.precision, workers=args.workers, quick=args.quick,
+               check_resources=not args.no_resource_check)
     print(f"wrote {args.out} ({rep['winner']}); {rep['verdict']}; report: {work_dir(args.out) / 'report.md'}")
 
 

@@ -17,8 +17,8 @@ import os
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["BASE_BYTES", "BYTES_PER_PIXEL_FRAME", "available_memory_bytes", "check_sample_memory",
-           "sample_memory_bytes"]
+__all__ = ["BASE_BYTES", "BYTES_PER_PIXEL_FRAME", "available_memory_bytes", "cgroup_room_bytes",
+           "check_sample_memory", "sample_memory_bytes"]
 
 BYTES_PER_PIXEL_FRAME = 480
 """Peak memory per pixel and frame of one sample [bytes] (measured ~450, see the module docstring)."""
@@ -32,9 +32,7 @@ def sample_memory_bytes(cfg) -> int:
     return BASE_BYTES + BYTES_PER_PIXEL_FRAME * cfg.width * cfg.height * cfg.num_frames
 
 
-def available_memory_bytes() -> int | None:
-    """Memory the system can give without swapping [bytes]: ``MemAvailable`` of /proc/meminfo, else
-    free pages from ``os.sysconf``; None where neither is known."""
+def _system_available() -> int | None:
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -46,6 +44,35 @@ def available_memory_bytes() -> int | None:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (AttributeError, ValueError, OSError):
         return None
+
+
+def cgroup_room_bytes(root: str = "/sys/fs/cgroup") -> int | None:
+    """Memory this process's cgroup (v2) may still take [bytes]: its ``memory.max`` less what it holds beyond
+    reclaimable file pages (``memory.current`` less ``file`` of ``memory.stat``); None without a limit or a
+    cgroup v2 (a container's memory limit is one)."""
+    try:
+        with open("/proc/self/cgroup") as f:
+            path = next(line.split(":", 2)[2].strip() for line in f if line.startswith("0::"))
+        folder = os.path.join(root, path.lstrip("/"))
+        with open(os.path.join(folder, "memory.max")) as f:
+            limit = f.read().strip()
+        if limit == "max":
+            return None
+        with open(os.path.join(folder, "memory.current")) as f:
+            current = int(f.read())
+        with open(os.path.join(folder, "memory.stat")) as f:
+            file = next((int(line.split()[1]) for line in f if line.startswith("file ")), 0)
+        return max(int(limit) - (current - file), 0)
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def available_memory_bytes() -> int | None:
+    """Memory this process may use without swapping [bytes]: the system's (``MemAvailable`` of /proc/meminfo, else
+    free pages from ``os.sysconf``), or its cgroup's room (``cgroup_room_bytes``) where that is less; None where
+    neither is known."""
+    known = [m for m in (_system_available(), cgroup_room_bytes()) if m is not None]
+    return min(known) if known else None
 
 
 def check_sample_memory(cfg, processes: int = 1) -> None:

@@ -110,7 +110,7 @@ def test_plan_halves_to_one_and_fits_the_budget(n):
 
 def test_the_default_plan_ends_at_the_judges_length():
     rungs = plan_rungs(tune.DEFAULT_CANDIDATES, tune.DEFAULT_BUDGET)
-    assert (tune.DEFAULT_CANDIDATES, tune.DEFAULT_BUDGET) == (8, 10500)  # docs/tune.md's numbers
+    assert (tune.DEFAULT_CANDIDATES, tune.DEFAULT_BUDGET) == (6, 9600)  # docs/tune.md's numbers
     assert [r.end for r in rungs] == [300, 600, 1200, 2400]
 
 

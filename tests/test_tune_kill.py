@@ -83,6 +83,17 @@ def _stepped(log) -> list[int]:
             if line.startswith("tune: step ")]
 
 
+def _pools(log) -> tuple[int, int]:
+    """(pools rendered, pools read from the cache), from a run's log lines."""
+    lines = log.with_suffix(".out").read_text().splitlines()
+    return (sum(x.startswith("tune: rendering a pool") for x in lines),
+            sum(x.startswith("tune: pool of") and " read from " in x for x in lines))
+
+
+def _files(work) -> dict:
+    return {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in sorted((work / "pools").iterdir())}
+
+
 def test_a_killed_then_interrupted_tune_resumes_to_the_uninterrupted_result(tmp_path, start):
     val = write_middlebury(tmp_path / "mb", names=("Alpha",))
 
@@ -104,6 +115,9 @@ def test_a_killed_then_interrupted_tune_resumes_to_the_uninterrupted_result(tmp_
     partial = [p.name for p in work.iterdir() if ".tmp-" in p.name]  # the write the kill cut (unless it won the race)
     killed = _state(work)
     assert killed["step"] >= 1 and "winner" not in killed and len(partial) <= 1, (killed["step"], partial)
+    assert _pools(tmp_path / "first") == (3, 0)  # the reference, its twin and the other candidate
+    cached = _files(work)
+    assert len(cached) == 6  # each pool's .npy and .json
 
     # 2. the same command continues from that state, testing no checkpoint again; Ctrl-C after its first new one
     second = start(command(out), tmp_path / "second")
@@ -119,11 +133,13 @@ def test_a_killed_then_interrupted_tune_resumes_to_the_uninterrupted_result(tmp_
     interrupted = _state(work)
     assert interrupted["step"] > killed["step"] and "winner" not in interrupted
     assert [p.name for p in work.iterdir() if ".tmp-" in p.name] == []  # the kill's removed, its own never left
+    assert _pools(tmp_path / "second") == (0, 3) and _files(work) == cached  # no pool rendered or written again
 
     # 3. and again, to the end: it too starts where the last state left off
     third = start(command(out), tmp_path / "third")
     assert third.wait(PATIENCE) == 0, (tmp_path / "third.err").read_text()[-2000:]
     assert _stepped(tmp_path / "third")[:1] in ([], [interrupted["step"] + 1])
+    assert _pools(tmp_path / "third")[0] == 0 and not (work / "pools").exists()  # done: the pools deleted
 
     assert ref.wait(PATIENCE) == 0, (tmp_path / "ref.err").read_text()[-2000:]
     assert _stepped(tmp_path / "ref") == [0, 1, 2, 3, 4]

@@ -11,7 +11,7 @@ import torch
 import flowsynth as fs
 from flowsynth import tune
 from flowsynth.cli import main
-from flowsynth.io import read_json, write_flo, write_rgb_png
+from flowsynth.io import read_json, read_rgb_png, write_flo, write_rgb_png
 from flowsynth.tune import TWIN, EnsembleTrainer, Recipe, plan_rungs, search
 
 
@@ -60,8 +60,11 @@ class TinyFlow(torch.nn.Module):
 def test_the_val_pairs_hold_the_affine_flow(tmp_path):
     layout, pairs = tune.read_pairs(write_middlebury(tmp_path / "mb"))
     assert layout == "middlebury" and list(pairs) == ["Alpha", "Beta"]
-    img1, img2, flow, valid = pairs["Alpha"]
+    img1, img2 = pairs["Alpha"].images()
+    flow, valid = pairs["Alpha"].flow, pairs["Alpha"].valid
+    assert pairs["Alpha"].img1.dtype == torch.uint8 and pairs["Alpha"].img1.shape == (1, 3, 128, 160)
     assert img1.shape == (1, 3, 128, 160) and flow.shape == (1, 2, 128, 160) and valid.all()
+    assert torch.equal(img1[0], torch.from_numpy(read_rgb_png(tmp_path / "mb" / "Alpha" / "frame10.png")))
     want1, want2, want_flow = affine_pair(t=(1.5, -1.0))
     assert torch.equal(flow[0], torch.from_numpy(want_flow))  # .flo is float32, bit for bit
     assert np.abs(img1[0].numpy() - want1).max() <= 0.5 / 255 + 1e-6  # 8-bit PNG rounding
@@ -76,11 +79,15 @@ def test_the_val_pairs_hold_the_affine_flow(tmp_path):
 def _memo(render):
     cache = {}
 
-    def memo(cfg, seed, n, workers=0):
+    def memo(cfg, seed, n, out=None):
         key = (repr(cfg), seed, n)
         if key not in cache:
-            cache[key] = render(cfg, seed, n, workers)
-        return cache[key]
+            cache[key] = render(cfg, seed, n)
+        if out is None:
+            return cache[key]
+        for dst, x in zip(out, cache[key]):
+            dst.copy_(x)
+        return out
     return memo
 
 

@@ -28,7 +28,7 @@ from flowsynth.errors import ConfigError, ExportError
 from flowsynth.io import read_flo, read_kitti_flow, read_ppm, read_rgb_png
 from flowsynth.tune.trainer import Pair
 
-__all__ = ["LAYOUTS", "read_pairs"]
+__all__ = ["LAYOUTS", "find_pairs", "image_size", "load_pairs", "read_pairs"]
 
 UNKNOWN = 1e9  # [px] a .flo component above this marks unknown flow (Middlebury's convention)
 
@@ -110,11 +110,46 @@ def _read(layout: str, name: str, files: tuple[Path, Path, Path]) -> Pair:
     if not valid.any():
         raise ConfigError(f"validation pair {name}: its flow {files[2]} is known at no pixel")
     flow = np.where(valid[None], flow, np.float32(0))
+    images = [(x * np.float32(255)).round().astype(np.uint8) for x in images]  # exact: the files hold 8 bits
     return Pair(*(torch.from_numpy(np.ascontiguousarray(x))[None] for x in (*images, flow, valid[None])))
 
 
+def image_size(layout: str, name: str, files: tuple[Path, Path, Path]) -> tuple[int, int]:
+    """(H, W) [px] of a pair's first image, from its header (no pixel is decoded); ConfigError when it is missing or
+    Pillow cannot open it."""
+    from PIL import Image
+
+    if not files[0].is_file():
+        raise ConfigError(f"validation pair {name} ({layout}): {files[0]} is missing")
+    try:
+        with Image.open(files[0]) as im:
+            return im.height, im.width
+    except OSError as e:
+        raise ConfigError(f"validation pair {name}: cannot read its image {files[0]}: {e}") from e
+
+
+def load_pairs(layout: str, files: dict[str, tuple[Path, Path, Path]]) -> dict[str, Pair]:
+    """The pairs ``find_pairs`` found, read (``read_pairs``'s values and errors)."""
+    return {name: _read(layout, name, f) for name, f in files.items()}
+
+
 def read_pairs(root: str | os.PathLike[str], names: list[str] | None = None) -> tuple[str, dict[str, Pair]]:
-    """The validation pairs under ``root`` (layouts: module docstring).
+    """The validation pairs under ``root`` (layouts: module docstring): ``load_pairs`` of ``find_pairs``.
+
+    Returns:
+        (layout name, {pair name: ``Pair``}): images (1, 3, H, W) uint8, as the files hold them, flow (1, 2, H, W)
+        float32 [px], 0 where not valid, valid (1, 1, H, W) bool.
+
+    Raises:
+        ConfigError: as ``find_pairs``, or a pair's file is missing or unreadable, its sizes differ or its flow is
+            known nowhere.
+    """
+    layout, files = find_pairs(root, names)
+    return layout, load_pairs(layout, files)
+
+
+def find_pairs(root: str | os.PathLike[str], names: list[str] | None = None) -> tuple[str, dict[str, tuple]]:
+    """The files of the validation pairs under ``root``, none read.
 
     Args:
         root: the folder (or a folder one level above the layout's root).
@@ -122,12 +157,10 @@ def read_pairs(root: str | os.PathLike[str], names: list[str] | None = None) -> 
             every pair, sorted by name.
 
     Returns:
-        (layout name, {pair name: ``Pair``}): images (1, 3, H, W) float32 in [0, 1], flow (1, 2, H, W) float32 [px],
-        0 where not valid, valid (1, 1, H, W) bool.
+        (layout name, {pair name: (image 1, image 2, flow file)}).
 
     Raises:
-        ConfigError: ``root`` is not a folder, holds no pairs or several layouts, a name matches no pair, a pair's
-            file is missing or unreadable, its sizes differ or its flow is known nowhere.
+        ConfigError: ``root`` is not a folder, holds no pairs or several layouts, or a name matches no pair.
     """
     base = Path(root)
     if not base.is_dir():
@@ -142,4 +175,4 @@ def read_pairs(root: str | os.PathLike[str], names: list[str] | None = None) -> 
         pairs = {k: v for k, v in pairs.items() if any(fnmatch.fnmatchcase(k, n) for n in names)}
     if not pairs:
         raise ConfigError(f"{found}: the {layout} layout holds no pairs")
-    return layout, {name: _read(layout, name, files) for name, files in pairs.items()}
+    return layout, pairs

@@ -2,7 +2,9 @@
 
 Files, beside the preset ``out`` (``PRESET.json``): a folder ``PRESET.tune/`` holding ``state.pt`` (the search and
 its nets, replaced atomically after every checkpoint: the same call continues from it), ``progress.json`` (the curves
-so far), and once done ``report.json``, ``report.md`` and ``curves.png`` (where matplotlib is installed).
+so far), ``pools/`` (the training pools of the nets still in the search, ``flowsynth.tune.PoolCache``: a resumed
+tune reads them instead of rendering them; deleted when the tune is done), and once done ``report.json``,
+``report.md`` and ``curves.png`` (where matplotlib is installed).
 """
 
 from __future__ import annotations
@@ -18,19 +20,23 @@ import torch
 from flowsynth.errors import ConfigError
 from flowsynth.io import atomic_path, atomic_write_bytes, write_json
 from flowsynth.tune.halving import TWIN, TWIN_SEED, plan_cost, plan_rungs, rank, search
-from flowsynth.tune.pairs import read_pairs
+from flowsynth.tune.pairs import find_pairs, image_size, load_pairs
+from flowsynth.tune.pools import PoolCache
 from flowsynth.tune.report import markdown, plot, summarize
+from flowsynth.tune.resources import GIB, check, estimate
 from flowsynth.tune.space import draw_candidates, preset, sources
-from flowsynth.tune.trainer import QUICK, RECIPE, EnsembleTrainer, Recipe, render_pool
+from flowsynth.tune.trainer import QUICK, RECIPE, EnsembleTrainer, Pair, Recipe
 
 __all__ = ["DEFAULT_BUDGET", "DEFAULT_CANDIDATES", "tune", "work_dir"]
 
-DEFAULT_CANDIDATES = 8
+DEFAULT_CANDIDATES = 6
+"""The most whose rung 0 (7 nets with the twin) trains at the judge's recipe on the CPU of an 8 GiB machine
+(``flowsynth.tune.resources``: about 6.5 GiB at the peak; 8 candidates need 8.1)."""
 DEFAULT_BUDGET = plan_cost(DEFAULT_CANDIDATES, 300)
-"""[net-steps] 10500: 8 candidates halved over rungs ending at steps 300, 600, 1200 and 2400 (the judge's length)."""
+"""[net-steps] 9600: 6 candidates halved over rungs ending at steps 300, 600, 1200 and 2400 (the judge's length)."""
 QUICK_CANDIDATES = 2
 RAFT_MIN = 128  # [px] RAFT-small's correlation pyramid needs crops of at least this a side
-POOL_BYTES = 2 * 3 + 2 * 4 + 1  # [bytes per pixel] of a pool's pair: two uint8 images, float32 flow, bool valid
+GO_ON = "pass --no-resource-check to go on anyway"  # the message's last words: how to skip check_resources
 
 
 def work_dir(out: str | Path) -> Path:
@@ -39,11 +45,11 @@ def work_dir(out: str | Path) -> Path:
     return out.with_name(out.stem + ".tune")
 
 
-def _fingerprint(pairs: dict) -> str:
+def _fingerprint(pairs: dict[str, Pair]) -> str:
     h = hashlib.sha256()
-    for name, pair in pairs.items():
+    for name, pair in pairs.items():  # the images as float32 in [0, 1], as the pairs were once held
         h.update(name.encode())
-        for x in pair:
+        for x in (*pair.images(), pair.flow, pair.valid):
             h.update(x.numpy().tobytes())
     return h.hexdigest()[:16]
 
@@ -73,7 +79,8 @@ def _remove_temporaries(work: Path, out: Path) -> None:
     beside each file and renames it over the file when whole, so one a SIGKILL interrupted stays (a partial state is
     tens of MB). Every such file in ``work`` is this tune's; beside the preset ``out``, only ``out``'s own."""
     own = re.compile(rf"\.{re.escape(out.stem)}\.tmp-[0-9a-f]{{8}}{re.escape(out.suffix)}")
-    for p in [*work.glob(".*.tmp-*"), *(p for p in out.parent.glob(".*.tmp-*") if own.fullmatch(p.name))]:
+    for p in [*work.glob(".*.tmp-*"), *work.glob("pools/.*.tmp-*"),
+              *(p for p in out.parent.glob(".*.tmp-*") if own.fullmatch(p.name))]:
         p.unlink(missing_ok=True)
 
 
@@ -92,7 +99,8 @@ def _load(path: Path, identity: dict) -> dict | None:
 def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, budget: int | None = None,
          candidates: int | None = None, seed: int = 0, device: str = "cpu", precision: str = "fp32",
          workers: int = 0, quick: bool = False, pool: int | None = None, recipe: Recipe | None = None,
-         net: Callable | None = None, render: Callable = render_pool, log: Callable[[str], None] = print) -> dict:
+         check_resources: bool = True, net: Callable | None = None, render: Callable | None = None,
+         log: Callable[[str], None] = print) -> dict:
     """Fit the generator to the validation pairs in ``val`` by successive halving of nets trained on its settings
     (docs/tune.md), write the winner's preset to ``out`` and the report beside it (``work_dir(out)``).
 
@@ -111,15 +119,18 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         quick: a tiny recipe (``flowsynth.tune.trainer.QUICK``) to check that a tune runs; its winner means little.
         pool: training pairs rendered per net (None: the recipe's).
         recipe: how nets train and test (default ``RECIPE``, the learning judge's; ``quick``: ``QUICK``).
-        net: builds one net (default ``flowsynth.nets.raft_small``); render: renders a pool (``render_pool``).
-        log: called with a line of progress after every checkpoint.
+        check_resources: estimate the memory and disk the tune needs before any work (``flowsynth.tune.resources``)
+            and refuse what does not fit; False: go on anyway.
+        net: builds one net (default ``flowsynth.nets.raft_small``); render: renders a pool (``EnsembleTrainer``'s).
+        log: called with a line of progress after every checkpoint and pool.
 
     Returns:
         the report (``flowsynth.tune.report.summarize``), with ``"settings"``.
 
     Raises:
-        ConfigError: no pairs or an unreadable one, a budget too small for the candidates, bad arguments, or a
-            state in the work folder of other settings. DependencyError: torchvision is missing (``net`` None).
+        ConfigError: no pairs or an unreadable one, a budget too small for the candidates, bad arguments, more
+            memory or disk than the machine has (``check_resources``), or a state or pools in the work folder of
+            other settings. DependencyError: torchvision is missing (``net`` None).
     """
     from flowsynth.training import check_precision
 
@@ -135,7 +146,7 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
     if budget is None:
         budget = plan_cost(candidates, 2) if quick else DEFAULT_BUDGET
     rungs = plan_rungs(candidates, _positive("budget", budget))
-    layout, val_pairs = read_pairs(val, pairs)
+    layout, files = find_pairs(val, pairs)
     if net is None:
         from flowsynth.nets import raft_small
 
@@ -143,14 +154,24 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         if min(recipe.crop) < RAFT_MIN:
             raise ConfigError(f"RAFT-small trains on crops of at least {RAFT_MIN} px a side; got {recipe.crop}")
     out, work = Path(out), work_dir(out)
+    settings = {k: (sources(k, recipe.res), seed) for k in keys}
+    settings[keys[0] + TWIN] = (sources(keys[0], recipe.res), seed + TWIN_SEED)
+    sizes = {name: image_size(layout, name, f) for name, f in files.items()}
+    cache = PoolCache(work / "pools", {})
+    cached = sum(cache.paths(src, s, recipe.pool)[1].is_file() for src, s in settings.values())
+    need = estimate(recipe, len(settings), sizes, sources=[src for src, _ in settings.values()], workers=workers,
+                    device=device, cached=cached)
+    if check_resources:
+        check(need, device, work, GO_ON)
+    val_pairs = load_pairs(layout, files)
     identity = {"layout": layout, "pairs": list(val_pairs),
                 "fingerprint": _fingerprint(val_pairs), "budget": budget, "candidates": keys, "seed": seed,
                 "recipe": recipe.to_dict(), "precision": precision}
     work.mkdir(parents=True, exist_ok=True)
     state = _load(work / "state.pt", identity)
-    _remove_temporaries(work, out)  # after _load: a tune of other settings is refused and left as it is
-    settings = {k: (sources(k, recipe.res), seed) for k in keys}
-    settings[keys[0] + TWIN] = (sources(keys[0], recipe.res), seed + TWIN_SEED)
+    cache.tune = identity
+    cache.check()
+    _remove_temporaries(work, out)  # after the checks: a tune of other settings is refused and left as it is
 
     logged = [None if state is None else state["step"]]  # the step of the last checkpoint logged (resumed: its)
 
@@ -170,14 +191,15 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         log(f"tune: step {st['step']} of {rungs[-1].end} (rung {st['rung'] + 1}): {len(now)} nets tested, best "
             f"{_px(now[best])} ({best})")
 
-    pool_gib = (candidates + 1) * recipe.pool * recipe.res[0] * recipe.res[1] * POOL_BYTES / 2**30
     log(f"tune: {len(val_pairs)} {layout} pairs, {candidates} candidates, {len(rungs)} rungs ending at steps "
-        f"{[r.end for r in rungs]}, budget {budget} net-steps, rung 0's pools {pool_gib:.1f} GiB in memory"
-        + (", continuing" if state else ""))
+        f"{[r.end for r in rungs]}, budget {budget} net-steps; needs about {need['peak'] / GIB:.1f} GiB of memory"
+        + (f" and {need['device_peak'] / GIB:.1f} GiB on {device}" if need["device_peak"] else "")
+        + f", {need['disk']['pools'] / GIB:.1f} GiB of disk for new pools" + (", continuing" if state else ""))
     if state is None or "winner" not in state:
         trainer = EnsembleTrainer(settings, val_pairs, recipe, rungs[-1].end, device=device, precision=precision,
-                                  workers=workers, net=net, render=render)
+                                  workers=workers, net=net, render=render, cache=cache, log=log)
         state = search(trainer, keys, rungs, state, save)
+    cache.clear()  # done: no net trains again
     summary = {**summarize(state, keys, rungs), "settings": {**identity, "val": str(val)}}
     write_json(work / "report.json", summary)
     atomic_write_bytes(work / "report.md", markdown(summary).encode())

@@ -25,17 +25,21 @@ import torch
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["QUICK", "RECIPE", "EnsembleTrainer", "Pair", "Recipe", "render_pool"]
+__all__ = ["QUICK", "RECIPE", "EnsembleTrainer", "Pair", "Recipe"]
 
 
 class Pair(NamedTuple):
-    """A validation pair: images (1, 3, H, W) float32 in [0, 1], flow (1, 2, H, W) float32 [px] (0 where not
-    valid), valid (1, 1, H, W) bool."""
+    """A validation pair: images (1, 3, H, W) uint8 (8-bit sRGB, as the files hold them), flow (1, 2, H, W) float32
+    [px] (0 where not valid), valid (1, 1, H, W) bool. ``images()``: the images as float32 in [0, 1]."""
 
     img1: torch.Tensor
     img2: torch.Tensor
     flow: torch.Tensor
     valid: torch.Tensor
+
+    def images(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(img1, img2) float32 in [0, 1] (uint8 / 255, on the pair's device)."""
+        return self.img1.float() / 255, self.img2.float() / 255
 
 
 @dataclass(frozen=True)
@@ -79,42 +83,32 @@ QUICK = Recipe(res=(160, 128), crop=(128, 128), batch=1, updates=2, test_updates
 """``flowsynth tune --quick``: the smallest recipe RAFT-small trains on, to check that a tune runs."""
 
 
-def render_pool(sources: tuple[dict, dict], seed: int, n: int, workers: int = 0) -> tuple[torch.Tensor, ...]:
-    """Pairs 0 .. n-1 of ``Mixture(*sources, seed=seed)`` (``sources`` = (configs, weights), configs of 2 or more
-    frames; frames 0 and 1): (img1, img2 uint8 (n, 3, H, W), flow float32 (n, 2, H, W) [px], valid bool (n, 1, H,
-    W)), rendered in ``workers`` processes (``flowsynth.datasets.loader``; 0: here)."""
-    from flowsynth.datasets import Mixture, loader
-
-    ds = Mixture(*sources, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, length=n)
-    parts: list[list[torch.Tensor]] = [[], [], [], []]
-    for b in loader(ds, batch_size=min(16, n), num_workers=workers):
-        rgb = (b["rgb"][:, :2] * 255).round().clamp(0, 255).to(torch.uint8)
-        for lst, x in zip(parts, (rgb[:, 0], rgb[:, 1], b["flow_fw"][:, 0], b["valid_fw"][:, 0] > 0.5)):
-            lst.append(x)
-    return tuple(torch.cat(p) for p in parts)
-
-
 class EnsembleTrainer:
     """The nets of a tune (the module docstring says how each is trained and tested).
 
-    ``settings``: {key: (sources, seed)}, every net a search may ask for: its pool is ``render(sources, seed,
-    recipe.pool, workers)``, its weights are the net's initialisation under ``torch.manual_seed(seed)`` and its
-    batches come from a generator seeded ``seed``. ``pairs``: {name: ``Pair``}. ``steps``: the schedule's length
-    (the plan's last step). ``net``: builds one net (``flowsynth.nets.raft_small``: RAFT-small with random weights).
-    ``render``: the function that renders a pool (``render_pool``'s signature). Implements
-    ``flowsynth.tune.halving.Trainer``."""
+    ``settings``: {key: (sources, seed)}, every net a search may ask for: its pool is pairs 0 .. ``recipe.pool``-1 of
+    ``Mixture(*sources, seed=seed)`` (``flowsynth.tune.pools``), its weights are the net's initialisation under
+    ``torch.manual_seed(seed)`` and its batches come from a generator seeded ``seed``. ``pairs``: {name: ``Pair``},
+    kept where they are (on the CPU) and moved to ``device`` one at a time to be tested. ``steps``: the schedule's
+    length (the plan's last step). ``net``: builds one net (``flowsynth.nets.raft_small``: RAFT-small with random
+    weights). ``render``: renders a pool, ``render(sources, seed, n, out=None)`` (``flowsynth.tune.PoolRenderer``'s
+    call; default a ``PoolRenderer(workers)``, whose processes render every pool of a rung and stop before it trains).
+    ``cache``: a ``flowsynth.tune.PoolCache`` that keeps the pools on disk, memory-mapped (None: in memory); ``log``:
+    told of each pool rendered or read. Implements ``flowsynth.tune.halving.Trainer``."""
 
     def __init__(self, settings: dict[str, tuple], pairs: dict[str, Pair], recipe: Recipe, steps: int, *,
                  device: str = "cpu", precision: str = "fp32", workers: int = 0, net: Callable | None = None,
-                 render: Callable = render_pool):
+                 render: Callable | None = None, cache=None, log: Callable[[str], None] = lambda line: None):
         from flowsynth.nets import raft_small
+        from flowsynth.tune.pools import PoolRenderer
 
         if not pairs:
             raise ConfigError("a trainer needs at least one validation pair")
         self.settings, self.recipe, self.steps = dict(settings), recipe, steps
         self.device, self.precision, self.workers = torch.device(device), precision, workers
-        self.net, self.render = net or raft_small, render
-        self.pairs = {k: Pair(*(x.to(self.device) for x in p)) for k, p in pairs.items()}
+        self.net, self.render = net or raft_small, render or PoolRenderer(workers)
+        self.cache, self.log = cache, log
+        self.pairs = dict(pairs)
         self.step, self.keys, self.ens = 0, [], None
         self.nets: dict[str, dict] = {}  # key -> the net's own state, while it is not in self.ens
         self.shared: dict | None = None  # the optimiser's and schedule's shared state, while self.ens is None
@@ -146,7 +140,8 @@ class EnsembleTrainer:
         return {"step": self.step, "keys": list(self.keys), "nets": {**self.nets, **nets}, "shared": shared}
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from ``state_dict()``'s state (the pools are rendered again when first needed)."""
+        """Continue from ``state_dict()``'s state (the pools are read from the cache, or rendered again, when first
+        needed)."""
         self.step, self.keys, self.ens = state["step"], list(state["keys"]), None
         self.nets, self.shared = dict(state["nets"]), state["shared"]
         self.gens = {}
@@ -218,18 +213,30 @@ class EnsembleTrainer:
                 ens.scaler.load_state_dict(self.shared["scaler"])
         self.ens, self.keys = ens, keys
         self.nets = {}  # the ensemble holds them now; nets that left it never return
-        self.pools = {k: v for k, v in self.pools.items() if k in keys}
+        for key in [k for k in self.pools if k not in keys]:
+            del self.pools[key]
+            if self.cache is not None:
+                self.cache.remove(*self.settings[key], self.recipe.pool)
         for key in keys:
             if key not in self.pools:
                 sources, seed = self.settings[key]
-                self.pools[key] = self.render(sources, seed, self.recipe.pool, self.workers)
+                if self.cache is None:
+                    self.log(f"tune: rendering a pool of {self.recipe.pool} pairs for seed {seed} in memory")
+                    self.pools[key] = self.render(sources, seed, self.recipe.pool)
+                else:
+                    self.pools[key] = self.cache.get(sources, seed, self.recipe.pool, self.render, self.log)
+        if hasattr(self.render, "close"):
+            self.render.close()  # its processes would hold their memory while the nets train
 
     @torch.no_grad()
     def _evaluate(self) -> dict[str, dict[str, float]]:
         from flowsynth.training import epe, predict
 
-        out = {}
-        for key, net in zip(self.keys, self.ens.copy_to_nets()):
-            out[key] = {name: epe(predict(net, p.img1, p.img2, self.recipe.test_updates), p.flow, p.valid)
-                        for name, p in self.pairs.items()}
+        nets = self.ens.copy_to_nets()
+        out: dict[str, dict[str, float]] = {key: {} for key in self.keys}
+        for name, pair in self.pairs.items():  # one pair on the device at a time
+            p = Pair(*(x.to(self.device) for x in pair))
+            img1, img2 = p.images()
+            for key, net in zip(self.keys, nets):
+                out[key][name] = epe(predict(net, img1, img2, self.recipe.test_updates), p.flow, p.valid)
         return out
