@@ -8,8 +8,9 @@ flags of its fields (``--width``, ``--height``, ``--num-frames``, ``--texture-di
 ``--mixture FILE`` takes a mixture preset instead (what ``flowsynth tune`` writes): the stream is
 ``flowsynth.datasets.Mixture.from_preset(FILE, outputs, seed)``, and the file alone sets the configs (no config flags;
 ``--width``, ``--height`` and ``--num-frames`` only when they equal the file's).
-``flowsynth export --help`` lists every flag with its type, default and meaning (from the field
-docstrings in flowsynth/scene/config.py).
+``flowsynth export --help`` is short; ``flowsynth export --help-fields`` lists every flag with its type, default and
+meaning (from the field docstrings in flowsynth/scene/config.py). ``--print-config`` prints the resolved config as
+JSON that ``--config`` reads back; ``flowsynth --version`` the version.
 
 Exit status:
   0    success.
@@ -193,18 +194,27 @@ class _HelpFields(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None):
         command = parser.prog.split()[-1]
-        _subparsers(_parser(fields=True))[command].print_help()
+        _parsers(fields=True)[1][command].print_help()
         parser.exit()
 
 
-def _subparsers(p: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
-    return next(a for a in p._actions if isinstance(a, argparse._SubParsersAction)).choices
+def _version() -> str:
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("flowsynth")
+    except importlib.metadata.PackageNotFoundError:
+        return "(not installed: no version)"
 
 
 def _parser(fields: bool = False) -> argparse.ArgumentParser:
     """The ``flowsynth`` parser. Every config field is a flag of export, preview and stats; ``fields`` documents
     them in the subcommands' help (``--help-fields``), which otherwise stays short."""
-    from flowsynth import __version__
+    return _parsers(fields)[0]
+
+
+def _parsers(fields: bool = False) -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The ``flowsynth`` parser (:func:`_parser`) and its subcommands' parsers by name."""
     from flowsynth.io import layouts
     from flowsynth.io.layouts.webdataset import DEFAULT_SHARD_SIZE
     from flowsynth.plan import OCCLUSION_METHODS
@@ -216,7 +226,7 @@ def _parser(fields: bool = False) -> argparse.ArgumentParser:
                                 "statistics, or tune the generator to your validation pairs.",
                                 "Start with: flowsynth preview --out sample.png; then flowsynth export --out DIR "
                                 "--num 8 --config examples/config.yaml"))
-    p.add_argument("--version", action="version", version=f"flowsynth {__version__}")
+    p.add_argument("--version", action="version", version=f"flowsynth {_version()}")
     sub = p.add_subparsers(dest="command", required=True, metavar="{export,preview,stats,tune}")
     kw = {"formatter_class": raw, "epilog": _EXIT_LINE}
     ex = sub.add_parser("export", help="generate N samples into a folder (resumable)", **kw,
@@ -296,11 +306,11 @@ def _parser(fields: bool = False) -> argparse.ArgumentParser:
     out.add_argument("--overwrite", action="store_true",
                      help="replace an export of another config in --out [flag, default off]")
     out.add_argument("--no-progress", action="store_true", help="no progress bar [flag, default off]")
-    _tune_parser(sub, kw)
-    return p
+    tn = _tune_parser(sub, kw)
+    return p, {"export": ex, "preview": pv, "stats": st, "tune": tn}
 
 
-def _tune_parser(sub, sub_kw: dict) -> None:
+def _tune_parser(sub, sub_kw: dict) -> argparse.ArgumentParser:
     from flowsynth.training import PRECISIONS
     from flowsynth.tune import DEFAULT_BUDGET, DEFAULT_CANDIDATES, QUICK, RECIPE
 
@@ -332,6 +342,7 @@ def _tune_parser(sub, sub_kw: dict) -> None:
                     help="processes rendering the training pools [int, default 0: this one]")
     tn.add_argument("--quick", action="store_true",
                     help="a tiny recipe that checks a tune runs; its winner means little [flag, default off]")
+    return tn
 
 
 def _tune(args) -> None:
@@ -423,18 +434,19 @@ def _stats(args, cfg) -> None:
 def _parse(argv: list[str] | None) -> argparse.Namespace:
     """The parsed command line; a flag the command does not know exits 2 through argparse, naming the closest known
     flags ("did you mean --fov-deg?")."""
-    parser = _parser()
+    parser, subs = _parsers()
     args, unknown = parser.parse_known_args(argv)
     if unknown:
-        sub = _subparsers(parser)[args.command]
-        known = [o for a in sub._actions for o in a.option_strings if o.startswith("--")]
+        sub = subs[args.command]
+        full = _parsers(fields=True)[1][args.command].format_help()  # every flag, the field flags included
+        known = sorted(set(re.findall(r"(?<![\w-])--[a-z][\w-]*", full)))
         hints = [f"{u.split('=')[0]}: did you mean {', '.join(close)}?" for u in unknown if u.startswith("-")
                  and (close := difflib.get_close_matches(u.split("=")[0], known, n=3, cutoff=0.75))]
         sub.error(f"unrecognized arguments: {' '.join(unknown)}" + "".join(f"; {h}" for h in hints))
     needed = {"export": ("--out", "--num"), "preview": ("--out",)}.get(args.command, ())
     missing = [f for f in needed if getattr(args, f[2:]) is None]
     if missing and not args.print_config:  # --print-config needs neither
-        _subparsers(parser)[args.command].error(f"the following arguments are required: {', '.join(missing)}")
+        subs[args.command].error(f"the following arguments are required: {', '.join(missing)}")
     return args
 
 
