@@ -1,4 +1,4 @@
-"""Train a small optical-flow network on flowsynth samples streamed through a DataLoader (no disk).
+"""Train a small optical-flow network on flowsynth samples streamed through ``fs.datasets.loader`` (no disk).
 
     python examples/train_flow.py --steps 200 --workers 2
 
@@ -43,11 +43,16 @@ def epe(pred: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor) -> torch.Te
     return (err * valid).sum() / valid.sum().clamp(min=1)
 
 
-def batches(cfg, seed: int, batch_size: int, workers: int, start: int = 0):
+def loader(cfg, seed: int, batch_size: int, workers: int, start: int = 0) -> DataLoader:
+    """``fs.datasets.loader`` over the stream: its workers start with forkserver (or spawn), so a net already on the
+    GPU does no harm (CUDA does not survive fork(); a forked worker would raise ``fs.ForkError``)."""
     ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "valid_fw"], seed=seed, start=start)
-    loader = DataLoader(ds, batch_size=batch_size, num_workers=workers,
-                        persistent_workers=workers > 0)
-    for b in loader:
+    return fs.datasets.loader(ds, batch_size=batch_size, num_workers=workers)
+
+
+def batches(cfg, seed: int, batch_size: int, workers: int, start: int = 0):
+    """Endless batches (img1, img2 (B, 3, H, W) in [0, 1], flow (B, 2, H, W) [px], valid (B, 1, H, W) float)."""
+    for b in loader(cfg, seed, batch_size, workers, start):
         yield b["rgb"][:, 0], b["rgb"][:, 1], b["flow_fw"][:, 0], b["valid_fw"][:, 0].float()
 
 

@@ -1,6 +1,6 @@
 """Train torchvision's RAFT-small from scratch on flowsynth's stream, with RAFT's own recipe.
 
-    pip install torchvision --no-deps     # the build that matches your torch; flowsynth itself never needs it
+    pip install "flowsynth[train]"        # torchvision; flowsynth itself never needs it (README: the build to pick)
     python examples/train_raft.py --steps 2400 --checkpoint raft.pt --eval middlebury/   # Middlebury layout
     python examples/train_raft.py --steps 2400 --checkpoint raft.pt --sintel /data/Sintel   # or --kitti ROOT
 
@@ -19,7 +19,8 @@ The workers come from ``fs.datasets.loader``, a DataLoader whose workers start w
 before they start, and CUDA does not survive fork() (a forked worker would raise ``fs.ForkError``).
 
 Exit codes: 0 done; 2 bad arguments (argparse: a step count, batch, worker count, size or rate out of range, an
-unknown precision or fp16 off CUDA); 3 an evaluation folder holds no pairs.
+unknown precision or fp16 off CUDA) or, for ``--sintel`` and ``--kitti``, a torchvision that is missing or built for
+another torch (the message says what to install); 3 an evaluation folder holds no pairs.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import numpy as np
 import torch
 
 import flowsynth as fs
-from flowsynth.errors import ConfigError
+from flowsynth.errors import ConfigError, DependencyError
 from flowsynth.training import PRECISIONS, augment, check_precision, epe, grad_scaler, one_cycle, predict, train_step
 
 EXIT_NO_PAIRS = 3
@@ -72,9 +73,11 @@ def middlebury_pairs(root: str) -> list[tuple]:
 
 
 def torchvision_pairs(kind: str, root: str, limit: int) -> list[tuple]:
-    """Up to ``limit`` training pairs of torchvision's Sintel (clean pass) or KittiFlow under ``root``."""
-    from torchvision import datasets
+    """Up to ``limit`` training pairs of torchvision's Sintel (clean pass) or KittiFlow under ``root``; DependencyError
+    where torchvision is missing or built for another torch (``flowsynth.nets.torchvision_datasets``)."""
+    from flowsynth.nets import torchvision_datasets
 
+    datasets = torchvision_datasets()
     ds = datasets.Sintel(root, split="train", pass_name="clean") if kind == "sintel" else \
         datasets.KittiFlow(root, split="train")
     out = []
@@ -194,7 +197,10 @@ def main(argv: list[str] | None = None) -> int:
         pairs += middlebury_pairs(a.eval)
     for kind in ("sintel", "kitti"):
         if getattr(a, kind):
-            pairs += torchvision_pairs(kind, getattr(a, kind), a.eval_limit)
+            try:
+                pairs += torchvision_pairs(kind, getattr(a, kind), a.eval_limit)
+            except DependencyError as e:
+                p.error(f"--{kind}: {e}")
     if (a.eval or a.sintel or a.kitti) and not pairs:
         print("no evaluation pairs found (Middlebury layout: NAME/frame10.png, frame11.png, flow10.flo)",
               file=sys.stderr)

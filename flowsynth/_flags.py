@@ -114,7 +114,8 @@ def flag_type(field: dataclasses.Field):
 
     parse.__name__ = t
     if t.startswith("tuple["):
-        parse.metavar = {None: "NAME,...", 2: "MIN,MAX", 3: "X,Y,Z"}.get(count, "A,B,...")
+        parse.metavar = {2: "MIN,MAX", 3: "X,Y,Z"}.get(count) or {"int": "N,N,...", "float": "X,X,..."}.get(
+            kind, "NAME,NAME,...")
     else:
         parse.metavar = kind.upper()
     if optional:
@@ -122,18 +123,24 @@ def flag_type(field: dataclasses.Field):
     return parse
 
 
-def add_config_flags(parser: argparse.ArgumentParser) -> None:
-    """Add one flag per BouncingThingsConfig field (dest ``cfg_<name>``, default None = not given)."""
+def _field_help(meaning: str, f: dataclasses.Field) -> str:
+    """A config field flag's help: its docstring without markup, then its type and default."""
+    meaning = " ".join(meaning.split()).replace("``", "").replace("%", "%%")
+    return f"{meaning} [{str(f.type).replace(' ', '')}, default {cli_form(f.default)}]"
+
+
+def add_config_flags(parser: argparse.ArgumentParser, *, documented: bool = True) -> None:
+    """Add one flag per BouncingThingsConfig field (dest ``cfg_<name>``, default None = not given); with
+    ``documented=False`` the flags parse as ever but stay out of ``--help`` (``--help-fields`` lists them)."""
     from flowsynth.scene import BouncingThingsConfig
 
     docs = field_docs()
     grp = parser.add_argument_group("scene configuration (BouncingThingsConfig fields; override --config)")
     for f in dataclasses.fields(BouncingThingsConfig):
         typ = flag_type(f)
-        meaning = " ".join(docs.get(f.name, "").split()).replace("``", "").replace("%", "%%")
         grp.add_argument("--" + f.name.replace("_", "-"), dest="cfg_" + f.name, default=None, type=typ,
                          metavar=typ.metavar,
-                         help=f"{meaning} [{str(f.type).replace(' ', '')}, default {cli_form(f.default)}]")
+                         help=_field_help(docs.get(f.name, ""), f) if documented else argparse.SUPPRESS)
 
 
 def layers_only_fields() -> list[dataclasses.Field]:
@@ -145,9 +152,10 @@ def layers_only_fields() -> list[dataclasses.Field]:
     return [f for f in dataclasses.fields(LayersConfig) if f.name not in shared]
 
 
-def add_layers_flags(parser: argparse.ArgumentParser) -> None:
+def add_layers_flags(parser: argparse.ArgumentParser, *, documented: bool = True) -> None:
     """Add one flag per LayersConfig field that is no BouncingThingsConfig field (dest ``layers_<name>``, default
-    None = not given); the shared fields (width, height, num_frames, texture_dir) take the scene's flags."""
+    None = not given); the shared fields (width, height, num_frames, texture_dir) take the scene's flags.
+    ``documented`` as in :func:`add_config_flags`."""
     from flowsynth.datasets import LayersConfig
 
     docs = docs_of(LayersConfig)
@@ -155,7 +163,6 @@ def add_layers_flags(parser: argparse.ArgumentParser) -> None:
                                     "--num-frames and --texture-dir)")
     for f in layers_only_fields():
         typ = flag_type(f)
-        meaning = " ".join(docs.get(f.name, "").split()).replace("``", "").replace("%", "%%")
         grp.add_argument("--" + f.name.replace("_", "-"), dest="layers_" + f.name, default=None, type=typ,
                          metavar=typ.metavar,
-                         help=f"{meaning} [{str(f.type).replace(' ', '')}, default {cli_form(f.default)}]")
+                         help=_field_help(docs.get(f.name, ""), f) if documented else argparse.SUPPRESS)

@@ -8,8 +8,9 @@ flags of its fields (``--width``, ``--height``, ``--num-frames``, ``--texture-di
 ``--mixture FILE`` takes a mixture preset instead (what ``flowsynth tune`` writes): the stream is
 ``flowsynth.datasets.Mixture.from_preset(FILE, outputs, seed)``, and the file alone sets the configs (no config flags;
 ``--width``, ``--height`` and ``--num-frames`` only when they equal the file's).
-``flowsynth export --help`` lists every flag with its type, default and meaning (from the field
-docstrings in flowsynth/scene/config.py).
+``flowsynth export --help`` is short; ``flowsynth export --help-fields`` lists every flag with its type, default and
+meaning (from the field docstrings in flowsynth/scene/config.py). ``--print-config`` prints the resolved config as
+JSON that ``--config`` reads back; ``flowsynth --version`` the version.
 
 Exit status:
   0    success.
@@ -27,15 +28,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import json
 import re
 import sys
+import textwrap
 import time
 import traceback
 from pathlib import Path
 
 from flowsynth._flags import SIZE_FIELDS, add_config_flags, add_layers_flags, integer, layers_only_fields
-from flowsynth.errors import ConfigError, FlowsynthError, StorageError
+from flowsynth.errors import ConfigError, DependencyError, FlowsynthError, StorageError
 
 __all__ = ["PREVIEW_BOUNCING", "PREVIEW_LAYERS", "build_config", "main"]
 
@@ -68,7 +71,8 @@ def _read_config_file(path: str) -> dict:
             try:
                 import yaml
             except ImportError as e:
-                raise FlowsynthError("YAML config files need PyYAML: pip install pyyaml (or use JSON/TOML)") from e
+                raise DependencyError(f"config file {path}: YAML needs PyYAML, a dependency of flowsynth that is "
+                                      "missing here: pip install pyyaml (or write the config as JSON or TOML)") from e
             data = yaml.safe_load(text)
         else:
             raise FlowsynthError(f"config file {path}: unknown extension; use .json, .toml or .yaml")
@@ -78,8 +82,8 @@ def _read_config_file(path: str) -> dict:
         if type(e).__module__.startswith("yaml"):
             raise FlowsynthError(f"config file {path} is not valid YAML: {e}") from e
         raise
-    if not isinstance(data, dict):
-        raise FlowsynthError(f"config file {path} must hold a mapping of config fields")
+    if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
+        raise FlowsynthError(f"config file {path} must hold a mapping of config field names to values")
     return {k.replace("-", "_"): (tuple(v) if isinstance(v, list) else v) for k, v in data.items()}
 
 
@@ -171,87 +175,142 @@ def _layers_config(args: argparse.Namespace):
         raise
 
 
-def _parser() -> argparse.ArgumentParser:
+_EXIT_LINE = textwrap.fill("exit status: 0 done; 1 a bug in flowsynth (traceback printed); 2 bad input, nothing "
+                           "written; 3 a file could not be read or written; 130 interrupted (flowsynth --help)", 79)
+_FIELDS_HINT = ("Every config field is a flag as well (--width 512, --object-size 0.3,1.0, --texture-dir none): "
+                "flowsynth {cmd} --help-fields lists them with their types, defaults and meanings.")
+
+
+def _paragraphs(*texts: str) -> str:
+    """Help text of a few paragraphs, each wrapped to 79 columns (the raw formatter keeps what it is given)."""
+    return "\n".join(textwrap.fill(t, 79, break_on_hyphens=False) for t in texts)
+
+
+class _HelpFields(argparse.Action):
+    """``--help-fields``: print the subcommand's full help, every config field flag included, and exit 0."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        command = parser.prog.split()[-1]
+        _parsers(fields=True)[1][command].print_help()
+        parser.exit()
+
+
+def _version() -> str:
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("flowsynth")
+    except importlib.metadata.PackageNotFoundError:
+        return "(not installed: no version)"
+
+
+def _parser(fields: bool = False) -> argparse.ArgumentParser:
+    """The ``flowsynth`` parser. Every config field is a flag of export, preview and stats; ``fields`` documents
+    them in the subcommands' help (``--help-fields``), which otherwise stays short."""
+    return _parsers(fields)[0]
+
+
+def _parsers(fields: bool = False) -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The ``flowsynth`` parser (:func:`_parser`) and its subcommands' parsers by name."""
     from flowsynth.io import layouts
     from flowsynth.io.layouts.webdataset import DEFAULT_SHARD_SIZE
     from flowsynth.plan import OCCLUSION_METHODS
 
-    _sub_kw = {"epilog": "exit status:\n" + __doc__.split("Exit status:\n")[1].rstrip(),
-               "formatter_class": argparse.RawDescriptionHelpFormatter}
-    p = argparse.ArgumentParser(prog="flowsynth", description=__doc__.split("\n")[0], **_sub_kw)
-    sub = p.add_subparsers(dest="command", required=True)
-    ex = sub.add_parser("export", help="generate N samples into a folder (resumable)", **_sub_kw,
-                        usage="flowsynth export --out DIR --num N [options]  (all options: flowsynth export --help)")
-    ex.add_argument("--out", required=True, help="output folder (created; re-running resumes) [required]")
-    ex.add_argument("--num", type=integer, required=True, help="number of samples [int, required]")
-    ex.add_argument("--seed", type=integer, default=0, help="sample i depends on (seed, i) [int, default 0]")
-    ex.add_argument("--workers", type=integer, default=None,
-                    help="local engine: processes, each making its own share [int, default 1]; ray engine: actors, "
-                         "one CPU each [int, default one per CPU of the cluster]")
-    ex.add_argument("--engine", choices=("local", "ray"), default="local",
-                    help="where samples are made: this machine, or a Ray cluster (needs the ray extra: "
-                         "pip install 'flowsynth[ray]'; docs/distributed.md) [default local]")
-    ex.add_argument("--address", default=None,
-                    help="ray engine: the cluster to join (auto, HOST:6379, ray://HOST:10001); --out must be a "
-                         "folder every node reaches [default: the cluster this process joined, else a local one]")
-    ex.add_argument("--layout", choices=layouts.names(), default="native",
-                    help="files on disk; " + "; ".join(f"{n}: {layouts.get(n).summary}" for n in layouts.names())
-                    + " [default native]")
-    ex.add_argument("--shard-size", type=integer, default=None,
-                    help="layouts that write shards (webdataset): samples per shard, also the unit a worker "
-                         f"writes and a resume rewrites [int, default {DEFAULT_SHARD_SIZE}]")
-    ex.add_argument("--outputs", default=None, help="comma-separated output keys [default: the layout's set]")
-    ex.add_argument("--exr-compression", choices=layouts.EXR_COMPRESSIONS, default="zip",
-                    help="lossless compression of EXR files (sizes and times: benchmarks/speed/export.py) "
-                         "[default zip]")
-    ex.add_argument("--dry-run", action="store_true",
-                    help="print the bytes each output costs per sample and in total; write nothing [flag, default off]")
-    ex.add_argument("--occlusion", choices=OCCLUSION_METHODS, default="exact",
-                    help="occ_* by exact visibility rays or a depth-buffer test (BouncingThings sources; part of the "
-                         "export's identity, so a resume keeps it) [default exact]")
-    ex.add_argument("--verify", action="store_true",
-                    help="on resume, check every file's sha256 against the manifest, not only presence and size "
-                         "[flag, default off]")
-    ex.add_argument("--overwrite", action="store_true",
-                    help="replace an export of another config in --out [flag, default off]")
-    ex.add_argument("--no-progress", action="store_true", help="no progress bar [flag, default off]")
-    pv = sub.add_parser("preview", help="write a contact sheet PNG of one sample", **_sub_kw,
-                        usage="flowsynth preview --out FILE.png [options]  (all options: flowsynth preview --help)")
-    pv.add_argument("--out", required=True, help="PNG file to write [required]")
-    pv.add_argument("--index", type=integer, default=0, help="sample index [int, default 0]")
-    pv.add_argument("--seed", type=integer, default=0, help="dataset seed [int, default 0]")
-    pv.add_argument("--outputs", default=None,
+    raw = argparse.RawDescriptionHelpFormatter
+    p = argparse.ArgumentParser(
+        prog="flowsynth", formatter_class=raw, epilog="exit status:\n" + __doc__.split("Exit status:\n")[1].rstrip(),
+        description=_paragraphs("Synthetic optical-flow data: export a dataset, preview a sample, measure "
+                                "statistics, or tune the generator to your validation pairs.",
+                                "Start with: flowsynth preview --out sample.png; then flowsynth export --out DIR "
+                                "--num 8 --config examples/config.yaml"))
+    p.add_argument("--version", action="version", version=f"flowsynth {_version()}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="{export,preview,stats,tune}")
+    kw = {"formatter_class": raw, "epilog": _EXIT_LINE}
+    ex = sub.add_parser("export", help="generate N samples into a folder (resumable)", **kw,
+                        usage="flowsynth export --out DIR --num N [options]",
+                        description=_paragraphs("Generate N samples into a folder; the same command again "
+                                                "resumes.", _FIELDS_HINT.format(cmd="export")))
+    ex.add_argument("--out", metavar="DIR", help="output folder (created; re-running resumes) "
+                    "[required]")
+    ex.add_argument("--num", type=integer, metavar="N", help="number of samples [int, required]")
+    pv = sub.add_parser("preview", help="write a contact sheet PNG of one sample", **kw,
+                        usage="flowsynth preview --out FILE.png [options]",
+                        description=_paragraphs("Write a contact sheet PNG of one sample: its images, flow, "
+                                                "occlusion, depth, ids and boxes.", _FIELDS_HINT.format(cmd="preview")))
+    pv.add_argument("--out", metavar="FILE.png", help="PNG file to write [required]")
+    pv.add_argument("--index", type=integer, default=0, metavar="I", help="sample index [int, default 0]")
+    pv.add_argument("--outputs", default=None, metavar="KEYS",
                     help="comma-separated output keys to show [default: rgb, flow, occlusion, depth, ids, boxes]")
-    st = sub.add_parser("stats", help="measure flow, occlusion, texture and timing statistics of N samples",
-                        **_sub_kw, usage="flowsynth stats [options]  (all options: flowsynth stats --help)")
-    st.add_argument("--num", type=integer, default=16, help="number of samples [int, default 16]")
-    st.add_argument("--seed", type=integer, default=0, help="dataset seed [int, default 0]")
-    st.add_argument("--start", type=integer, default=0, help="first sample index [int, default 0]")
+    st = sub.add_parser("stats", help="measure flow, occlusion, texture and timing statistics of N samples", **kw,
+                        usage="flowsynth stats [options]",
+                        description=_paragraphs("Measure flow, occlusion, texture and timing statistics of N "
+                                                "samples.", _FIELDS_HINT.format(cmd="stats")))
+    st.add_argument("--num", type=integer, default=16, metavar="N", help="number of samples [int, default 16]")
+    st.add_argument("--start", type=integer, default=0, metavar="I", help="first sample index [int, default 0]")
     st.add_argument("--dis", action="store_true",
                     help="also compare OpenCV DIS flow with zero flow (needs opencv) [flag, default off]")
-    st.add_argument("--json", default=None, help="also write the statistics to this JSON file [default: none]")
-    _tune_parser(sub, _sub_kw)
+    st.add_argument("--json", default=None, metavar="FILE",
+                    help="also write the statistics to this JSON file [default: none]")
     for sp in (ex, pv, st):
-        sp.add_argument("--mixture", default=None, metavar="FILE",
-                        help="a mixture preset file (JSON; flowsynth tune writes one): the samples of "
-                             "flowsynth.datasets.Mixture.from_preset(FILE, outputs, seed); takes no --dataset, "
-                             "--preset, --config or config flags [default: none]")
-        sp.add_argument("--dataset", choices=("bouncing", "layers"), default=None,
-                        help="what to generate: bouncing (3D scenes, BouncingThings) or layers (FlyingChairs-style 2D "
-                             "layers, flowsynth.datasets.Layers: a LayersConfig from --config and the flags of its "
-                             "fields) [default bouncing]")
-        sp.add_argument("--preset", default=None,
-                        help="named config to start from: default, chairs, things (BouncingThingsConfig.preset) "
-                             "[default: default]")
-        sp.add_argument("--config", default=None,
-                        help="config file (.json, .toml, .yaml); overrides the preset, flags override it "
-                             "[default: none]")
-        add_config_flags(sp)
-        add_layers_flags(sp)
-    return p
+        what = sp.add_argument_group("what to generate")
+        what.add_argument("--config", default=None, metavar="FILE",
+                          help="a .json, .toml or .yaml file (examples/config.yaml); flags override it "
+                               "[default: none]")
+        what.add_argument("--preset", default=None, metavar="NAME",
+                          help="default, chairs or things [default: default]")
+        what.add_argument("--dataset", choices=("bouncing", "layers"), default=None, metavar="KIND",
+                          help="bouncing (3D scenes) or layers (FlyingChairs-style 2D) [default bouncing]")
+        what.add_argument("--mixture", default=None, metavar="FILE",
+                          help="a preset of flowsynth tune, instead of --dataset, --preset, --config and field "
+                               "flags [default: none]")
+        what.add_argument("--seed", type=integer, default=0, metavar="S",
+                          help="sample i depends on (seed, i) only [int, default 0]")
+        what.add_argument("--print-config", action="store_true",
+                          help="print the resolved config as JSON that --config (--mixture for a mixture) reads "
+                               "back; exit [flag, default off]")
+        what.add_argument("--help-fields", action=_HelpFields, help="also list every config field flag; exit")
+        add_config_flags(sp, documented=fields)
+        add_layers_flags(sp, documented=fields)
+    out = ex.add_argument_group("files and running")
+    if fields:  # what each layout writes, one paragraph each, above the exit status
+        ex.epilog = "layouts:\n" + "\n".join(textwrap.fill(f"{n}: {layouts.get(n).summary}", 79, initial_indent="  ",
+                                                           subsequent_indent="    ", break_long_words=False,
+                                                           break_on_hyphens=False) for n in layouts.names()) \
+            + "\n\n" + _EXIT_LINE
+    out.add_argument("--layout", choices=layouts.names(), default="native", metavar="NAME",
+                     help=", ".join(layouts.names()) + f" ({'below' if fields else '--help-fields'} says what each "
+                          "writes) [default native]")
+    out.add_argument("--outputs", default=None, metavar="KEYS",
+                     help="comma-separated output keys [default: the layout's]")
+    out.add_argument("--occlusion", choices=OCCLUSION_METHODS, default="exact", metavar="HOW",
+                     help="occ_* by exact visibility rays or a depth-buffer test: " + " or ".join(OCCLUSION_METHODS)
+                          + " (BouncingThings sources; a resume keeps it) [default exact]")
+    out.add_argument("--exr-compression", choices=layouts.EXR_COMPRESSIONS, default="zip", metavar="NAME",
+                     help=", ".join(layouts.EXR_COMPRESSIONS) + " (all lossless) [default zip]")
+    out.add_argument("--shard-size", type=integer, default=None, metavar="N",
+                     help=f"webdataset: samples per shard [int, default {DEFAULT_SHARD_SIZE}]")
+    out.add_argument("--dry-run", action="store_true",
+                     help="print the bytes per output and in total; write nothing [flag, default off]")
+    out.add_argument("--workers", type=integer, default=None, metavar="N",
+                     help="processes (local) or actors (ray) [int, default 1; ray: one per CPU]")
+    out.add_argument("--engine", choices=("local", "ray"), default="local",
+                     help="ray needs flowsynth[ray] [default local]")
+    out.add_argument("--address", default=None,
+                     help="ray: the cluster to join (auto, HOST:6379, ray://HOST:10001) [default: the joined one, "
+                          "else local]")
+    out.add_argument("--verify", action="store_true",
+                     help="on resume, check each file's sha256 [flag, default off]")
+    out.add_argument("--overwrite", action="store_true",
+                     help="replace an export of another config in --out [flag, default off]")
+    out.add_argument("--no-progress", action="store_true", help="no progress bar [flag, default off]")
+    tn = _tune_parser(sub, kw)
+    return p, {"export": ex, "preview": pv, "stats": st, "tune": tn}
 
 
-def _tune_parser(sub, sub_kw: dict) -> None:
+def _tune_parser(sub, sub_kw: dict) -> argparse.ArgumentParser:
     from flowsynth.training import PRECISIONS
     from flowsynth.tune import DEFAULT_BUDGET, DEFAULT_CANDIDATES, QUICK, RECIPE
 
@@ -286,6 +345,7 @@ def _tune_parser(sub, sub_kw: dict) -> None:
     tn.add_argument("--no-resource-check", action="store_true",
                     help="go on when the memory and disk the tune needs (estimated before any work, docs/tune.md) "
                          "are more than this machine has [flag, default off: refused, exit 2]")
+    return tn
 
 
 def _tune(args) -> None:
@@ -375,15 +435,36 @@ def _stats(args, cfg) -> None:
         print(f"wrote {args.json}")
 
 
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    """The parsed command line; a flag the command does not know exits 2 through argparse, naming the closest known
+    flags ("did you mean --fov-deg?")."""
+    parser, subs = _parsers()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        sub = subs[args.command]
+        full = _parsers(fields=True)[1][args.command].format_help()  # every flag, the field flags included
+        known = sorted(set(re.findall(r"(?<![\w-])--[a-z][\w-]*", full)))
+        hints = [f"{u.split('=')[0]}: did you mean {', '.join(close)}?" for u in unknown if u.startswith("-")
+                 and (close := difflib.get_close_matches(u.split("=")[0], known, n=3, cutoff=0.75))]
+        sub.error(f"unrecognized arguments: {' '.join(unknown)}" + "".join(f"; {h}" for h in hints))
+    needed = {"export": ("--out", "--num"), "preview": ("--out",)}.get(args.command, ())
+    missing = [f for f in needed if getattr(args, f[2:]) is None]
+    if missing and not args.print_config:  # --print-config needs neither
+        subs[args.command].error(f"the following arguments are required: {', '.join(missing)}")
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status (module docstring)."""
     try:
-        args = _parser().parse_args(argv)
-    except SystemExit as e:  # --help (0) or a flag that does not parse (2); argparse printed why
+        args = _parse(argv)
+    except SystemExit as e:  # --help, --version (0) or a flag that does not parse (2); argparse printed why
         return e.code if isinstance(e.code, int) else 2
     try:
         cfg = None if args.command == "tune" else build_config(args)
-        if args.command == "tune":
+        if args.command != "tune" and args.print_config:
+            print(json.dumps(cfg.to_dict(), indent=2))
+        elif args.command == "tune":
             _tune(args)
         elif args.command == "export" and args.dry_run:
             _dry_run(args, cfg)

@@ -21,5 +21,6 @@ PY=${PYTHON:-python3}
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q "torch==2.13.0"
 .venv/bin/python -m pip install -q -e ".[$EXTRAS]"
-# torchvision for the tests only (its dataset classes read the export layouts): --no-deps, or it pulls a CUDA torch
+# torchvision (the train extra's package) for the tests, whose dataset classes read the export layouts: --no-deps,
+# or it pulls a CUDA torch; so not as .[train]
 .venv/bin/python -m pip install -q --no-deps "torchvision==0.28.0"

@@ -26,26 +26,26 @@ def _source_docstrings() -> dict[str, str]:
     return {m.group(1): " ".join(m.group(2).split()) for m in pat.finditer(body)}
 
 
-def test_export_help_lists_every_flag_with_type_default_and_meaning(capsys, monkeypatch):
+def test_export_help_fields_lists_every_flag_with_type_default_and_meaning(capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "2000")  # one line per flag, no wrapping inside words
-    assert main(["export", "--help"]) == 0
+    assert main(["export", "--help-fields"]) == 0
     lines = capsys.readouterr().out.splitlines()
     docs = _source_docstrings()
     fields = dataclasses.fields(fs.BouncingThingsConfig)
     assert len(docs) == len(fields)
     for f in fields:
         flag = "--" + f.name.replace("_", "-")
-        k = next(i for i, line in enumerate(lines) if line.strip().startswith(flag + " "))
+        k = next(i for i, line in enumerate(lines) if line.startswith(f"  {flag} "))
         entry = lines[k] + (" " + lines[k + 1].strip() if not lines[k + 1].strip().startswith("-") else "")
         default = f.default
         shown = ("none" if default is None else ",".join(map(str, default)) if isinstance(default, tuple)
                  else str(default))
         assert entry.endswith(f"[{str(f.type).replace(' ', '')}, default {shown}]"), entry
         assert docs[f.name].replace("``", "") in entry, (flag, entry)
-    parser = cli._parser()
+    parser = cli._parser(fields=True)
     export = next(a for a in parser._actions if a.dest == "command").choices["export"]
     for action in export._actions:  # every other flag says what it means and its default
-        if action.dest != "help":
+        if action.dest not in ("help", "help_fields"):
             assert action.help and ("default" in action.help or "required" in action.help), action.dest
 
 

@@ -261,6 +261,56 @@ def test_png_decoder_every_filter(rng: np.random.Generator, ftype: int) -> None:
     np.testing.assert_array_equal(decode_png(_filtered_png(image, ftype)), image)
 
 
+
+def _filter_types(data: bytes, h: int) -> set[int]:
+    """The filter-type bytes of a PNG's rows, read from its IDAT chunks."""
+    pos, idat = 8, b""
+    while pos < len(data):
+        length, tag = struct.unpack(">I4s", data[pos : pos + 8])
+        idat += data[pos + 8 : pos + 8 + length] if tag == b"IDAT" else b""
+        pos += 12 + length
+    raw = zlib.decompress(idat)
+    return set(raw[:: len(raw) // h])
+
+
+_CV_FILTERS = {0: cv2.IMWRITE_PNG_FILTER_NONE, 1: cv2.IMWRITE_PNG_FILTER_SUB, 2: cv2.IMWRITE_PNG_FILTER_UP,
+               3: cv2.IMWRITE_PNG_FILTER_AVG, 4: cv2.IMWRITE_PNG_FILTER_PAETH, "all": cv2.IMWRITE_PNG_ALL_FILTERS}
+
+
+@pytest.mark.parametrize("filters", list(_CV_FILTERS))
+def test_png_decoder_equals_opencv_on_kitti_sized_files(rng: np.random.Generator, filters) -> None:
+    """A 1242x375 16-bit RGB PNG (a KITTI flow map's size and kind) written by OpenCV (libpng) with each filter
+    type, and with libpng's adaptive choice among all five per row: decode_png returns OpenCV's values bit for bit.
+    The file holds smooth flow-like channels plus noise, so the Paeth and average predictors meet every case."""
+    h, w = 375, 1242
+    yy, xx = np.mgrid[0:h, 0:w]
+    rgb = np.stack([2**15 + 64 * (5 * np.sin(xx / 90) + 3 * yy / h), 2**15 + 64 * 2 * np.cos(yy / 40),
+                    rng.random((h, w)) > 0.2], axis=-1).astype(np.uint16)
+    rgb[..., :2] += rng.integers(0, 3, (h, w, 2), dtype=np.uint16)
+    rgb[:4, :4] = [[0, 65535, 1]]  # extremes, where a predictor's sum wraps
+    ok, buf = cv2.imencode(".png", rgb[..., ::-1].copy(), [cv2.IMWRITE_PNG_FILTER, _CV_FILTERS[filters]])
+    data = buf.tobytes()
+    used = _filter_types(data, h)
+    expected = {2, 4} if filters == "all" else {filters}  # libpng picks Paeth for most rows here, up for others
+    assert used >= expected if filters == "all" else used == expected
+    theirs = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    ours = decode_png(data)
+    assert ours.dtype == np.uint16 and ours.shape == (h, w, 3)
+    np.testing.assert_array_equal(ours, theirs)
+
+
+@pytest.mark.parametrize("channels", [1, 4])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_png_decoder_equals_opencv_grey_and_rgba(rng: np.random.Generator, channels: int, dtype) -> None:
+    """Greyscale and RGBA, 8 and 16 bits, random values, libpng's adaptive filters: OpenCV's values bit for bit."""
+    image = rng.integers(0, np.iinfo(dtype).max + 1, (23, 31, channels)[: 2 if channels == 1 else 3], dtype=dtype)
+    for flag in (cv2.IMWRITE_PNG_FILTER_PAETH, cv2.IMWRITE_PNG_FILTER_AVG, cv2.IMWRITE_PNG_ALL_FILTERS):
+        ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_FILTER, flag])
+        theirs = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)  # B, G, R, A: reorder to the file's R, G, B, A
+        theirs = theirs if channels == 1 else theirs[..., [2, 1, 0, 3]]
+        np.testing.assert_array_equal(decode_png(buf.tobytes()), theirs)
+
+
 # ---------------------------------------------------------------- PNG / PPM
 
 

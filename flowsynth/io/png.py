@@ -7,9 +7,10 @@ dependency-free codec on ``zlib`` + ``struct``:
 
 - the encoder writes 16-bit greyscale or RGB, non-interlaced, filter type 2 ("up") on every row,
   which is vectorised and compresses smooth maps well;
-- the decoder reads any non-interlaced 8- or 16-bit greyscale, grey+alpha, RGB or RGBA PNG. Rows
-  with filter 0-2 (what the encoder writes) decode vectorised; filter 3-4 rows, which other
-  encoders such as libpng may choose, take a slower per-byte Python loop (not benchmarked).
+- the decoder reads any non-interlaced 8- or 16-bit greyscale, grey+alpha, RGB or RGBA PNG, with any
+  of the five filter types on each row, vectorised with numpy: an image whose rows all use filter
+  0-2 (what the encoder writes) decodes row by row; one with filter 3 or 4 rows (libpng's choice for
+  most rows of a KITTI flow map) decodes one anti-diagonal of pixels at a time (:func:`_unfilter_diagonal`).
 """
 
 from __future__ import annotations
@@ -79,22 +80,36 @@ def encode_png16(image: np.ndarray, *, level: int = ZLIB_LEVEL) -> bytes:
     )
 
 
-def _unfilter_slow(ftype: int, line: np.ndarray, prior: np.ndarray, bpp: int) -> np.ndarray:
-    """Undo filter 3 (average) or 4 (Paeth) of one row; inherently sequential along the row."""
-    cur = bytearray(line.tobytes())
-    up = prior.tobytes()
-    for i in range(len(cur)):
-        a = cur[i - bpp] if i >= bpp else 0
-        b = up[i]
-        if ftype == 3:
-            cur[i] = (cur[i] + ((a + b) >> 1)) & 0xFF
-        else:
-            c = up[i - bpp] if i >= bpp else 0
-            p = a + b - c
-            pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-            pred = a if pa <= pb and pa <= pc else (b if pb <= pc else c)
-            cur[i] = (cur[i] + pred) & 0xFF
-    return np.frombuffer(bytes(cur), np.uint8)
+def _unfilter_diagonal(ftypes: np.ndarray, rows: np.ndarray, w: int, bpp: int) -> np.ndarray:
+    """Undo PNG filters 0-4, any mix of them, of a whole image.
+
+    Args:
+        ftypes: (H,) uint8, the filter type of each row.
+        rows: (H, W * bpp) uint8, the filtered bytes without their filter-type byte.
+        w: pixels per row.
+        bpp: bytes per pixel (1 to 8).
+
+    Returns:
+        (H, W * bpp) uint8, the image bytes.
+
+    A byte depends only on the same byte of the pixels left, above and above-left of it, so every pixel of one
+    anti-diagonal (x + y = d) decodes at once: H + W - 1 vectorised steps in place of a loop over every byte.
+    """
+    h = len(ftypes)
+    ys, xs = np.mgrid[0:h, 0:w]
+    skew = np.zeros((h + w + 1, h + 1, bpp), np.int16)  # pixel (y, x) at [x + y + 2, y + 1], zeros around it
+    raw = np.zeros_like(skew)
+    raw[xs + ys + 2, ys + 1] = rows.reshape(h, w, bpp)
+    kind = [(ftypes == k)[:, None] for k in range(4)]
+    for d in range(h + w - 1):
+        lo, hi = max(0, d - w + 1), min(h, d + 1)  # the rows that diagonal d crosses
+        a, b, c = skew[d + 1, lo + 1 : hi + 1], skew[d + 1, lo:hi], skew[d, lo:hi]  # left, above, above-left
+        pa, pb, pc = np.abs(b - c), np.abs(a - c), np.abs(a + b - 2 * c)  # Paeth: |p - a|, |p - b|, |p - c|
+        pred = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+        for k, choice in ((3, (a + b) >> 1), (2, b), (1, a), (0, 0)):  # average, up, sub, none
+            np.copyto(pred, choice, where=kind[k][lo:hi], casting="unsafe")
+        skew[d + 2, lo + 1 : hi + 1] = (raw[d + 2, lo + 1 : hi + 1] + pred) & 0xFF
+    return skew[xs + ys + 2, ys + 1].astype(np.uint8).reshape(h, w * bpp)
 
 
 def decode_png(data: bytes, *, name: str = "<bytes>") -> np.ndarray:
@@ -150,22 +165,24 @@ def decode_png(data: bytes, *, name: str = "<bytes>") -> np.ndarray:
     if len(raw) != h * (stride + 1):
         raise ExportError(f"{name}: PNG image data has {len(raw)} bytes, expected {h * (stride + 1)}")
     rows = np.frombuffer(raw, np.uint8).reshape(h, stride + 1)
-    out = np.empty((h, stride), np.uint8)
-    prior = np.zeros(stride, np.uint8)
-    for y in range(h):
-        ftype, line = int(rows[y, 0]), rows[y, 1:]
-        if ftype == 0:
-            cur = line
-        elif ftype == 1:
-            cur = np.cumsum(line.reshape(w, bpp), axis=0, dtype=np.uint8).reshape(-1)
-        elif ftype == 2:
-            cur = line + prior
-        elif ftype in (3, 4):
-            cur = _unfilter_slow(ftype, line, prior, bpp)
-        else:
-            raise ExportError(f"{name}: invalid PNG filter type {ftype} in row {y}")
-        out[y] = cur
-        prior = out[y]
+    ftypes = rows[:, 0]
+    bad = np.flatnonzero(ftypes > 4)
+    if bad.size:
+        raise ExportError(f"{name}: invalid PNG filter type {ftypes[bad[0]]} in row {bad[0]}")
+    if (ftypes > 2).any():
+        out = _unfilter_diagonal(ftypes, rows[:, 1:], w, bpp)
+    else:  # none, sub and up: each row at once, from the row above
+        out = np.empty((h, stride), np.uint8)
+        prior = np.zeros(stride, np.uint8)
+        for y in range(h):
+            ftype, line = int(ftypes[y]), rows[y, 1:]
+            if ftype == 0:
+                out[y] = line
+            elif ftype == 1:
+                out[y] = np.cumsum(line.reshape(w, bpp), axis=0, dtype=np.uint8).reshape(-1)
+            else:
+                out[y] = line + prior
+            prior = out[y]
     pixels = out.view(">u2").astype(np.uint16) if depth == 16 else out
     return pixels.reshape(h, w) if channels == 1 else pixels.reshape(h, w, channels)
 

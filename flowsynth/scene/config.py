@@ -16,6 +16,7 @@ resolved when a scene is sampled (``flowsynth.scene.sampling``; ``check_files`` 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -269,9 +270,12 @@ def config_from_dict(cls: type, d: dict[str, Any]):
     if not isinstance(d, dict):
         raise ConfigError(f"from_dict expects a dict, got {type(d).__name__}")
     names = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(d) - set(names))
+    unknown = sorted(set(d) - set(names), key=str)
     if unknown:
-        raise ConfigError(f"unknown {cls.__name__} field(s) {unknown}; valid fields: {names}")
+        hints = [f"{k!r}: did you mean {close[0]!r}?" for k in unknown
+                 if (close := difflib.get_close_matches(str(k), names, n=1))]
+        raise ConfigError(f"unknown {cls.__name__} field(s) {unknown}; " + "".join(h + " " for h in hints)
+                          + f"valid fields: {names}")
     return cls(**d)
 
 
