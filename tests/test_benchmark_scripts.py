@@ -14,6 +14,7 @@ import ast
 import importlib
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -29,6 +30,9 @@ NOT_HERE = {"_cycles_scene.py": "Blender's own Python runs it (bpy); it imports 
 # Modules of the optional extras (pyproject.toml: bench, ray) a benchmark may need at import; without them it is
 # reported as skipped, not failed.
 OPTIONAL = {"embreex", "matplotlib", "mitsuba", "pybullet", "skimage", "ray"}
+# An issue number in a --help text ("issue 39's goal", "issues 47 and 52", "issue-13"): the text should say what the
+# option does; the history lives in docs/decisions/.
+ISSUE_NUMBER = re.compile(r"(?i)\bissues?[ -]+#?\d+|#\d+\b")
 
 CHILD = r"""
 import contextlib, importlib, io, json, runpy, sys, traceback
@@ -44,9 +48,9 @@ for path, script, module in json.loads(sys.argv[1]):
                 importlib.import_module(module)
             else:
                 runpy.run_path(path, run_name="__main__" if script else Path(path).stem)
-        results[path] = ["no exit" if script else "ok", out.getvalue()[:500]]
+        results[path] = ["no exit" if script else "ok", out.getvalue()]
     except SystemExit as e:
-        results[path] = ["ok" if e.code in (0, None) else f"exit {e.code}", out.getvalue()[:500]]
+        results[path] = ["ok" if e.code in (0, None) else f"exit {e.code}", out.getvalue()]
     except ModuleNotFoundError as e:
         results[path] = ["missing", str(e.name)]
     except BaseException:
@@ -118,11 +122,15 @@ def test_every_benchmark_imports_and_answers_help(tmp_path):
                if status == "missing" and why.split(".")[0] in OPTIONAL}
     for name, module in skipped.items():
         print(f"skipped {name}: optional module {module} is not installed")
-    failed = {Path(f).name: f"{status}: {why}" for f, (status, why) in results.items()
+    failed = {Path(f).name: f"{status}: {why[:500]}" for f, (status, why) in results.items()
               if status != "ok" and Path(f).name not in skipped}
     assert not failed, "benchmarks that do not import or answer --help:\n" + "\n\n".join(
         f"{k}: {v}" for k, v in failed.items())
     assert all("usage:" in results[f][1] for f, s, _ in files if s and Path(f).name not in skipped)
+    cites = {str(Path(f).relative_to(BENCH)): ISSUE_NUMBER.findall(" ".join(out.split()))
+             for f, (status, out) in results.items() if status == "ok"}
+    cites = {f: c for f, c in cites.items() if c}
+    assert not cites, f"--help texts that cite issue numbers: {cites}"
     assert sorted((p.name, p.stat().st_mtime_ns) for p in (BENCH / "results").iterdir()) == before
 
 

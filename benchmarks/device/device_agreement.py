@@ -1,4 +1,4 @@
-"""CPU against CUDA: every main output of a few default samples, held to issue 47's tolerances.
+"""CPU against CUDA: every main output of a few default samples, held to the tolerances of ``TOLERANCES``.
 
     python benchmarks/device/device_agreement.py [--quick] [--samples N] [--device cuda]
 

@@ -1,4 +1,4 @@
-"""A training loop fed by the live stream (issue 52, item 2): does RAFT-small's training step wait for data?
+"""A training loop fed by the live stream: does RAFT-small's training step wait for data?
 
     python benchmarks/device/feed.py [--quick] [--device cuda] [--workers K] [--steps N] [--source stream|device]
 

@@ -1,4 +1,4 @@
-"""CPU against GPU in one run: samples/s of the default scene at 512x384, 2 frames (issues 47 and 52).
+"""CPU against GPU in one run: samples/s of the default scene at 512x384, 2 frames.
 
     python benchmarks/device/gpu.py [--quick] [--cpu-samples N] [--gpu-samples M] [--workers K] [--batch B]
 

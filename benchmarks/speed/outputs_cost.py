@@ -1,4 +1,4 @@
-"""What each issue-17 output adds to a sample's time: stereo, scene flow, extra frame gaps, point tracks.
+"""What each optional output adds to a sample's time: stereo, scene flow, extra frame gaps, point tracks.
 
     python benchmarks/speed/outputs_cost.py [--quick]
 

@@ -1,4 +1,4 @@
-"""The stream's rate through DataLoader workers by start method: fork against forkserver and spawn (issue 52).
+"""The stream's rate through DataLoader workers by start method: fork against forkserver and spawn.
 
     python benchmarks/speed/start_methods.py [--quick] [--workers K] [--samples N] [--rounds R]
 

@@ -1,4 +1,4 @@
-"""How to pass the ``Instances`` struct (issue 41, item 4): whole, or its fields as separate arguments?
+"""How to pass the ``Instances`` struct to a kernel: whole, or its fields as separate arguments?
 
 Two questions, each timed in alternating rounds (``time_round_robin(rotate=True)``), process CPU time of a serial
 Warp CPU launch (one thread), the ratio of every round reported, not only the medians:

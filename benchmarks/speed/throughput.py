@@ -256,8 +256,8 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--samples", type=int, default=None, help="samples per measurement (default 24 quick, 64 full)")
     p.add_argument("--ratio", action="store_true", help="only depth-only vs full at 256x192 (process CPU time)")
-    p.add_argument("--pin", action="store_true", help="--ratio on one pinned core, as issue 39's goal 2 reads "
-                   "(one thread a launch); writes results/throughput_ratio_pinned.json")
+    p.add_argument("--pin", action="store_true", help="--ratio on one pinned core, one thread a launch (the ratio "
+                   "per core); writes results/throughput_ratio_pinned.json")
     p.add_argument("--edge", action="store_true",
                    help="only the full stream with edge_spp 1 vs the default, 256x192 and 512x384 (process CPU time)")
     p.add_argument("--lens", action="store_true",
