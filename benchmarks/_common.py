@@ -4,8 +4,12 @@ JSON, plot.
 Every benchmark prints a table, writes ``benchmarks/results/<name>.json`` holding its numbers and
 ``machine_info()``, and says how it was pinned. Only the standard library is imported at module level,
 so a benchmark can set its thread environment before numpy, torch or Warp are loaded (the workload functions
-import flowsynth when called). ``FLOWSYNTH_BENCH_RESULTS=DIR`` sends every results file to DIR instead (a smoke
-run that must not overwrite the recorded results).
+import flowsynth when called).
+
+Where results go (``results_dir``): a full run writes the tracked results, ``benchmarks/results/``
+(``TRACKED_RESULTS_DIR``); a run with ``--quick`` on its command line, a smoke run, writes ``.cache/bench-quick/``
+(``QUICK_RESULTS_DIR``, ignored by git), so it never changes the recorded numbers; ``FLOWSYNTH_BENCH_RESULTS=DIR``
+sends every results file to DIR in both cases. ``RESULTS_DIR`` is that choice for this process's command line.
 
 Named workloads, defined once here so that every script measures the same thing:
 
@@ -28,17 +32,37 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 __all__ = ["DEFAULT_STREAM_OUTPUTS", "EXPORT_OUTPUTS", "EXPORT_SAMPLE", "FULL_SAMPLE", "FULL_SAMPLE_OUTPUTS",
-           "RAYCAST_FOV_DEG", "RAYCAST_HEIGHT", "RAYCAST_RADIUS", "RAYCAST_SPHERES", "RAYCAST_SUBDIVISIONS",
-           "RAYCAST_WIDTH", "RAYCAST_Z_RANGE", "RESULTS_DIR", "Timer", "default_stream", "full_sample_config",
-           "machine_info", "pin_single_core", "print_table", "raycast_scene", "save_plot", "time_calls",
-           "time_round_robin", "timeit", "write_json"]
+           "QUICK_RESULTS_DIR", "RAYCAST_FOV_DEG", "RAYCAST_HEIGHT", "RAYCAST_RADIUS", "RAYCAST_SPHERES",
+           "RAYCAST_SUBDIVISIONS", "RAYCAST_WIDTH", "RAYCAST_Z_RANGE", "RESULTS_DIR", "TRACKED_RESULTS_DIR", "Timer",
+           "default_stream", "full_sample_config", "is_quick", "machine_info", "pin_single_core", "print_table",
+           "raycast_scene", "results_dir", "save_plot", "time_calls", "time_round_robin", "timeit", "write_json"]
 
-RESULTS_DIR = Path(os.environ.get("FLOWSYNTH_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
+TRACKED_RESULTS_DIR = Path(__file__).resolve().parent / "results"
+"""The recorded results, tracked by git: what SUMMARY.md, the docs and the decision records cite."""
+QUICK_RESULTS_DIR = Path(__file__).resolve().parent.parent / ".cache" / "bench-quick"
+"""Where a ``--quick`` run writes: under the repository's ``.cache/``, which git ignores."""
+
+
+def is_quick(argv: Sequence[str]) -> bool:
+    """Whether the command-line arguments ``argv`` (without the program) ask for a quick run: ``--quick`` or a
+    prefix of it that argparse would accept for it (``--qui``)."""
+    return any(len(a) > 2 and "--quick".startswith(a) for a in argv)
+
+
+def results_dir(quick: bool, environ: dict | None = None) -> Path:
+    """The folder a run's results files go to: ``FLOWSYNTH_BENCH_RESULTS`` of ``environ`` (default ``os.environ``)
+    when set, else ``QUICK_RESULTS_DIR`` for a quick run and ``TRACKED_RESULTS_DIR`` for a full one."""
+    override = (os.environ if environ is None else environ).get("FLOWSYNTH_BENCH_RESULTS")
+    return Path(override) if override else QUICK_RESULTS_DIR if quick else TRACKED_RESULTS_DIR
+
+
+RESULTS_DIR = results_dir(is_quick(sys.argv[1:]))
 
 FULL_SAMPLE = {"width": 512, "height": 384, "num_frames": 2, "render_mode": "direct", "num_objects": (20, 20),
                "camera_motion": "static"}
@@ -159,9 +183,10 @@ def _version(dist: str) -> str | None:
 
 
 def machine_info(extra_packages: Sequence[str] = ()) -> dict:
-    """Platform, CPU model, CPU counts, package versions and the date, for a results file."""
+    """Platform, CPU model, CPU counts, package versions, the date and the command that ran, for a results file."""
     info = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": _command(),
         "platform": platform.platform(),
         "cpu_model": _cpu_model(),
         "cpu_count": os.cpu_count(),
@@ -172,6 +197,16 @@ def machine_info(extra_packages: Sequence[str] = ()) -> dict:
         info[dist] = _version(dist)
     info.update(_library_commit())
     return info
+
+
+def _command() -> str:
+    """This process's command line as ``python PATH ARGS``, PATH relative to the repository when inside it."""
+    if not sys.argv or not sys.argv[0]:
+        return "python"
+    prog = Path(sys.argv[0]).resolve()
+    root = Path(__file__).resolve().parent.parent
+    shown = prog.relative_to(root) if prog.is_relative_to(root) else prog
+    return " ".join(["python", str(shown), *sys.argv[1:]])
 
 
 def _library_commit() -> dict:

@@ -7,9 +7,12 @@ Each benchmark is a script in a folder of this one, by concern (``GROUPS``: spee
 device/), that prints its tables and writes results/<name>.json (and PNG plots for curves). This runner calls them
 one after the other (each in its own process, so kernel caches and memory don't leak between them), keeps each one's
 printed tables in results/<name>.txt and how it ran (command, exit status, seconds, date) in results/<name>.run.json,
-and then builds SUMMARY.md from those files alone: the machine, versions, load average and date, a status table, and
-every benchmark's last recorded output. ``--quick`` is passed on to every script (all of them within ~10 min on 2
-cores).
+and then builds SUMMARY.md from those files alone: the machine, versions, load average and date, a table of when
+each benchmark's results were made, on what machine and by which command, and every benchmark's last recorded output.
+``--quick`` is passed on to every script (all of them within ~10 min on 2 cores), and a quick run writes everything,
+SUMMARY.md included, to ``.cache/bench-quick/`` (``_common.QUICK_RESULTS_DIR``, ignored by git): only a full run
+writes the tracked ``benchmarks/results/``. Every script runs with ``FLOWSYNTH_BENCH_RESULTS`` set to the folder
+this runner writes.
 
 What this runner owns: exactly the files under ``RESULTS_DIR`` named by ``OWNED``. Everything it writes goes
 through ``_write``, which refuses any other path. SUMMARY.md holds no hand-written text: the readings of a run
@@ -74,15 +77,17 @@ def run_one(name: str, quick: bool, results: Path = RESULTS_DIR) -> dict:
     dict."""
     path = script(name)
     cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
-    print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
+    print(f"== {name}: {' '.join(cmd[1:])} (results in {results})", flush=True)
     t = time.time()
-    r = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent)
+    env = dict(os.environ, FLOWSYNTH_BENCH_RESULTS=str(results.resolve()))
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent, env=env)
     text = "\n".join(line for line in r.stdout.splitlines() if "CUDA" not in line)
     print(text, flush=True)
     status = {"command": f"python {path.relative_to(HERE.parent)}" + (" --quick" if quick else ""),
               "returncode": r.returncode, "seconds": round(time.time() - t, 1),
               "skipped": r.returncode == 0 and any(line.startswith(SKIP_MARK) for line in r.stdout.splitlines()),
-              "date": datetime.datetime.now().isoformat(timespec="seconds"), "stderr_tail": r.stderr[-2000:]}
+              "date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": _machine_line(machine_info()),
+              "stderr_tail": r.stderr[-2000:]}
     _write(results, results / f"{name}.txt", text + ("" if r.returncode == 0 else "\n" + r.stderr[-4000:]))
     _write(results, results / f"{name}.run.json", json.dumps(status, indent=2) + "\n")
     return status
@@ -91,6 +96,52 @@ def run_one(name: str, quick: bool, results: Path = RESULTS_DIR) -> dict:
 def _status(results: Path, name: str) -> dict | None:
     path = results / f"{name}.run.json"
     return json.loads(path.read_text()) if path.exists() else None
+
+
+def _machine_line(m: dict) -> str:
+    """``machine_info()`` in a few words: the CPU model, its CPUs, and how many the run could use where fewer."""
+    total, allowed = m.get("cpu_count"), m.get("cpus_allowed")
+    cpus = "" if not total else f", {total} CPUs" if allowed in (None, total) else (
+        f", pinned to {allowed} of {total} CPUs")
+    return f"{m.get('cpu_model') or 'unknown CPU'}{cpus}"
+
+
+def run_record(results: Path, name: str) -> dict:
+    """When, on what and by which command benchmark ``name``'s results in ``results`` were made: {"status", "made",
+    "machine", "command", "note", "seconds", "source"}.
+
+    From this runner's record (``results/<name>.run.json``) where there is one; else from the ``machine`` field of
+    the benchmark's JSON (``results/<name>.json``, written by ``_common.machine_info``: its date, CPU, and the
+    command where the JSON records it, else the script with ``--quick`` where the JSON says it was a quick run);
+    else every field says there is no record."""
+    st = _status(results, name)
+    if st is not None:
+        ok = st["returncode"] == 0
+        return {"status": ("skipped" if st.get("skipped") else "ok") if ok else f"FAILED (exit {st['returncode']})",
+                "made": st["date"], "machine": st.get("machine", "not recorded"), "command": st["command"],
+                "note": "", "seconds": f"{st['seconds']:.0f}", "source": f"{name}.run.json"}
+    path = results / f"{name}.json"
+    data = json.loads(path.read_text()) if path.exists() else {}
+    m = data.get("machine") if isinstance(data.get("machine"), dict) else None
+    if m is None:
+        return {"status": "no record", "made": "", "machine": "", "command": "", "note": "", "seconds": "",
+                "source": ""}
+    command, note = m.get("command"), ""
+    if not command:
+        command = f"python {script(name).relative_to(HERE.parent)}" + (" --quick" if data.get("quick") else "")
+        note = "" if "quick" in data else " (flags not recorded)"
+    return {"status": "not run by run.py", "made": m.get("date", "not recorded"), "machine": _machine_line(m),
+            "command": command, "note": note, "seconds": "", "source": f"{name}.json"}
+
+
+def plots(results: Path, name: str) -> list[Path]:
+    """The plots of benchmark ``name``: ``results/<name>.png`` and ``results/<name>_*.png``, less those of a benchmark
+    whose name extends this one (``physics_graph`` is not ``physics``) and the learning judge's readings
+    (``learning_raft_*``, which docs/decisions/ cite)."""
+    longer = [n for n in BENCHMARKS if n != name and n.startswith(name + "_")]
+    found = [results / f"{name}.png"] + sorted(results.glob(f"{name}_*.png"))
+    return [p for p in found if p.is_file() and not any(p.name.startswith(n) for n in longer)
+            and not p.name.startswith("learning_raft_")]
 
 
 def summary_text(results: Path, names: list[str], mode: str) -> str:
@@ -105,21 +156,23 @@ def summary_text(results: Path, names: list[str], mode: str) -> str:
             f"CPUs, {m.get('platform')}; load average {load} (the machine is shared)  ",
             f"Python {m.get('python')}; " + ", ".join(f"{k} {m.get(k)}" for k in ("torch", "warp-lang", "newton",
                                                                                "numpy", "trimesh")), "",
-            "| benchmark | status | seconds | run |", "|---|---|---|---|"]
+            "When each benchmark's results were made, on what machine and by which command: from run.py's record "
+            "of the run (`<name>.run.json`) where there is one, else from the `machine` field of the benchmark's "
+            "JSON. A command with `--quick` is a smoke run's numbers. A quick run of this runner writes to "
+            "`.cache/bench-quick/`, never here.", "",
+            "| benchmark | status | made | machine | command | seconds | record |", "|---|---|---|---|---|---|---|"]
     body = []
     for name in names:
-        st, txt = _status(results, name), results / f"{name}.txt"
-        if st is None:
-            verdict, secs, when = "no run record", "", "(output recorded before run.py kept one)"
-        else:
-            ok = st["returncode"] == 0
-            verdict = ("skipped" if st.get("skipped") else "ok") if ok else f"FAILED (exit {st['returncode']})"
-            secs, when = f"{st['seconds']:.0f}", f"`{st['command']}` {st['date']}"
-        head.append(f"| {name} | {verdict} | {secs} | {when} |")
+        rec, txt = run_record(results, name), results / f"{name}.txt"
+        command = f"`{rec['command']}`{rec['note']}" if rec["command"] else ""
+        source = f"[{rec['source']}]({rec['source']})" if rec["source"] else ""
+        head.append(f"| {name} | {rec['status']} | {rec['made']} | {rec['machine']} | {command} | {rec['seconds']} "
+                    f"| {source} |")
         section = [f"## {name}", "", f"JSON: [results/{name}.json]({name}.json)" if (results / f"{name}.json").exists()
                    else "No JSON recorded."]
+        section += [f"Output: [results/{name}.txt]({name}.txt)" if txt.exists() else "No output recorded."]
         section += ["", "```", txt.read_text().strip() if txt.exists() else "(no output recorded)", "```"]
-        section += [f"\n![{pl.name}]({pl.name})" for pl in sorted(results.glob(f"{name}*.png"))]
+        section += [f"\n![{pl.name}]({pl.name})" for pl in plots(results, name)]
         body.append("\n".join(section) + "\n")
     return "\n".join(head) + "\n\n" + "\n".join(body)
 

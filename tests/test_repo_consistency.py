@@ -1,11 +1,11 @@
 """The repository stays consistent: documents do not point at files that are not there, and tests do not skip what they
 need.
 
-Every relative link in README.md and docs/*.md resolves (relative to the document), and every file path the code,
-benchmarks, tests and documents mention (``docs/...``, ``flowsynth/...``, ``benchmarks/...``, ..., relative to the
-repository root) exists, except the results a benchmark says it writes. A bare ``DESIGN.md`` is a reference to a
-file this repository does not have: cite docs/ instead. Tests import their required dependencies (runtime and the
-`test` extra) plainly, so a missing one fails instead of skipping.
+Every relative link in README.md, docs/*.md, the decision records and the results archive's README resolves (relative to
+the document), and every file path the code, benchmarks, tests and documents mention (``docs/...``, ``flowsynth/...``,
+``benchmarks/...``, ..., relative to the repository root) exists, except the results a benchmark says it writes. A bare
+``DESIGN.md`` is a reference to a file this repository does not have: cite docs/ instead. Tests import their required
+dependencies (runtime and the `test` extra) plainly, so a missing one fails instead of skipping.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "docs" / "decisions").glob("*.md")),
+        ROOT / "benchmarks" / "results" / "archive" / "README.md"]
 SOURCES = [p for pattern in ("flowsynth/**/*.py", "benchmarks/**/*.py", "tests/*.py", "examples/*.py", "scripts/*",
                              "docs/*.md", "README.md", "pyproject.toml", ".ci/*")
            for p in sorted(ROOT.glob(pattern)) if p.is_file() and p != Path(__file__).resolve()]
