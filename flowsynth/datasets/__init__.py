@@ -1,6 +1,7 @@
 """Datasets: ``BouncingThings`` (3D scenes) and ``Layers`` (2D layers) stream samples, ``Mixture`` mixes their configs
 (``MixtureConfig``: a preset file), ``DeviceBatches`` renders batches on a device, ``FlowPairs`` gives torchvision's
-tuples, ``loader`` workers survive CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote."""
+tuples, ``loader`` workers survive CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote. A sample
+holds its outputs, ``index`` and ``seed``; the metadata keys (``META_OUTPUTS``) only when asked (``"meta"``)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
@@ -10,10 +11,11 @@ from flowsynth.datasets.layer_draws import PairDraw, draw_pair
 from flowsynth.datasets.layer_render import CATEGORY_NAMES as LAYER_CATEGORIES
 from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, layers_pairs
+from flowsynth.datasets.meta import ALWAYS_KEYS, META, META_OUTPUTS
 from flowsynth.datasets.workers import loader
 
-__all__ = ["KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "BouncingThings", "DeviceBatches", "Exported", "FlowPairs",
-           "Layers", "LayersConfig", "Mixture", "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind",
+__all__ = ["ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "BouncingThings", "DeviceBatches", "Exported", "FlowPairs",
+           "Layers", "LayersConfig", "META", "META_OUTPUTS", "Mixture", "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind",
            "draw_pair", "layers_pairs", "loader", "make_stream", "render_layers", "sample_seed", "stream_outputs"]
 
 
