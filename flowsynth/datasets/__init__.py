@@ -1,7 +1,8 @@
 """Datasets: ``BouncingThings`` (3D scenes) and ``Layers`` (2D layers) stream samples, ``Mixture`` mixes their configs
 (``MixtureConfig``: a preset file), ``DeviceBatches`` renders batches on a device, ``FlowPairs`` gives torchvision's
 tuples, ``loader`` workers survive CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote. A sample
-holds its outputs, ``index`` and ``seed``; the metadata keys (``META_OUTPUTS``) only when asked (``"meta"``)."""
+holds its outputs, ``index`` and ``seed``; the metadata keys (``META_OUTPUTS``) only when asked (``"meta"``; ``"all"``
+names every output and those)."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
@@ -11,12 +12,13 @@ from flowsynth.datasets.layer_draws import PairDraw, draw_pair
 from flowsynth.datasets.layer_render import CATEGORY_NAMES as LAYER_CATEGORIES
 from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, layers_pairs
-from flowsynth.datasets.meta import ALWAYS_KEYS, META, META_OUTPUTS
+from flowsynth.datasets.meta import ALL, ALWAYS_KEYS, META, META_OUTPUTS
 from flowsynth.datasets.workers import loader
 
-__all__ = ["ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "BouncingThings", "DeviceBatches", "Exported", "FlowPairs",
-           "Layers", "LayersConfig", "META", "META_OUTPUTS", "Mixture", "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind",
-           "draw_pair", "layers_pairs", "loader", "make_stream", "render_layers", "sample_seed", "stream_outputs"]
+__all__ = ["ALL", "ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "META", "META_OUTPUTS", "BouncingThings",
+           "DeviceBatches", "Exported", "FlowPairs", "Layers", "LayersConfig", "Mixture", "MixtureConfig", "PairDraw",
+           "Shards", "config_from", "config_kind", "draw_pair", "layers_pairs", "loader", "make_stream",
+           "render_layers", "sample_seed", "stream_outputs"]
 
 
 def __getattr__(name: str):

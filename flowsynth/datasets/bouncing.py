@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import torch
 
-from flowsynth.datasets.meta import META_OUTPUTS, PROVENANCE, split_meta
+from flowsynth.datasets.meta import ALL, META_OUTPUTS, PROVENANCE, split_meta
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
 from flowsynth.plan import make_plan
@@ -21,13 +21,31 @@ from flowsynth.scene import Scene, provenance_json, sample_seed
 __all__ = ["BouncingThings", "sample_seed", "stream_plan"]
 
 
-def stream_plan(cfg, outputs: Sequence[str], occlusion: str, threads: int | None):
+def every_output(cfg, batch: bool = False) -> tuple[str, ...]:
+    """What ``"all"`` names of ``cfg``'s outputs: ``flowsynth.plan.OUTPUTS`` but the stereo keys when
+    ``stereo_baseline`` is 0 and the per-pair keys with one frame; with ``batch``, only what a ``DeviceBatches``
+    batch renders (``BATCH_KEYS``; no rgb under motion blur)."""
+    from flowsynth.plan import OUTPUTS, STEREO_KEYS, split_gap_key
+
+    keys = [k for k in OUTPUTS if cfg.stereo_baseline > 0 or k not in STEREO_KEYS]
+    if cfg.num_frames < 2:
+        keys = [k for k in keys if split_gap_key(k) is None and k not in ("motion", "disparity_change")]
+    if batch:
+        from flowsynth.renderer import BATCH_KEYS
+
+        keys = [k for k in keys if k in BATCH_KEYS and (k != "rgb" or cfg.shutter == 0)]
+    return tuple(keys)
+
+
+def stream_plan(cfg, outputs: Sequence[str], occlusion: str, threads: int | None, *, batch: bool = False):
     """(plan, provenance asked for) of a stream of ``cfg``'s samples: the plan of ``outputs`` (``"meta"`` expanded
-    to ``META_OUTPUTS``, ``provenance`` taken out: the stream adds it), checked against the frame count (flow needs
-    two frames, a frame gap fewer than ``num_frames``). Shared by ``BouncingThings`` and ``DeviceBatches``."""
+    to ``META_OUTPUTS``, ``"all"`` to ``every_output(cfg, batch)`` and those, ``provenance`` taken out: the stream
+    adds it), checked against the frame count (flow needs two frames, a frame gap fewer than ``num_frames``). Shared
+    by ``BouncingThings`` and ``DeviceBatches`` (``batch``)."""
     if isinstance(outputs, str):
         outputs = [s for s in outputs.split(",") if s]
-    keys, provenance = split_meta(outputs, META_OUTPUTS)
+    every = every_output(cfg, batch) if isinstance(outputs, Sequence) and ALL in outputs else ()
+    keys, provenance = split_meta(outputs, META_OUTPUTS, every)
     if provenance and not keys:
         raise ConfigError("outputs names only provenance; add an output to render (e.g. rgb)")
     plan = make_plan(keys, occlusion=occlusion, threads=threads, **cfg.plan_options())
@@ -47,7 +65,8 @@ class BouncingThings(IndexStream):
         cfg: scene and rendering configuration (defaults when None).
         outputs: output keys (see ``flowsynth.plan.OUTPUTS``), and the metadata keys ``K``, ``cam_T_world``,
             ``provenance`` (the scene as a JSON string, ``Scene.from_meta`` rebuilds it), or ``"meta"`` for the
-            three (``flowsynth.datasets.META_OUTPUTS``); ``index`` and ``seed`` are always added.
+            three (``flowsynth.datasets.META_OUTPUTS``), or ``"all"`` for every output the config can make and the
+            three; ``index`` and ``seed`` are always added.
         seed: dataset seed; any integer >= 0, 0 included.
         length: samples per epoch, or None for an endless stream.
         start: first index of the stream.

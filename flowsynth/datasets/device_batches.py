@@ -85,7 +85,8 @@ class DeviceBatches(StreamPosition):
         cfg: scene and rendering configuration (defaults when None); one camera for every sample (no
             ``camera_dist_max``) and, with rgb, no motion blur (``shutter`` 0).
         outputs: keys ``fs.render_batch`` renders (``flowsynth.renderer.BATCH_KEYS``, ``K`` and ``cam_T_world``
-            among them), ``provenance``, or ``"meta"`` for the three, as in ``BouncingThings``.
+            among them), ``provenance``, ``"meta"`` for the three, or ``"all"`` for every key a batch renders and the
+            three, as in ``BouncingThings``.
         batch_size: B >= 1 samples per batch.
         num_workers: CPU processes sampling and simulating the scenes (0: in this process, before each batch).
         seed: dataset seed (>= 0).
@@ -131,7 +132,7 @@ class DeviceBatches(StreamPosition):
         if cfg.camera_dist_max is not None:
             raise ConfigError("camera_dist_max draws a lens per sample, and a batch needs one camera: leave "
                               "camera_dist_max None, or stream with BouncingThings")
-        self.plan, self.provenance = stream_plan(cfg, outputs, occlusion, threads)
+        self.plan, self.provenance = stream_plan(cfg, outputs, occlusion, threads, batch=True)
         check_batch_plan(self.plan)
         self.device = resolve_device(device)  # here: the scenes' workers start by forkserver, never by fork
         self.cfg = cfg

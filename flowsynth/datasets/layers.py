@@ -23,7 +23,7 @@ import torch
 from flowsynth.datasets.layer_draws import PairDraw, draw_pair
 from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layer_textures import TEXTURE_SEED, TextureBank
-from flowsynth.datasets.meta import PROVENANCE, split_meta
+from flowsynth.datasets.meta import ALL, PROVENANCE, split_meta
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.scene import config_from_dict
@@ -153,7 +153,8 @@ class Layers(IndexStream):
     Args:
         cfg: a ``LayersConfig`` (defaults when None).
         outputs: keys of ``LAYERS_OUTPUTS``, and ``provenance`` (a JSON string: the config, seed, index and every
-            draw; ``"meta"`` names it too); ``index`` and ``seed`` (int64 scalars) are always added.
+            draw; ``"meta"`` names it too), or ``"all"`` for all of them (the per-pair keys with two frames or
+            more); ``index`` and ``seed`` (int64 scalars) are always added.
         seed: dataset seed; any integer >= 0, 0 included.
         length: samples per epoch, or None for an endless stream.
         start: first index of the stream.
@@ -173,7 +174,9 @@ class Layers(IndexStream):
         cfg = LayersConfig() if cfg is None else cfg
         if not isinstance(cfg, LayersConfig):
             raise ConfigError(f"cfg must be a LayersConfig, got {type(cfg).__name__}")
-        keys, self.provenance = split_meta(outputs, (PROVENANCE,))
+        every = () if isinstance(outputs, str) or not isinstance(outputs, Sequence) or ALL not in outputs else \
+            LAYERS_OUTPUTS if cfg.num_frames > 1 else tuple(k for k in LAYERS_OUTPUTS if k not in PAIR_KEYS)
+        keys, self.provenance = split_meta(outputs, (PROVENANCE,), every)
         self.outputs = layer_outputs(keys)
         pairs = [k for k in self.outputs if k in PAIR_KEYS]
         if pairs and cfg.num_frames < 2:
