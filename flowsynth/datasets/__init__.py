@@ -15,10 +15,10 @@ from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, laye
 from flowsynth.datasets.meta import ALL, ALWAYS_KEYS, META, META_OUTPUTS
 from flowsynth.datasets.workers import loader
 
-__all__ = ["ALL", "ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "META", "META_OUTPUTS", "BouncingThings",
-           "DeviceBatches", "Exported", "FlowPairs", "Layers", "LayersConfig", "Mixture", "MixtureConfig", "PairDraw",
-           "Shards", "config_from", "config_kind", "draw_pair", "layers_pairs", "loader", "make_stream",
-           "render_layers", "sample_seed", "stream_outputs"]
+__all__ = ["ALL", "ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "META", "META_OUTPUTS",
+           "BouncingThings", "DeviceBatches", "Exported", "FlowPairs", "Layers", "LayersConfig", "Mixture",
+           "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind", "draw_pair", "layers_pairs", "loader",
+           "make_stream", "render_layers", "sample_seed", "stream_outputs"]
 
 
 def __getattr__(name: str):
