@@ -146,8 +146,8 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
 
 def write_coco(root: Path, folders: list[str]) -> list[str]:
     """Write ``root/COCO_FILE``: one COCO detection file of the samples in ``root/FOLDER`` for each of ``folders``
-    (sample folders of ``write_sample`` with ``index`` and ``provenance``, in order), from their ``meta.json``. Returns ``[COCO_FILE]``, or [] (and
-    writes nothing) when no sample holds ``COCO_KEYS``.
+    (sample folders of ``write_sample`` with ``index`` and ``provenance``, in order), from their ``meta.json``.
+    Returns ``[COCO_FILE]``, or [] (and writes nothing) when no sample holds ``COCO_KEYS``.
 
     One image per (sample, frame), ids 1, 2, ... in that order, ``file_name`` ``FOLDER/rgb_TTTT.png`` and
     ``sample`` its index; one annotation per visible object and frame (``flowsynth.io.coco_boxes``: COCO's
