@@ -1,8 +1,6 @@
 """Datasets: ``BouncingThings`` (3D scenes) and ``Layers`` (2D layers) stream samples, ``Mixture`` mixes their configs
 (``MixtureConfig``: a preset file), ``DeviceBatches`` renders batches on a device, ``FlowPairs`` gives torchvision's
-tuples, ``loader`` workers survive CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote. A sample
-holds its outputs, ``index`` and ``seed``; the metadata keys (``META_OUTPUTS``) only when asked (``"meta"``; ``"all"``
-names every output and those)."""
+tuples, ``loader`` workers survive CUDA; ``Exported`` and ``Shards`` read what ``flowsynth export`` wrote."""
 
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
