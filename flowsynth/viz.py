@@ -350,7 +350,7 @@ def sheet_layout(labels: Sequence[str], sizes: Sequence[tuple[int, int]], column
                  title: str | None = None) -> SheetLayout:
     """The layout of ``contact_sheet`` for tiles of ``sizes`` ((H, W) [px], scaled) under ``labels``: a grid of
     ``columns``, each cell as wide as the largest tile and the longest word of any label, each label wrapped to that
-    width, the title (if any) wrapped to the grid's width above it."""
+    width, the title (if any) one line above it (the sheet widened to it where it is wider)."""
     font = ImageFont.load_default()
     line_h = int(font.getbbox("Ag")[3]) + 1
     inner_w = max([w for _, w in sizes] + [int(font.getbbox(word)[2]) for lab in labels for word in lab.split()])
@@ -360,7 +360,7 @@ def sheet_layout(labels: Sequence[str], sizes: Sequence[tuple[int, int]], column
     rows, cols = -(-len(labels) // columns), min(columns, len(labels))
     width = cols * cell_w + _PAD
     texts = []
-    head = _wrap(title, font, width - 2 * _PAD) if title else []
+    head = [title] if title else []
     for n, line in enumerate(head):
         xy = (_PAD, _PAD + n * line_h)
         texts.append((line, xy, _ink(font, line, xy)))
@@ -388,7 +388,7 @@ def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, sca
         tiles: (label, (H, W, 3) uint8) pairs; sizes may differ (cells fit the largest).
         columns: tiles per row.
         scale: integer nearest-neighbour upscaling of every tile.
-        title: text above the grid (None: none).
+        title: a line of text above the grid (None: none); the sheet is widened to it if it is wider.
 
     Returns:
         (H', W', 3) uint8 RGB on dark grey, laid out by :func:`sheet_layout`: labels wrapped at spaces to the cells'
