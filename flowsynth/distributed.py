@@ -107,10 +107,10 @@ def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] 
         address: Ray cluster to join when this process has not joined one (see :func:`connect`).
 
     Returns:
-        A Dataset with one row per sample: every key of ``ds.sample(i)`` (``index``, ``seed``, ``K``,
-        ``cam_T_world`` and the outputs) as a numpy column with the stream's dtype and per-sample shape,
-        equal to ``ds.sample(i)`` whatever the cluster size. Row order is not guaranteed; read
-        ``index``. ``iter_torch_batches`` gives the tensors the DataLoader would.
+        A Dataset with one row per sample: every key of ``ds.sample(i)`` (``index``, ``seed`` and the outputs,
+        ``K``, ``cam_T_world`` and ``provenance`` among them when asked for: ``"meta"``) as a numpy column with
+        the stream's dtype and per-sample shape, equal to ``ds.sample(i)`` whatever the cluster size. Row order is
+        not guaranteed; read ``index``. ``iter_torch_batches`` gives the tensors the DataLoader would.
     """
     from flowsynth.scene import BouncingThingsConfig
     from flowsynth.datasets import BouncingThings

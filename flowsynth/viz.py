@@ -2,11 +2,13 @@
 
 Inputs are numpy arrays or torch tensors (any device; converted with ``.detach().cpu()``), in the
 layouts of a flowsynth sample (docs/conventions.md). Every function returns an (H, W, 3) uint8 RGB
-numpy image. Drawing and saving use Pillow; there is no matplotlib dependency.
+numpy image. Drawing and saving use Pillow; there is no matplotlib dependency. A preview carries its keys: the
+flow colour wheel with its rim in px (``flow_legend``) and the depth scale in m (``depth_colorbar``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 from collections.abc import Mapping, Sequence
@@ -20,17 +22,23 @@ from flowsynth.io import atomic_write_bytes
 from flowsynth.plan import split_gap_key
 
 __all__ = [
+    "SheetLayout",
     "contact_sheet",
+    "depth_colorbar",
+    "depth_range",
     "depth_to_color",
     "draw_boxes",
     "draw_tracks",
+    "flow_legend",
     "flow_to_color",
     "ids_to_color",
     "make_colorwheel",
     "mask_to_color",
     "normals_to_color",
+    "preview_tiles",
     "sample_preview",
     "save_png",
+    "sheet_layout",
     "vectors_to_color",
 ]
 
@@ -42,6 +50,9 @@ _DEPTH_PERCENTILES = (1.0, 99.0)  # inverse-depth range mapped onto the colormap
 _GOLDEN = 0.618033988749895  # hue step between consecutive ids
 RGB = tuple[int, int, int]
 _PAD = 2  # contact sheet: pixels between tiles and around labels [px]
+_BACKGROUND = (32, 32, 32)  # contact sheet and legends: dark grey
+LEGEND_MIN = 48
+"""[px] the smallest width and height of a legend tile (the flow key, a depth scale), whatever the image size."""
 
 
 def _np(x: Any) -> np.ndarray:
@@ -115,6 +126,26 @@ def _colormap(x: np.ndarray) -> np.ndarray:
     return np.rint((1 - t) * _VIRIDIS[i0] + t * _VIRIDIS[i0 + 1]).astype(np.uint8)
 
 
+def _inverse_range(depth: Any, valid: Any | None) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """(depth (H, W) float64, its mask of valid hits, lo, hi): the inverse-depth range [1/m] that
+    ``depth_to_color`` maps onto viridis; None when no pixel is valid."""
+    d = _plane(depth, "depth").astype(np.float64)
+    ok = np.isfinite(d) & (d > 0)
+    if valid is not None:
+        ok &= _plane(valid, "valid").astype(bool)
+    if not ok.any():
+        return None
+    lo, hi = np.percentile(1.0 / d[ok], _DEPTH_PERCENTILES)
+    return d, ok, float(lo), float(hi)
+
+
+def depth_range(depth: Any, valid: Any | None = None) -> tuple[float, float] | None:
+    """(near, far) [m]: the depths ``depth_to_color`` colours yellow and purple (the 99th and 1st percentiles of
+    inverse depth over the valid pixels); None when no pixel is valid. Arguments as ``depth_to_color``'s."""
+    r = _inverse_range(depth, valid)
+    return None if r is None else (1.0 / r[3], 1.0 / r[2])
+
+
 def depth_to_color(depth: Any, valid: Any | None = None) -> np.ndarray:
     """Colour inverse depth with viridis: near = yellow, far = purple, no hit / invalid = black.
 
@@ -126,16 +157,71 @@ def depth_to_color(depth: Any, valid: Any | None = None) -> np.ndarray:
         (H, W, 3) uint8 RGB; inverse depth normalised between its 1st and 99th percentile over
         valid pixels (so a few very near pixels do not flatten the rest), clipped outside.
     """
-    d = _plane(depth, "depth").astype(np.float64)
-    ok = np.isfinite(d) & (d > 0)
-    if valid is not None:
-        ok &= _plane(valid, "valid").astype(bool)
+    r = _inverse_range(depth, valid)
+    if r is None:
+        return np.zeros((*_plane(depth, "depth").shape, 3), np.uint8)
+    d, ok, lo, hi = r
     out = np.zeros((*d.shape, 3), np.uint8)
-    if ok.any():
-        inv = 1.0 / d[ok]
-        lo, hi = np.percentile(inv, _DEPTH_PERCENTILES)
-        out[ok] = _colormap((inv - lo) / (hi - lo) if hi > lo else np.ones_like(inv))
+    inv = 1.0 / d[ok]
+    out[ok] = _colormap((inv - lo) / (hi - lo) if hi > lo else np.ones_like(inv))
     return out
+
+
+def depth_colorbar(near: float, far: float, height: int, width: int) -> np.ndarray:
+    """The scale of ``depth_to_color`` for the range (near, far) [m] (``depth_range``): (height, width, 3) uint8.
+    Its band (the upper half; all of it when height < 24) has in column x the colour of the depth whose inverse is
+    1/far + x / (width - 1) (1/near - 1/far): purple (far) on the left, yellow (near) on the right, linear in inverse
+    depth, as the depth tile. White ticks at the columns of 1, 2, 5 x 10^k m within the range, in the band's lowest
+    quarter, and their values [m] below the band where they fit."""
+    if height < 1 or width < 2:
+        raise ShapeError(f"depth_colorbar needs height >= 1 and width >= 2, got {height}x{width}")
+    band = height // 2 if height >= 24 else height
+    bar = np.full((height, width, 3), _BACKGROUND, np.uint8)
+    bar[:band] = _colormap(np.arange(width) / (width - 1))[None]
+    lo, hi = 1.0 / far, 1.0 / near
+    ticks = [(d, int(round((1.0 / d - lo) / (hi - lo) * (width - 1)))) for d in _nice_values(near, far)] \
+        if hi > lo else []
+    for _, col in ticks:
+        bar[band - max(1, band // 4):band, col] = 255
+    if band == height:
+        return bar
+    im = Image.fromarray(bar)
+    draw, font, right = ImageDraw.Draw(im), ImageFont.load_default(), -_PAD
+    for d, col in sorted(ticks, key=lambda t: t[1]):
+        text = f"{d:g}"
+        x0, _, x1, y1 = font.getbbox(text)
+        x = min(max(col - (x1 - x0) // 2, 0), width - x1)
+        if x - x0 >= right + _PAD and band + 1 + y1 <= height:
+            draw.text((x, band + 1), text, fill=(255, 255, 255), font=font)
+            right = x + x1
+    return np.asarray(im)
+
+
+def _nice_values(near: float, far: float) -> list[float]:
+    """1, 2 and 5 x 10^k inside [near, far] (at most 6, spread)."""
+    if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+        return []
+    k0, k1 = int(np.floor(np.log10(near))), int(np.ceil(np.log10(far)))
+    vals = [m * 10.0**k for k in range(k0, k1 + 1) for m in (1, 2, 5) if near <= m * 10.0**k <= far]
+    return vals[:: max(1, -(-len(vals) // 6))]
+
+
+def flow_legend(max_flow: float, height: int, width: int) -> np.ndarray:
+    """The key of ``flow_to_color(..., max_flow)``: (height, width, 3) uint8, a disk of radius
+    r = (min(height, width) - 1) / 2 px around the centre whose pixel at offset (dx, dy) from the centre has the
+    colour of the flow (dx, dy) max_flow / r: white at the centre, the rim's saturated hues at |flow| = max_flow
+    (+x red, +y down). Outside the disk: the sheet's grey."""
+    if height < 1 or width < 1:
+        raise ShapeError(f"flow_legend needs height, width >= 1, got {height}x{width}")
+    r = max((min(height, width) - 1) / 2, 0.5)
+    y, x = np.mgrid[0:height, 0:width].astype(np.float64)
+    dx, dy = x - (width - 1) / 2, y - (height - 1) / 2
+    if max_flow > 0:
+        img = flow_to_color(np.stack([dx, dy]) * (float(max_flow) / r), max_flow=float(max_flow))
+    else:  # no motion: every pixel of the flow tile is white
+        img = np.full((height, width, 3), 255, np.uint8)
+    img[np.hypot(dx, dy) > r] = _BACKGROUND
+    return img
 
 
 def ids_to_color(ids: Any) -> np.ndarray:
@@ -237,6 +323,63 @@ def draw_boxes(
     return np.asarray(im)
 
 
+@dataclasses.dataclass(frozen=True)
+class SheetLayout:
+    """Where ``contact_sheet`` puts everything: ``size`` (W', H') [px]; ``texts``: (line, (x, y) where it is drawn,
+    its ink box (x0, y0, x1, y1) as Pillow measures it); ``tiles``: each tile's box (x0, y0, x1, y1), x1 and y1
+    exclusive. Boxes never overlap: a label is wrapped at its spaces to its cell's width, and a cell is as wide as
+    its largest tile and its longest word."""
+
+    size: tuple[int, int]
+    texts: list[tuple[str, tuple[int, int], tuple[int, int, int, int]]]
+    tiles: list[tuple[int, int, int, int]]
+
+
+def _wrap(text: str, font, width: int) -> list[str]:
+    """``text`` in lines no wider than ``width`` [px], broken at spaces (a longer word keeps a line of its own)."""
+    lines: list[str] = []
+    for word in text.split():
+        if lines and font.getbbox(f"{lines[-1]} {word}")[2] <= width:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return lines or [""]
+
+
+def sheet_layout(labels: Sequence[str], sizes: Sequence[tuple[int, int]], columns: int = 4, *,
+                 title: str | None = None) -> SheetLayout:
+    """The layout of ``contact_sheet`` for tiles of ``sizes`` ((H, W) [px], scaled) under ``labels``: a grid of
+    ``columns``, each cell as wide as the largest tile and the longest word of any label, each label wrapped to that
+    width, the title (if any) one line above it (the sheet widened to it where it is wider)."""
+    font = ImageFont.load_default()
+    line_h = int(font.getbbox("Ag")[3]) + 1
+    inner_w = max([w for _, w in sizes] + [int(font.getbbox(word)[2]) for lab in labels for word in lab.split()])
+    wrapped = [_wrap(lab, font, inner_w) for lab in labels]
+    label_h = max(len(lines) for lines in wrapped) * line_h + _PAD
+    cell_w, cell_h = inner_w + _PAD, max(h for h, _ in sizes) + label_h + _PAD
+    rows, cols = -(-len(labels) // columns), min(columns, len(labels))
+    width = cols * cell_w + _PAD
+    texts = []
+    head = [title] if title else []
+    for n, line in enumerate(head):
+        xy = (_PAD, _PAD + n * line_h)
+        texts.append((line, xy, _ink(font, line, xy)))
+    top = len(head) * line_h + _PAD if head else 0
+    tiles = []
+    for k, (lines, (h, w)) in enumerate(zip(wrapped, sizes, strict=True)):
+        x, y = _PAD + (k % columns) * cell_w, top + _PAD + (k // columns) * cell_h
+        for n, line in enumerate(lines):
+            texts.append((line, (x, y + n * line_h), _ink(font, line, (x, y + n * line_h))))
+        tiles.append((x, y + label_h, x + w, y + label_h + h))
+    return SheetLayout((max(width, *(t[2][2] + _PAD for t in texts)) if texts else width,
+                        top + rows * cell_h + _PAD), texts, tiles)
+
+
+def _ink(font, line: str, xy: tuple[int, int]) -> tuple[int, int, int, int]:
+    x0, y0, x1, y1 = font.getbbox(line)
+    return (xy[0] + x0, xy[1] + y0, xy[0] + x1, xy[1] + y1)
+
+
 def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, scale: int = 1, *,
                   title: str | None = None) -> np.ndarray:
     """Lay labelled images out on a grid, label text above each tile (Pillow's default font).
@@ -245,12 +388,11 @@ def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, sca
         tiles: (label, (H, W, 3) uint8) pairs; sizes may differ (cells fit the largest).
         columns: tiles per row.
         scale: integer nearest-neighbour upscaling of every tile.
-        title: a line of text above the grid (None: none).
+        title: a line of text above the grid (None: none); the sheet is widened to it if it is wider.
 
     Returns:
-        (H', W', 3) uint8 RGB on dark grey: W' = min(columns, len(tiles)) * (tile W + 2) + 2,
-        H' = rows * (label height + tile H + 4) + 2 [px] with tile H, W the largest scaled size, plus the title's
-        line height + 2 with a title (W' widened to the title's width + 4 if it is wider).
+        (H', W', 3) uint8 RGB on dark grey, laid out by :func:`sheet_layout`: labels wrapped at spaces to the cells'
+        width, so no two texts, nor a text and a tile, overlap at any tile size.
     """
     if not tiles or columns < 1 or scale < 1:
         raise ConfigError("contact_sheet needs at least one tile, columns >= 1 and scale >= 1")
@@ -258,22 +400,13 @@ def contact_sheet(tiles: Sequence[tuple[str, np.ndarray]], columns: int = 4, sca
         raise ShapeError(f"tiles must be (H, W, 3) uint8, got shapes {[np.shape(t) for _, t in tiles]}")
     imgs = [np.repeat(np.repeat(np.asarray(t, np.uint8), scale, 0), scale, 1) for _, t in tiles]
     font = ImageFont.load_default()
-    label_h = max(int(font.getbbox(label + "Ag")[3]) for label, _ in tiles) + _PAD
-    cell_h = max(im.shape[0] for im in imgs) + label_h + _PAD
-    cell_w = max(im.shape[1] for im in imgs) + _PAD
-    rows = -(-len(tiles) // columns)
-    cols = min(columns, len(tiles))
-    top = int(font.getbbox((title or "") + "Ag")[3]) + _PAD if title else 0
-    width = max(cols * cell_w + _PAD, int(font.getbbox(title)[2]) + 2 * _PAD if title else 0)
-    sheet = Image.new("RGB", (width, top + rows * cell_h + _PAD), (32, 32, 32))
+    layout = sheet_layout([label for label, _ in tiles], [im.shape[:2] for im in imgs], columns, title=title)
+    sheet = Image.new("RGB", layout.size, _BACKGROUND)
     draw = ImageDraw.Draw(sheet)
-    if title:
-        draw.text((_PAD, _PAD), title, fill=(255, 255, 255), font=font)
-    for k, ((label, _), im) in enumerate(zip(tiles, imgs, strict=True)):
-        x = _PAD + (k % columns) * cell_w
-        y = top + _PAD + (k // columns) * cell_h
-        draw.text((x, y), label, fill=(255, 255, 255), font=font)
-        sheet.paste(Image.fromarray(np.ascontiguousarray(im)), (x, y + label_h))
+    for line, xy, _ in layout.texts:
+        draw.text(xy, line, fill=(255, 255, 255), font=font)
+    for (x0, y0, _, _), im in zip(layout.tiles, imgs, strict=True):
+        sheet.paste(Image.fromarray(np.ascontiguousarray(im)), (x0, y0))
     return np.asarray(sheet)
 
 
@@ -300,8 +433,22 @@ def _rgb_tile(rgb: np.ndarray) -> np.ndarray:
 
 def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 1,
                    title: str | None = None) -> np.ndarray:
-    """Contact sheet of the first frame / pair of a flowsynth sample dict, under ``title`` if given (what the sample
-    is: ``flowsynth preview`` names a mixture sample's source there).
+    """Contact sheet of the first frame / pair of a flowsynth sample dict (the tiles of :func:`preview_tiles`),
+    under ``title`` if given (what the sample is: ``flowsynth preview`` names a mixture sample's source there).
+
+    Returns:
+        (H', W', 3) uint8 RGB, see :func:`contact_sheet`.
+
+    Raises:
+        ConfigError: the sample has no previewable key (:func:`preview_tiles`).
+    """
+    return contact_sheet(preview_tiles(sample), columns=columns, scale=scale, title=title)
+
+
+def preview_tiles(sample: Mapping[str, Any]) -> list[tuple[str, np.ndarray]]:
+    """The labelled tiles ``sample_preview`` lays out, with their keys: a flow key (``flow_legend``, its rim the
+    flow tiles' shared maximum in px) after the flow tiles, and a scale (``depth_colorbar``, its range in m in the
+    label) after each depth or distance tile; both at least ``LEGEND_MIN`` px a side.
 
     Uses whichever of these keys are present: ``rgb`` (T,3,H,W) frames 0 and 1; ``flow_fw`` /
     ``flow_bw`` (T-1,2,H,W) pair 0 with one shared ``max_flow``; masks ``valid_fw``, ``occ_fw``,
@@ -312,9 +459,6 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
     ``box2d_visible`` (T,N,4) with ``object_valid`` (N,) (and ``visible_pixels`` (T,N) if present)
     drawn on rgb frame 0, or on the instance map when there is no rgb; point tracks ``target_points``
     (Q,T,2) with ``occluded`` (Q,T) drawn the same way (first 64 tracks, visible segments).
-
-    Returns:
-        (H', W', 3) uint8 RGB, see :func:`contact_sheet`.
 
     Raises:
         ConfigError: none of the keys above is present.
@@ -331,9 +475,12 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
         shared = float(max(mags))
         for k in flows:
             tiles.append((f"{k} 0 (max {shared:.1f} px)", flow_to_color(s[k][0], max_flow=shared or None)))
+        h, w = s[flows[0]].shape[-2:]
+        tiles.append((f"flow key: rim {shared:.1f} px", flow_legend(shared, *_legend_size(h, w))))
     gapped = [k for k in s if split_gap_key(k) and split_gap_key(k)[1] > 1 and k.startswith("flow_") and len(s[k])]
     for k in gapped:
-        tiles.append((f"{k} 0", flow_to_color(s[k][0])))
+        mx = float(np.hypot(*np.nan_to_num(s[k][0], posinf=0.0, neginf=0.0)).max(initial=0.0))
+        tiles.append((f"{k} 0 (max {mx:.1f} px)", flow_to_color(s[k][0])))
     for k in ("valid_fw", "occ_fw", "occ_bw", "motion"):
         if k in s and len(s[k]):
             tiles.append((f"{k} 0", mask_to_color(s[k][0])))
@@ -344,6 +491,11 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
     for k in ("depth", "distance"):
         if k in s:
             tiles.append((f"{k} t=0", depth_to_color(s[k][0])))
+            span = depth_range(s[k][0])
+            if span is not None:
+                h, w = _legend_size(*s[k].shape[-2:])
+                tiles.append((f"{k} [m]: {span[1]:.3g} to {span[0]:.3g}",
+                              depth_colorbar(*span, max(24, h // 3), w)))
     for k in ("depth_right", "disparity", "disparity_right"):  # disparity ~ 1 / depth: same colouring
         if k in s:
             d = s[k][0].astype(np.float64)
@@ -370,4 +522,9 @@ def sample_preview(sample: Mapping[str, Any], *, columns: int = 4, scale: int = 
                                                                                s["occluded"])))
     if not tiles:
         raise ConfigError(f"sample_preview: no previewable key (rgb, flow_fw, depth, ...) in {sorted(s)}")
-    return contact_sheet(tiles, columns=columns, scale=scale, title=title)
+    return tiles
+
+
+def _legend_size(h: int, w: int) -> tuple[int, int]:
+    """(height, width) of a legend beside (h, w) tiles: theirs, at least ``LEGEND_MIN`` each."""
+    return max(int(h), LEGEND_MIN), max(int(w), LEGEND_MIN)

@@ -79,15 +79,52 @@ def test_keys_shapes_dtypes_follow_design():
         "box2d_amodal": ((T, N, 4), torch.float32), "box2d_visible": ((T, N, 4), torch.float32),
         "visible_pixels": ((T, N), torch.int32), "index": ((), torch.int64), "seed": ((), torch.int64),
     }
-    subsets = [["depth"], ["flow_fw", "occ_bw", "motion"], [k for k in expect if k not in ("index", "seed")]]
+    subsets = [["depth"], ["flow_fw", "occ_bw", "motion"], [k for k in expect if k not in ("index", "seed")],
+               ["depth", "provenance"]]
     for outs in subsets:
         s = BouncingThings(CFG, outputs=outs, seed=1).sample(3)
-        assert set(s) == set(outs) | {"index", "seed", "K", "cam_T_world", "provenance"}
-        assert isinstance(s.pop("provenance"), str)
+        assert set(s) == set(outs) | {"index", "seed"}  # what was asked, and index and seed: nothing else
+        if "provenance" in outs:
+            assert isinstance(s.pop("provenance"), str)
         for k, v in s.items():
             assert (tuple(v.shape), v.dtype) == expect[k], k
             if v.is_floating_point():
                 assert torch.isfinite(v).all(), k
+
+
+def test_meta_and_all_name_the_metadata_and_everything():
+    """A sample holds no metadata unless asked: "meta" adds K and cam_T_world (the scene's camera, as float32) and
+    provenance (the scene's record); "all" is every output (stereo only with a baseline) and the metadata, the same
+    tensors as the outputs named one by one; a Layers stream's "meta" is its provenance, and K is refused there; a
+    DeviceBatches batch holds what it was asked, and "all" is every key a batch renders."""
+    from flowsynth.plan import CORE_OUTPUTS, FINAL_KEYS, SCENE_FLOW_KEYS, STEREO_KEYS, TRACK_KEYS
+    from flowsynth.renderer import BATCH_KEYS
+    from flowsynth.scene import provenance_json
+
+    ds = BouncingThings(CFG, outputs=["rgb", "meta"], seed=1)
+    s, scene = ds.sample(2), ds.scene(2)
+    assert set(s) == {"rgb", "K", "cam_T_world", "provenance", "index", "seed"}
+    assert torch.equal(s["K"], torch.from_numpy(scene.camera.K.astype(np.float32)))
+    assert torch.equal(s["cam_T_world"], torch.from_numpy(scene.cam_T_world.astype(np.float32)))
+    assert s["provenance"] == provenance_json(scene)
+    assert set(BouncingThings(CFG, outputs=["rgb", "K"], seed=1).sample(2)) == {"rgb", "K", "index", "seed"}
+    named = [*CORE_OUTPUTS, *SCENE_FLOW_KEYS, *TRACK_KEYS, *FINAL_KEYS, "provenance"]
+    every, one_by_one = BouncingThings(CFG, "all", seed=1).sample(2), BouncingThings(CFG, named, seed=1).sample(2)
+    assert set(every) == set(one_by_one) == {*named, "index", "seed"}
+    for k in ("rgb", "flow_fw", "box2d_visible", "target_points", "rgb_final"):
+        assert torch.equal(every[k], one_by_one[k]), k
+    stereo = fs.BouncingThingsConfig(**{**CFG.to_dict(), "stereo_baseline": 0.1})
+    assert set(STEREO_KEYS) <= set(BouncingThings(stereo, ["all"]).outputs)
+    layers = fs.datasets.LayersConfig(width=32, height=32, texture_bank=2)
+    assert set(fs.datasets.Layers(layers, ["rgb", "meta"]).sample(0)) == {"rgb", "provenance", "index", "seed"}
+    assert set(fs.datasets.Layers(layers, ["all"]).sample(0)) == {*fs.datasets.LAYERS_OUTPUTS, "provenance",
+                                                                  "index", "seed"}
+    with pytest.raises(fs.ConfigError, match="Layers sample has no"):
+        fs.datasets.Layers(layers, ["rgb", "K"])
+    batch = next(iter(fs.datasets.DeviceBatches(CFG, ["depth"], 2, seed=1, length=2)))
+    assert set(batch) == {"depth", "index", "seed"}
+    batch = next(iter(fs.datasets.DeviceBatches(CFG, ["all"], 2, seed=1, length=2)))
+    assert set(batch) == {*BATCH_KEYS, "provenance", "index", "seed"} and len(batch["provenance"]) == 2
 
 
 def test_unknown_output_and_bad_arguments():

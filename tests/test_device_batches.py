@@ -23,7 +23,7 @@ from flowsynth.datasets import BouncingThings, DeviceBatches
 
 CFG = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, num_objects=(2, 3), max_objects=3,
                               motion="kinematic")
-KEYS = ["depth", "flow_fw", "occ_fw", "rgb"]
+KEYS = ["depth", "flow_fw", "occ_fw", "rgb", "meta"]
 TIMEOUT = 600  # [s] a worker's first scene on a loaded machine
 
 

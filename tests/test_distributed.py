@@ -77,7 +77,7 @@ def _same_export(a: Path, b: Path) -> None:
 def test_ray_dataset_equals_stream(cluster):
     from flowsynth.distributed import ray_dataset
 
-    outputs = OUTS.split(",")
+    outputs = [*OUTS.split(","), "meta"]
     rows = ray_dataset(CFG, 4, seed=3, outputs=outputs, start=5).take_all()
     ds = fs.datasets.BouncingThings(CFG, outputs=outputs, seed=3)
     assert sorted(int(r["index"]) for r in rows) == [5, 6, 7, 8]

@@ -55,7 +55,7 @@ def test_exported_equals_stream(tmp_path):
     root = export_dataset(CFG, tmp_path / "ds", 3, seed=4, outputs=FLOAT_OUTS, progress=False)
     manifest = check_manifest(root, 3)
     assert manifest["seed"] == 4 and manifest["layout"] == "native" and manifest["versions"]["warp-lang"]
-    ds = BouncingThings(CFG, outputs=FLOAT_OUTS, seed=4)
+    ds = BouncingThings(CFG, outputs=[*FLOAT_OUTS, "meta"], seed=4)  # an export keeps the cameras and provenance
     ex = Exported(root, verify=True)
     assert len(ex) == 3
     for i in range(3):
@@ -122,7 +122,7 @@ def test_the_manifest_records_each_sample_camera_in_every_layout(tmp_path):
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["config"] == json.loads(json.dumps(cfg.to_dict()))
     assert {p.name for p in (out / "Sintel" / "training").iterdir()} == {"clean", "flow", "occlusions"}
-    stream, ex = BouncingThings(cfg, outputs=["rgb", "flow_fw", "occ_fw"]), Exported(out)
+    stream, ex = BouncingThings(cfg, outputs=["rgb", "flow_fw", "occ_fw", "provenance"]), Exported(out)
     for i in range(2):
         cam, scene = manifest["cameras"][f"{i:05d}"], stream.scene(i)
         assert ex.camera(i) == cam and set(cam) == {"K", "width", "height", "model", "dist"}
@@ -159,7 +159,7 @@ def test_every_layout_round_trips_and_keeps_books(tmp_path, name):
     manifest = check_manifest(root, 2)
     assert manifest["layout"] == name and manifest["outputs"] == list(lay.default_outputs)
     ex = Exported(root, verify=True)
-    stream = BouncingThings(cfg, outputs=list(lay.default_outputs), seed=1)
+    stream = BouncingThings(cfg, outputs=[*lay.default_outputs, "meta"], seed=1)
     assert len(ex) == 2
     for i in range(2):
         a, b = ex[i], stream.sample(i)

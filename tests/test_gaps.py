@@ -213,7 +213,7 @@ def test_plan_validation_and_skipping():
 def test_dataset_collate_and_native_export_of_gaps(tmp_path):
     cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=4, motion="kinematic", num_objects=(2, 3),
                                   flow_gaps=(1, 2))
-    ds = fs.datasets.BouncingThings(cfg, outputs=["flow_fw", "occ_fw", "scene_flow_bw"], seed=3)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["flow_fw", "occ_fw", "scene_flow_bw", "meta"], seed=3)
     a, b = ds.sample(0), ds.sample(1)
     assert a["flow_fw_k2"].shape == (2, 2, 24, 32) and a["scene_flow_bw_k2"].shape == (2, 3, 24, 32)
     batch = default_collate([a, b])

@@ -383,11 +383,13 @@ def test_json_round_trip_and_rejects_nan(tmp_path: Path) -> None:
 
 
 def test_coco_boxes_hand_computed() -> None:
-    # T = 2 frames, N = 3 slots: object 0 visible in both, object 1 only in frame 1, slot 2 padding.
+    # T = 2 frames, N = 3 slots: object 0 visible in both, object 1 only in frame 1, slot 2 padding. Boxes in
+    # flowsynth's pixel-centre coordinates (pixels j0..j1 span j0 - 1/2 .. j1 + 1/2); COCO's start at the pixel edge
+    # x = j0: object 0 in frame 0 covers columns 1..4 and rows 2..3, COCO [1, 2, 4, 2].
     boxes = np.array(
         [
-            [[1.0, 2.0, 5.0, 4.0], [0.0, 0.0, 0.0, 0.0], [np.nan] * 4],
-            [[2.0, 2.0, 6.0, 5.0], [3.0, 1.0, 4.0, 9.0], [np.nan] * 4],
+            [[0.5, 1.5, 4.5, 3.5], [0.0, 0.0, 0.0, 0.0], [np.nan] * 4],
+            [[1.5, 1.5, 5.5, 4.5], [2.5, 0.5, 3.5, 8.5], [np.nan] * 4],
         ]
     )
     coco = coco_boxes(

@@ -87,7 +87,7 @@ def test_a_stream_at_the_bound_is_finite(tmp_path):
     for k in range(2):
         Image.fromarray(np.random.default_rng(k).integers(0, 256, (40, 60, 3), dtype=np.uint8)).save(d / f"{k}.png")
     ds = Layers(LayersConfig(width=W, height=H, num_frames=3, motion_scale=MAX_MOTION / 2, texture_dir=str(d)),
-                LAYERS_OUTPUTS, seed=0)
+                [*LAYERS_OUTPUTS, "provenance"], seed=0)
     for i in range(4):
         s = ds.sample(i)
         assert _finite({k: v for k, v in s.items() if isinstance(v, torch.Tensor)})

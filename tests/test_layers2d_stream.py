@@ -48,7 +48,7 @@ def test_sample_i_is_the_same_in_every_run_worker_epoch_and_resume(photos):
     0..5 once each with exactly sample(i); a stream restored from state_dict continues with the uninterrupted
     stream's samples; epoch 1 of a length-4 stream holds indices 4..7; another seed gives other samples."""
     cfg = _cfg(photos)
-    a, b = Layers(cfg, OUTS, seed=3), Layers(cfg, OUTS, seed=3)
+    a, b = Layers(cfg, [*OUTS, "meta"], seed=3), Layers(cfg, [*OUTS, "provenance"], seed=3)
     _equal(a.sample(2), b.sample(2), OUTS)
     assert a.sample(2)["provenance"] == b.sample(2)["provenance"]
     assert not torch.equal(Layers(cfg, OUTS, seed=4).sample(2)["flow_fw"], a.sample(2)["flow_fw"])
@@ -138,7 +138,7 @@ def test_mixture_of_both_kinds_and_its_preset_round_trip(photos, tmp_path):
     outs = ["rgb", "flow_fw", "valid_fw"]
     mix = Mixture({"things": things, "chairs": chairs}, {"things": 1, "chairs": 2}, outputs=outs, seed=2)
     plain = [make_stream(things, outs, seed=2), Layers(chairs, outs, seed=2)]
-    keys = set(outs) | {"index", "seed", "provenance", "source"}
+    keys = set(outs) | {"index", "seed", "source"}
     seen = set()
     for i in range(6):
         k = mix.source(i)
@@ -147,6 +147,16 @@ def test_mixture_of_both_kinds_and_its_preset_round_trip(photos, tmp_path):
         assert set(got) == keys and int(got["source"]) == k
         _equal(got, plain[k].sample(i), outs)
     assert seen == {0, 1}
+    # "meta": the metadata keys every source has: provenance (a Layers source has no camera)
+    meta = Mixture({"things": things, "chairs": chairs}, outputs=[*outs, "meta"], seed=2)
+    configs = (things, chairs)
+    for i in range(2):
+        got = meta.sample(i)
+        assert set(got) == keys | {"provenance"}
+        assert got["provenance"] == make_stream(configs[meta.source(i)], [*outs, "provenance"], seed=2).sample(i)[
+            "provenance"]
+    with pytest.raises(fs.ConfigError, match="no \\['K'\\]"):  # asked by name: every source must have it
+        Mixture({"things": things, "chairs": chairs}, outputs=[*outs, "K"], seed=2)
     batch = next(iter(DataLoader(Mixture({"things": things, "chairs": chairs}, outputs=outs, seed=2, length=4),
                                  batch_size=4)))
     assert batch["rgb"].shape == (4, 2, 3, 48, 64) and batch["valid_fw"].dtype == torch.bool
@@ -204,7 +214,7 @@ def test_export_to_every_layout_read_back_by_readers_nobody_here_wrote(photos, t
     as the stream (floats bit-exact, rgb within 8-bit rounding); the manifest names the kind and no camera, and its
     statistics name the layers' categories; flyingthings3d is refused before writing; a re-run resumes."""
     cfg = _cfg(photos, num_frames=3)
-    stream = Layers(cfg, LAYERS_OUTPUTS, seed=1)
+    stream = Layers(cfg, [*LAYERS_OUTPUTS, "provenance"], seed=1)
     s = [stream.sample(i) for i in range(2)]
     tv = tvision.datasets()
     root = export_dataset(cfg, tmp_path / "chairs", 2, seed=1, layout="flyingchairs", progress=False)

@@ -96,7 +96,7 @@ def test_export_read_back_by_torchvision_and_exported_then_resumed(preset, tmp_p
     back = Exported(native, verify=True)
     outs = manifest["outputs"]
     assert {"rgb", "flow_fw", "occ_fw", "instance"} <= set(outs)
-    full = Mixture.from_preset(preset, outputs=outs, seed=2)
+    full = Mixture.from_preset(preset, outputs=[*outs, "meta"], seed=2)
     for i in range(4):
         got, want = back[i], full.sample(i)
         assert set(got) == {*outs, "index", "seed", "source", "provenance"}

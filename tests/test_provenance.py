@@ -41,7 +41,7 @@ def test_from_meta_rerenders_the_sample_bit_for_bit(tmp_path, motion, mode):
     cfg = BouncingThingsConfig(width=48, height=36, num_frames=3, motion=motion, render_mode=mode, spp=2,
                                num_objects=(2, 4), texture_dir=_texture_dir(tmp_path),
                                texture_families=("image", "noise", "blend"))
-    ds = fs.datasets.BouncingThings(cfg, outputs=KEYS, seed=5)
+    ds = fs.datasets.BouncingThings(cfg, outputs=[*KEYS, "provenance"], seed=5)
     for i in range(3):
         sample = ds.sample(i)
         prov = json.loads(sample["provenance"])
@@ -57,7 +57,7 @@ def test_from_meta_rerenders_the_sample_bit_for_bit(tmp_path, motion, mode):
 
 def test_provenance_records_resolved_materials_lights_and_seed():
     cfg = BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic")
-    ds = fs.datasets.BouncingThings(cfg, outputs=["depth"], seed=1)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["depth", "provenance"], seed=1)
     scene = ds.scene(4)
     prov = json.loads(ds.sample(4)["provenance"])
     assert prov == scene.to_meta()
@@ -94,7 +94,7 @@ def test_scene_meta_round_trip_of_a_hand_built_scene():
 
 def test_provenance_survives_export_and_collate(tmp_path):
     cfg = BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic")
-    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw"], seed=2, length=4)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "meta"], seed=2, length=4)
     sample = ds.sample(0)
     write_sample(sample, tmp_path)
     meta = json.loads((tmp_path / "meta.json").read_text())

@@ -160,7 +160,7 @@ def test_validation_dataset_and_export(tmp_path):
     cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=2, motion="kinematic", num_objects=(2, 3),
                                   stereo_baseline=0.2)
     ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "rgb_right", "disparity", "disparity_change",
-                                                  "disparity_occ"], seed=1)
+                                                  "disparity_occ", "meta"], seed=1)
     a, b = ds.sample(0), ds.sample(1)
     batch = default_collate([a, b])
     assert batch["rgb_right"].shape == (2, 2, 3, 24, 32) and batch["disparity_change"].shape == (2, 1, 1, 24, 32)

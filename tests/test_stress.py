@@ -195,7 +195,7 @@ def test_fuzz_configs(motion, size, frames, speed, fov, camera, obj, mode, seed,
                                   min_speed=speed, max_speed=speed * 1.5, fov_deg=fov, camera_motion=camera,
                                   object_size=(obj[0], obj[0] + obj[1]), num_objects=(1, 5), max_objects=5,
                                   render_mode=mode)
-    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb"] + ALL, seed=seed)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "provenance"] + ALL, seed=seed)
     out = ds.sample(index)
     check_invariants(out)
     assert ((out["rgb"] >= 0) & (out["rgb"] <= 1)).all()

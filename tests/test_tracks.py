@@ -170,7 +170,7 @@ def test_sampling_modes_and_determinism():
 def test_dataset_collate_export_and_tapvid_file(tmp_path):
     cfg = fs.BouncingThingsConfig(width=32, height=24, num_frames=4, motion="kinematic", num_objects=(2, 3),
                                   num_tracks=50, track_sampling="objects")
-    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "tracks"], seed=2)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "tracks", "meta"], seed=2)
     a, b = ds.sample(0), ds.sample(1)
     batch = default_collate([a, b])
     assert batch["target_points"].shape == (2, 50, 4, 2) and batch["occluded"].shape == (2, 50, 4)

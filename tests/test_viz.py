@@ -13,16 +13,22 @@ from PIL import Image
 
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.viz import (
+    LEGEND_MIN,
     contact_sheet,
+    depth_colorbar,
+    depth_range,
     depth_to_color,
     draw_boxes,
+    flow_legend,
     flow_to_color,
     ids_to_color,
     make_colorwheel,
     mask_to_color,
     normals_to_color,
+    preview_tiles,
     sample_preview,
     save_png,
+    sheet_layout,
 )
 
 
@@ -184,8 +190,12 @@ def test_sample_preview_all_keys(tmp_path: Path) -> None:
     sample = _fake_sample()
     img = sample_preview(sample)
     assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
-    # rgb x2, flow_fw, flow_bw, occ_fw, depth, normals, instance, boxes = 9 tiles -> 3 rows of 4.
-    assert img.shape[1] == 4 * (32 + 2) + 2
+    # rgb x2, flow_fw, flow_bw, the flow key, occ_fw, depth, its scale, normals, instance, boxes = 11 tiles -> 3 rows
+    # of 4, cells as wide as the legends (LEGEND_MIN) or the longest word of a label ("box2d_visible")
+    from PIL import ImageFont
+
+    inner = max(LEGEND_MIN, int(ImageFont.load_default().getbbox("box2d_visible")[2]))
+    assert img.shape[1] == 4 * (inner + 2) + 2
     path = tmp_path / "preview.png"
     save_png(path, img)
     with Image.open(path) as im:
@@ -193,6 +203,91 @@ def test_sample_preview_all_keys(tmp_path: Path) -> None:
     numpy_sample = {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in sample.items()}
     np.testing.assert_array_equal(sample_preview(numpy_sample), img)
     no_rgb = {k: v for k, v in sample.items() if k != "rgb"}
-    assert sample_preview(no_rgb, columns=8).shape[1] == 7 * (32 + 2) + 2  # boxes drawn on the id map
+    assert sample_preview(no_rgb, columns=10).shape[1] == 9 * (inner + 2) + 2  # boxes drawn on the id map
     with pytest.raises(ConfigError):
         sample_preview({"index": 0})
+
+
+def _overlap(a, b) -> bool:
+    """Two boxes (x0, y0, x1, y1), x1 and y1 exclusive, share a pixel."""
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+@pytest.mark.parametrize("size", [(1, 1), (64, 48)])
+def test_preview_reads_at_the_smallest_size(size) -> None:
+    """The preview of a rendered sample at 1x1 px (the smallest size a config allows) and 64x48 px: it has a flow key
+    and a depth scale; no two texts (title, labels), no text and tile, no two tiles overlap, every text lies inside
+    the sheet; and the sheet's pixels that are not its background all lie in a text's ink box or a tile (so the boxes
+    say where Pillow drew)."""
+    import flowsynth as fs
+    from flowsynth.cli import PREVIEW_BOUNCING
+
+    W, H = size
+    cfg = fs.BouncingThingsConfig(width=W, height=H, num_frames=2, motion="kinematic")
+    sample = fs.datasets.BouncingThings(cfg, list(PREVIEW_BOUNCING), seed=0).sample(0)
+    tiles = preview_tiles(sample)
+    labels = [label for label, _ in tiles]
+    assert any(lab.startswith("flow key: rim ") and lab.endswith(" px") for lab in labels), labels
+    assert any(lab.startswith("depth [m]: ") for lab in labels), labels
+    title = "sample 0 of a_mixture_preset_with_a_long_name.json: source 'things' (bouncing)"
+    layout = sheet_layout(labels, [t.shape[:2] for _, t in tiles], 4, title=title)
+    boxes = [ink for _, _, ink in layout.texts] + list(layout.tiles)
+    for n, a in enumerate(boxes):
+        assert 0 <= a[0] and 0 <= a[1] and a[2] <= layout.size[0] and a[3] <= layout.size[1], a
+        for b in boxes[n + 1:]:
+            assert not _overlap(a, b), (a, b)
+    sheet = sample_preview(sample, title=title)
+    assert sheet.shape[:2] == layout.size[::-1]
+    inside = np.zeros(sheet.shape[:2], bool)
+    for x0, y0, x1, y1 in boxes:
+        inside[y0:y1, x0:x1] = True
+    drawn = (sheet != np.array([32, 32, 32], np.uint8)).any(axis=-1)
+    assert not (drawn & ~inside).any(), np.argwhere(drawn & ~inside)[:5]
+
+
+def test_flow_legend_is_the_key_of_the_flow_tile() -> None:
+    """The legend's pixel at offset f r / max_flow from its centre has the colour of flow f in flow_to_color(...,
+    max_flow) (within the colour change of the half-pixel rounding); white at the centre, grey outside the disk, all
+    white for no motion."""
+    m, h, w = 7.5, 49, 61
+    key = flow_legend(m, h, w)
+    r, cy, cx = (h - 1) / 2, (h - 1) / 2, (w - 1) / 2
+    rng = np.random.default_rng(0)
+    angles, mags = rng.uniform(-np.pi, np.pi, 40), rng.uniform(0, m, 40)
+    flows = np.stack([mags * np.cos(angles), mags * np.sin(angles)])[:, None]  # (2, 1, 40)
+    want = flow_to_color(flows, max_flow=m)[0]
+    for k in range(40):
+        y, x = int(round(cy + flows[1, 0, k] * r / m)), int(round(cx + flows[0, 0, k] * r / m))
+        assert np.abs(key[y, x].astype(int) - want[k]).max() <= 24, (k, key[y, x], want[k])
+    np.testing.assert_array_equal(key[int(cy), int(cx)], 255)
+    np.testing.assert_array_equal(key[0, 0], 32)
+    still = flow_legend(0.0, h, w)
+    assert (still[int(cy), int(cx) - 24:int(cx) + 25] == 255).all() and (still[int(cy), :5] == 32).all()
+
+
+def test_depth_colorbar_is_the_scale_of_the_depth_tile() -> None:
+    """depth_range is (1 / 99th, 1 / 1st percentile of inverse depth) [m] (numpy); a pixel at depth d in that range
+    has the colour of the bar's column (1/d - 1/far) / (1/near - 1/far) (W - 1); purple (far) left, yellow (near)
+    right; tick marks at 1, 2, 5 m at the foot of the band (the upper half), their numbers below it."""
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.7, 12.0, (30, 40))
+    depth[0, :5] = 0.0  # no hit
+    near, far = depth_range(depth)
+    inv = 1 / depth[depth > 0]
+    assert (near, far) == pytest.approx((1 / np.percentile(inv, 99), 1 / np.percentile(inv, 1)), rel=1e-12)
+    width = 200
+    bar = depth_colorbar(near, far, 40, width)
+    img = depth_to_color(depth)
+    lo, hi = 1 / far, 1 / near
+    ok = (depth >= near) & (depth <= far)
+    for i, j in np.argwhere(ok)[:: 37]:
+        col = int(round((1 / depth[i, j] - lo) / (hi - lo) * (width - 1)))
+        assert np.abs(bar[0, col].astype(int) - img[i, j]).max() <= 6, (depth[i, j], bar[0, col], img[i, j])
+    np.testing.assert_array_equal(bar[0, 0], [68, 1, 84])
+    np.testing.assert_array_equal(bar[0, -1], [253, 231, 37])
+    for d in (1.0, 2.0, 5.0):
+        col = int(round((1 / d - lo) / (hi - lo) * (width - 1)))
+        np.testing.assert_array_equal(bar[19, col], 255)
+        assert (bar[21:, max(col - 8, 0):col + 8] > 128).all(axis=-1).any(), d  # its number (anti-aliased)
+    assert (bar[21:, :] == 32).all(axis=-1).mean() > 0.5  # grey under the band but for the numbers
+    np.testing.assert_array_equal(depth_colorbar(near, far, 12, width)[:, 0], [[68, 1, 84]] * 12)  # no room: band only

@@ -43,7 +43,7 @@ def exported(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def stream(exported) -> list[dict]:
     outputs = json.loads((exported / "manifest.json").read_text())["outputs"]
-    ds = BouncingThings(CFG, outputs=outputs, seed=SEED)
+    ds = BouncingThings(CFG, outputs=[*outputs, "meta"], seed=SEED)  # an export keeps the cameras and provenance
     return [ds.sample(i) for i in range(NUM)]
 
 
@@ -171,7 +171,7 @@ def test_a_lens_camera_sits_beside_K(exported, tmp_path):
                   "--camera-dist-max=-0.1,0.05,0.001,0.001", "--outputs", "depth,flow_fw", num=3) == 0
     cfg = fs.BouncingThingsConfig(**{**CFG.to_dict(), "camera_model": "brown_conrady",
                                      "camera_dist": (-0.2, 0, 0, 0), "camera_dist_max": (-0.1, 0.05, 0.001, 0.001)})
-    ds, ex = BouncingThings(cfg, outputs=["depth", "flow_fw"], seed=SEED), Exported(out, verify=True)
+    ds, ex = BouncingThings(cfg, outputs=["depth", "flow_fw", "meta"], seed=SEED), Exported(out, verify=True)
     items = list(wds.WebDataset([str(p) for p in shard_paths(out)], shardshuffle=False))
     assert [item["__key__"] for item in items] == [f"{i:08d}" for i in range(3)]
     for i, item in enumerate(items):

@@ -35,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: _co
 
 from _common import machine_info, print_table, write_json
 
-MAIN_OUTPUTS = ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "valid_fw", "instance", "normals")
+MAIN_OUTPUTS = ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "valid_fw", "instance", "normals", "K",
+                "cam_T_world")
 TOLERANCES: dict[str, tuple[str, float | None]] = {
     "instance": ("equal", 0), "occ_fw": ("equal", 0), "occ_bw": ("equal", 0), "valid_fw": ("equal", 0),
     "K": ("equal", 0), "cam_T_world": ("equal", 0),

@@ -43,7 +43,7 @@ def workloads(threads: int | None):
     import flowsynth as fs
     from flowsynth.plan import CORE_OUTPUTS, SCENE_FLOW_KEYS, STEREO_KEYS
 
-    everything = list(CORE_OUTPUTS + SCENE_FLOW_KEYS + STEREO_KEYS) + ["tracks"]
+    everything = list(CORE_OUTPUTS + SCENE_FLOW_KEYS + STEREO_KEYS) + ["tracks", "provenance"]
     base = fs.BouncingThingsConfig(width=96, height=72, num_frames=2, stereo_baseline=0.1, num_tracks=32)
     for mode in ("flat", "direct"):
         cfg = dataclasses.replace(base, render_mode=mode)
@@ -51,7 +51,8 @@ def workloads(threads: int | None):
         for i in (0, 1, 5):
             yield f"{mode}/{i}", ds.sample(i)
     cfg = dataclasses.replace(base, num_frames=3, flow_gaps=(1, 2), stereo_baseline=0.0)
-    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "flow_bw_k2", "occ_fw_k2", "depth"], seed=7)
+    ds = fs.datasets.BouncingThings(cfg, outputs=["rgb", "flow_fw", "flow_bw_k2", "occ_fw_k2", "depth", "meta"],
+                                    seed=7)
     yield "gaps/2", ds.sample(2)
     T = 3
     cam = fs.Camera.from_fov(width=80, height=60, fov_deg=60.0)

@@ -10,11 +10,13 @@ from flowsynth.datasets.layer_draws import PairDraw, draw_pair
 from flowsynth.datasets.layer_render import CATEGORY_NAMES as LAYER_CATEGORIES
 from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, layers_pairs
+from flowsynth.datasets.meta import ALL, ALWAYS_KEYS, META, META_OUTPUTS
 from flowsynth.datasets.workers import loader
 
-__all__ = ["KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "BouncingThings", "DeviceBatches", "Exported", "FlowPairs",
-           "Layers", "LayersConfig", "Mixture", "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind",
-           "draw_pair", "layers_pairs", "loader", "make_stream", "render_layers", "sample_seed", "stream_outputs"]
+__all__ = ["ALL", "ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "META", "META_OUTPUTS",
+           "BouncingThings", "DeviceBatches", "Exported", "FlowPairs", "Layers", "LayersConfig", "Mixture",
+           "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind", "draw_pair", "layers_pairs", "loader",
+           "make_stream", "render_layers", "sample_seed", "stream_outputs"]
 
 
 def __getattr__(name: str):

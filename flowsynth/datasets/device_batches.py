@@ -27,6 +27,7 @@ import torch
 from torch.utils.data import Dataset, Sampler, get_worker_info
 
 from flowsynth.datasets.bouncing import stream_plan
+from flowsynth.datasets.meta import PROVENANCE
 from flowsynth.datasets.stream import StreamPosition, count, shard_indices, shard_size
 from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
@@ -83,8 +84,9 @@ class DeviceBatches(StreamPosition):
     Args:
         cfg: scene and rendering configuration (defaults when None); one camera for every sample (no
             ``camera_dist_max``) and, with rgb, no motion blur (``shutter`` 0).
-        outputs: keys ``fs.render_batch`` renders (``flowsynth.renderer.BATCH_KEYS``); ``K`` and ``cam_T_world`` are
-            always added, as in ``BouncingThings``.
+        outputs: keys ``fs.render_batch`` renders (``flowsynth.renderer.BATCH_KEYS``, ``K`` and ``cam_T_world``
+            among them), ``provenance``, ``"meta"`` for the three, or ``"all"`` for every key a batch renders and the
+            three, as in ``BouncingThings``.
         batch_size: B >= 1 samples per batch.
         num_workers: CPU processes sampling and simulating the scenes (0: in this process, before each batch).
         seed: dataset seed (>= 0).
@@ -111,8 +113,9 @@ class DeviceBatches(StreamPosition):
     position.
 
     Each batch is a dict: every output (B, ...) (per-frame keys (B, T, C, H, W), per-pair (B, T-1, C, H, W), ``K``
-    (B, 3, 3), ``cam_T_world`` (B, T, 4, 4)), ``index`` and ``seed`` (B,) int64, all on ``device``, and
-    ``provenance``, the B samples' scene descriptions (JSON strings), as ``BouncingThings.sample`` gives them.
+    (B, 3, 3), ``cam_T_world`` (B, T, 4, 4) when asked for), ``index`` and ``seed`` (B,) int64, all on ``device``,
+    and, when asked for, ``provenance``: the B samples' scene descriptions (JSON strings), as
+    ``BouncingThings.sample`` gives them.
     """
 
     def __init__(self, cfg=None, outputs: Sequence[str] = ("rgb", "flow_fw"), batch_size: int = 8,
@@ -129,10 +132,11 @@ class DeviceBatches(StreamPosition):
         if cfg.camera_dist_max is not None:
             raise ConfigError("camera_dist_max draws a lens per sample, and a batch needs one camera: leave "
                               "camera_dist_max None, or stream with BouncingThings")
-        self.plan = stream_plan(cfg, outputs, occlusion, threads)
+        self.plan, self.provenance = stream_plan(cfg, outputs, occlusion, threads, batch=True)
         check_batch_plan(self.plan)
         self.device = resolve_device(device)  # here: the scenes' workers start by forkserver, never by fork
-        self.cfg, self.outputs = cfg, self.plan.outputs
+        self.cfg = cfg
+        self.outputs = self.plan.outputs + ((PROVENANCE,) if self.provenance else ())
         self.scenes = SceneSet(cfg, self.seed, self.plan)
         self._source = None  # the scene workers' iterator (a DataLoader's), and the scenes taken from it not yet used
         self._held: list = []
@@ -197,5 +201,6 @@ class DeviceBatches(StreamPosition):
         like = out[self.plan.outputs[0]]
         out["index"] = torch.tensor(indices, dtype=torch.int64, device=like.device)
         out["seed"] = torch.full((len(scenes),), self.seed, dtype=torch.int64, device=like.device)
-        out["provenance"] = [provenance_json(s) for s in scenes]
+        if self.provenance:
+            out[PROVENANCE] = [provenance_json(s) for s in scenes]
         return out

@@ -23,6 +23,7 @@ import torch
 from flowsynth.datasets.layer_draws import PairDraw, draw_pair
 from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layer_textures import TEXTURE_SEED, TextureBank
+from flowsynth.datasets.meta import ALL, PROVENANCE, split_meta
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError, ShapeError
 from flowsynth.scene import config_from_dict
@@ -151,8 +152,9 @@ class Layers(IndexStream):
 
     Args:
         cfg: a ``LayersConfig`` (defaults when None).
-        outputs: keys of ``LAYERS_OUTPUTS``; ``index``, ``seed`` (int64 scalars) and ``provenance`` (a JSON string:
-            the config, seed, index and every draw) are always added.
+        outputs: keys of ``LAYERS_OUTPUTS``, and ``provenance`` (a JSON string: the config, seed, index and every
+            draw; ``"meta"`` names it too), or ``"all"`` for all of them (the per-pair keys with two frames or
+            more); ``index`` and ``seed`` (int64 scalars) are always added.
         seed: dataset seed; any integer >= 0, 0 included.
         length: samples per epoch, or None for an endless stream.
         start: first index of the stream.
@@ -172,12 +174,16 @@ class Layers(IndexStream):
         cfg = LayersConfig() if cfg is None else cfg
         if not isinstance(cfg, LayersConfig):
             raise ConfigError(f"cfg must be a LayersConfig, got {type(cfg).__name__}")
-        self.outputs = layer_outputs(outputs)
+        every = () if isinstance(outputs, str) or not isinstance(outputs, Sequence) or ALL not in outputs else \
+            LAYERS_OUTPUTS if cfg.num_frames > 1 else tuple(k for k in LAYERS_OUTPUTS if k not in PAIR_KEYS)
+        keys, self.provenance = split_meta(outputs, (PROVENANCE,), every)
+        self.outputs = layer_outputs(keys)
         pairs = [k for k in self.outputs if k in PAIR_KEYS]
         if pairs and cfg.num_frames < 2:
             raise ConfigError(f"{pairs} need num_frames >= 2, got {cfg.num_frames}; raise num_frames or leave them out")
         self._init_stream(seed, length, start)
         self.cfg = cfg
+        self.outputs += (PROVENANCE,) if self.provenance else ()
         self.textures = TextureBank(cfg.width, cfg.height, cfg.texture_bank, cfg.texture_seed, cfg.texture_dir)
 
     def draw(self, i: int) -> PairDraw:
@@ -191,11 +197,12 @@ class Layers(IndexStream):
         d = self.draw(i)
         cfg = self.cfg
         out: dict[str, Any] = render_layers(d, self.textures.__getitem__, cfg.width, cfg.height, cfg.num_frames,
-                                            self.outputs)
+                                            [k for k in self.outputs if k != PROVENANCE])
         out["index"] = torch.tensor(i, dtype=torch.int64)
         out["seed"] = torch.tensor(self.seed, dtype=torch.int64)
-        out["provenance"] = json.dumps({"dataset": "layers", "config": cfg.to_dict(), "seed": self.seed, "index": i,
-                                        "draw": d.to_dict()}, separators=(",", ":"))
+        if self.provenance:
+            out[PROVENANCE] = json.dumps({"dataset": "layers", "config": cfg.to_dict(), "seed": self.seed,
+                                          "index": i, "draw": d.to_dict()}, separators=(",", ":"))
         return out
 
 

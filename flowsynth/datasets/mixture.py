@@ -12,9 +12,9 @@ i < until (the last stage's ``until`` may be None: open-ended). "chairs, then th
 ``[(20000, {"chairs": 1}), (None, {"chairs": 1, "things": 3})]``.
 
 All configs must give samples of one shape (width, height and num_frames equal, and max_objects among the
-BouncingThings configs), so that ``default_collate`` batches a mixture. Each item holds the keys every source gives:
-the outputs, ``index``, ``seed``, ``provenance`` and ``source`` (int64, k), and ``K`` and ``cam_T_world`` when every
-source is a BouncingThings config.
+BouncingThings configs), so that ``default_collate`` batches a mixture. Each item holds the outputs (every source
+must give each), ``index``, ``seed`` and ``source`` (int64, k). ``"meta"`` among the outputs names the metadata keys
+every source has: ``provenance``, and ``K`` and ``cam_T_world`` when every source is a BouncingThings config.
 
 A preset file is JSON::
 
@@ -54,7 +54,7 @@ PRESET_FORMAT = "flowsynth-mixture"
 """The ``format`` of a preset file (version 1)."""
 SOURCE_KINDS = ("bouncing", "layers")
 """The kinds a source of a mixture may be (``source_kind``)."""
-_ALWAYS = ("index", "seed", "provenance")  # keys every source's items hold besides the outputs
+_ALWAYS = ("index", "seed")  # keys every source's items hold besides the outputs
 
 
 

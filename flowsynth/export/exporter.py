@@ -482,8 +482,9 @@ def estimate(cfg, num: int, *, seed: int = 0, outputs=None, layout: str = "nativ
     from flowsynth.datasets import make_stream
 
     lay, outputs = _resolve(cfg, num, outputs, layout, 1, exr_compression, shard_size=shard_size)
-    # the keys the writer writes: the outputs and what every exported sample keeps (ExportWriter.kept)
-    sample = ExportWriter(cfg, outputs, seed, occlusion, lay).kept(make_stream(cfg, outputs, seed,
+    # the keys the writer writes: the outputs and what every exported sample keeps (ExportWriter.kept; "meta": the
+    # camera and provenance, as the writer asks)
+    sample = ExportWriter(cfg, outputs, seed, occlusion, lay).kept(make_stream(cfg, (*outputs, "meta"), seed,
                                                                                occlusion=occlusion).sample(0))
     per_sample: dict[str, int] = {}
     with tempfile.TemporaryDirectory(prefix="flowsynth-dry-run-") as tmp:

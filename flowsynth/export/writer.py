@@ -32,7 +32,8 @@ from flowsynth.errors import ExportError, StorageError
 
 __all__ = ["ExportWriter", "camera_record", "run_job"]
 
-# keys every exported sample keeps besides the requested outputs (cameras, provenance, index, seed, a mixture's source)
+# keys every exported sample keeps besides the requested outputs (index, seed, a mixture's source; the cameras and
+# provenance, which the stream gives when asked for: "meta")
 _ALWAYS_KEPT = ("index", "seed", "source", "K", "cam_T_world", "provenance")
 
 
@@ -84,7 +85,8 @@ class ExportWriter:
 
             set_worker_process()
         torch.set_num_threads(1)
-        self._ds = make_stream(self.cfg, cheap_stats_outputs(self.outputs), self.seed, occlusion=self.occlusion)
+        self._ds = make_stream(self.cfg, (*cheap_stats_outputs(self.outputs), "meta"), self.seed,
+                               occlusion=self.occlusion)
         return self
 
     def kept(self, sample: dict) -> dict:

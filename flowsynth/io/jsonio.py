@@ -127,13 +127,16 @@ def coco_boxes(
     first_image_id: int = 1,
     first_annotation_id: int = 1,
 ) -> dict[str, list[dict[str, Any]]]:
-    """Build a COCO-style detection dict from one sample's per-frame visible boxes.
+    """Build a COCO detection dict from one sample's per-frame visible boxes.
 
     Object slot n of the sample's object tables is instance id n + 1 in its ``instance`` map.
     One image per frame; one annotation per (frame, valid object with at least one visible pixel).
+    Boxes follow COCO's pixel-edge convention: the image's left and top edges are x = 0 and y = 0, so
+    a box is flowsynth's (pixel centres at integers, edges at -1/2) shifted by +1/2.
 
     Args:
-        box2d_visible: (T, N, 4) float xyxy [px], the sample's ``box2d_visible``.
+        box2d_visible: (T, N, 4) float xyxy [px], the sample's ``box2d_visible`` (flowsynth's pixel-centre
+            coordinates: a box of the pixels j0..j1 spans x0 = j0 - 1/2 .. x1 = j1 + 1/2).
         object_valid: (N,) bool, padding mask of the object tables.
         category: (N,) int, category id per object (COCO ids, > 0).
         visible_pixels: (T, N) int, visible pixel count per frame and object.
@@ -145,7 +148,8 @@ def coco_boxes(
     Returns:
         ``{"images": [...], "annotations": [...], "categories": [...]}`` with plain Python values.
         images: ``id, file_name, width, height, frame``. annotations: ``id, image_id, category_id,
-        bbox = [x0, y0, x1 - x0, y1 - y0]`` (the xyxy coordinates as given), ``area`` (bbox w * h),
+        bbox = [x0 + 1/2, y0 + 1/2, x1 - x0, y1 - y0]`` (COCO's [x, y, w, h]: the pixels j0..j1 give
+        x = j0, w = j1 - j0 + 1), ``area`` (bbox w * h),
         ``iscrowd = 0, instance_id, frame, visible_pixels``. categories: ``id, name,
         supercategory = "object"`` for every category of a valid object (and of ``category_names``).
 
@@ -191,7 +195,7 @@ def coco_boxes(
                     "id": ann_id,
                     "image_id": image_id,
                     "category_id": int(cats[n]),
-                    "bbox": [x0, y0, w, h],
+                    "bbox": [x0 + 0.5, y0 + 0.5, w, h],
                     "area": w * h,
                     "iscrowd": 0,
                     "instance_id": int(n) + 1,

@@ -21,7 +21,6 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 | seed, source (a mixture's)            |                         |                                     |
 | provenance                            | meta.json               | JSON object (Scene.from_meta reads) |
 | a lens camera's model, coefficients  | meta.json               | camera_model, camera_dist (OpenCV)  |
-| box2d_visible (when requested)        | boxes_coco.json         | COCO-style detection boxes          |
 | target_points, occluded, query_points | tracks.npz              | numpy .npz, the tensors as they are |
 | all three track keys (when requested) | tapvid.pkl              | TAP-Vid (Kubric) dict, see below    |
 
@@ -32,6 +31,9 @@ Per-frame keys are written one file per frame, per-pair keys one file per pair (
 (when the sample has an image-sized key that gives W and H);
 and, when rgb was requested, ``video`` (T, H, W, 3) uint8 (Kubric's loader gives it scaled to [-1, 1]:
 ``video / 127.5 - 1``). ``{name: pickle.load(f)}`` over samples is the TAP-Vid DAVIS file layout.
+
+The boxes of the whole export go to one COCO file at its root, ``boxes_coco.json`` (``write_coco``), written
+when the export ends from every sample's ``meta.json``.
 
 A key that is in none of these rows raises :class:`flowsynth.errors.ExportError`: a new output needs its
 own row here (a file format, or a place in ``META_KEYS``) before it can be exported.
@@ -55,7 +57,8 @@ from flowsynth.io.jsonio import coco_boxes, read_json, write_json
 from flowsynth.io.png import read_rgb_png, read_u16_png, write_rgb_png, write_u16_png
 from flowsynth.plan import CAMERA_KEYS, FLOW_KEYS, GBUFFER_KEYS, TABLE_KEYS, TRACK_KEYS, split_gap_key
 
-__all__ = ["META_KEYS", "PROVENANCE_KEY", "file_digest", "read_sample", "tapvid_dict", "write_sample"]
+__all__ = ["COCO_FILE", "COCO_KEYS", "META_KEYS", "PROVENANCE_KEY", "file_digest", "read_sample", "tapvid_dict",
+           "write_coco", "write_sample"]
 
 _EXR = {"depth": "depth", "distance": "distance", "normals": "normals", "position": "position",
         "flow_fw": "flow", "flow_bw": "flow", "scene_flow_fw": "scene_flow", "scene_flow_bw": "scene_flow",
@@ -69,6 +72,10 @@ _U16 = (("instance", "category", "asset") + tuple(k for k in FLOW_KEYS if not k.
 META_KEYS = CAMERA_KEYS + TABLE_KEYS + ("index", "seed", "source")
 # The sample's provenance (flowsynth.scene.scene.provenance_json: a JSON string), stored in meta.json as a JSON object.
 PROVENANCE_KEY = "provenance"
+COCO_FILE = "boxes_coco.json"
+"""The export's COCO detection file (``write_coco``), at its root."""
+COCO_KEYS = ("box2d_visible", "visible_pixels", "object_valid", "object_category")
+"""The outputs a sample needs for its boxes to be in ``COCO_FILE``."""
 
 
 def _base(key: str) -> str:
@@ -123,14 +130,6 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
         else:  # META_KEYS
             meta[key] = {"shape": list(a.shape), "dtype": str(value.dtype).replace("torch.", ""),
                          "data": a.reshape(-1).tolist()}
-    if "box2d_visible" in sample and "visible_pixels" in sample and "object_category" in sample:
-        T = sample["box2d_visible"].shape[0]
-        frames = [f"rgb_{t:04d}.png" for t in range(T)]
-        H, W = _image_size(sample)
-        write_json(folder / "boxes_coco.json", coco_boxes(
-            sample["box2d_visible"], sample["object_valid"], sample["object_category"],
-            sample["visible_pixels"], width=W, height=H, file_names=frames))
-        names.append("boxes_coco.json")
     tracks = {k: sample[k].numpy() for k in TRACK_KEYS if k in sample}
     if tracks:
         buf = io.BytesIO()
@@ -143,6 +142,51 @@ def write_sample(sample: dict[str, torch.Tensor], folder: Path, *, exr_compressi
     write_json(folder / "meta.json", meta)
     names.append("meta.json")
     return names
+
+
+def write_coco(root: Path, folders: list[str]) -> list[str]:
+    """Write ``root/COCO_FILE``: one COCO detection file of the samples in ``root/FOLDER`` for each of ``folders``
+    (sample folders of ``write_sample`` with ``index`` and ``provenance``, in order), from their ``meta.json``.
+    Returns ``[COCO_FILE]``, or [] (and writes nothing) when no sample holds ``COCO_KEYS``.
+
+    One image per (sample, frame), ids 1, 2, ... in that order, ``file_name`` ``FOLDER/rgb_TTTT.png`` and
+    ``sample`` its index; one annotation per visible object and frame (``flowsynth.io.coco_boxes``: COCO's
+    pixel-edge boxes). Categories: every object category the samples hold, named by the asset their provenance
+    names (``box``; where two assets share an id, as in a mixture, their names joined by "|"), ``category_<id>``
+    for an object without one. A folder without ``meta.json`` is left out (a dry run writes sample 0 only)."""
+    root = Path(root)
+    images: list[dict] = []
+    annotations: list[dict] = []
+    names: dict[int, list[str]] = {}
+    for folder in folders:
+        path = root / folder / "meta.json"
+        if not path.is_file():
+            continue
+        meta = read_json(path)
+        if not all(k in meta for k in COCO_KEYS):
+            continue
+        tables = {k: np.asarray(meta[k]["data"]).reshape(meta[k]["shape"]) for k in COCO_KEYS}
+        for o in meta[PROVENANCE_KEY].get("objects", []):
+            asset = (o.get("mesh") or {}).get("asset")
+            if not o.get("background") and asset is not None and asset not in names.setdefault(o["category"], []):
+                names[o["category"]].append(asset)
+        camera = meta[PROVENANCE_KEY]["camera"]
+        frames = [f"{folder}/rgb_{t:04d}.png" for t in range(tables["box2d_visible"].shape[0])]
+        part = coco_boxes(tables["box2d_visible"], tables["object_valid"], tables["object_category"],
+                          tables["visible_pixels"], width=camera["width"], height=camera["height"],
+                          file_names=frames, first_image_id=len(images) + 1,
+                          first_annotation_id=len(annotations) + 1)
+        images += [{**im, "sample": int(meta["index"]["data"][0])} for im in part["images"]]
+        annotations += part["annotations"]
+        for c in part["categories"]:
+            names.setdefault(c["id"], [])
+    if not images:
+        return []
+    categories = [{"id": c, "name": "|".join(v) or f"category_{c}", "supercategory": "object"}
+                  for c, v in sorted(names.items())]
+    write_json(root / COCO_FILE, {"info": {"description": "flowsynth export: visible boxes"}, "images": images,
+                                  "annotations": annotations, "categories": categories})
+    return [COCO_FILE]
 
 
 def tapvid_dict(sample: dict) -> dict[str, np.ndarray]:

@@ -4,6 +4,7 @@
 
     DIR/
       manifest.json        config, seed, outputs, layout, versions, size and sha256 of every file
+      boxes_coco.json      COCO detection file of every sample's visible boxes (when the boxes are exported)
       00000/  rgb_0000.png  depth_0000.exr  flow_fw_0000.exr  instance_0000.png ...  meta.json
       00001/  ...
 
@@ -42,7 +43,7 @@ class Native(Layout):
     name = "native"
     writes_exr = True
     summary = "one folder per sample, every output lossless; read with flowsynth.datasets.Exported"
-    # images, flow both ways with occlusion, ids, and what boxes_coco.json needs
+    # images, flow both ways with occlusion, ids, and what boxes_coco.json needs (io.sampleio.COCO_KEYS)
     default_outputs = ("rgb", "depth", "flow_fw", "flow_bw", "occ_fw", "occ_bw", "instance", "box2d_visible",
                        "visible_pixels", "object_valid", "object_category")
 
@@ -61,7 +62,17 @@ class Native(Layout):
 
         return read_sample(Path(root) / Path(files[0]).parent)
 
+    def finish(self, root: Path, num: int, cfg) -> list[str]:
+        """``boxes_coco.json``: the COCO file of samples 0 .. num - 1 (``flowsynth.io.sampleio.write_coco``), written
+        again at the end of every run, a resume included."""
+        from flowsynth.io.sampleio import write_coco
+
+        return write_coco(Path(root), [f"{i:05d}" for i in range(num)])
+
     def clear(self, root: Path) -> None:
+        from flowsynth.io.sampleio import COCO_FILE
+
+        (Path(root) / COCO_FILE).unlink(missing_ok=True)
         for p in Path(root).iterdir():
             if p.is_dir() and p.name.isdigit():
                 shutil.rmtree(p)
