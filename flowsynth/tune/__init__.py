@@ -1,7 +1,5 @@
-"""``flowsynth tune``: the generator's own knobs fitted to a user's validation pairs, by successive halving of RAFT
-nets trained at once on each setting's data (``tune``; docs/tune.md): the search space (``SPACE``), the validation
-pairs' reader (``read_pairs``), the plan and search (``plan_rungs``, ``search``), the pools (``PoolRenderer``,
-``PoolCache``), the resource estimate (``estimate``), the trainer and the report."""
+"""``flowsynth tune``: the generator's own knobs fitted to a user's validation pairs by successive halving of RAFT
+nets trained on each setting's data (``tune``; docs/tune.md): search space, pairs, plan, pools, resources, report."""
 
 from flowsynth.tune.halving import TWIN, TWIN_SEED, Rung, min_budget, plan_cost, plan_rungs, search
 from flowsynth.tune.pairs import LAYOUTS, find_pairs, read_pairs
