@@ -6,6 +6,9 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pycocotools.coco as coco_api
+import pycocotools.cocoeval as cocoeval
+import pycocotools.mask as mask_utils
 import pytest
 
 import flowsynth as fs
@@ -13,9 +16,6 @@ from flowsynth.datasets import Exported
 from flowsynth.export import export_dataset
 from flowsynth.scene import OBJECT_CATEGORY_OFFSET, resolve_assets
 
-coco_api = pytest.importorskip("pycocotools.coco")
-cocoeval = pytest.importorskip("pycocotools.cocoeval")
-mask_utils = pytest.importorskip("pycocotools.mask")
 
 CFG = fs.BouncingThingsConfig(width=64, height=48, num_frames=2, motion="kinematic", num_objects=(3, 5),
                               max_objects=5)
