@@ -106,7 +106,8 @@ def test_tune_pool_keeps_the_bytes_of_its_hand_scaled_form():
     """The tune's pool at its quick size (160 px wide: a width no power of two divides 512 by) is the pool of the
     config it made by hand before."""
     from flowsynth.tune.space import default_point, key_of, sources
-    from flowsynth.tune.trainer import QUICK, render_pool
+    from flowsynth.tune.pools import render_pool
+    from flowsynth.tune.trainer import QUICK
 
     configs, weights = sources(key_of(default_point()), QUICK.res)
     things = configs["things"]

@@ -5,7 +5,7 @@ to how their configs are made (the pairs a registered protocol trains on must ke
     python benchmarks/learning/pool_hashes.py --check /tmp/before.json   # at the new one: exit 1 on any difference
 
 Hashes every arm of ``protocol.ARMS`` (``pools.build_arms``, ``--num`` pairs an arm, seed ``--seed``, at the judge's
-``protocol.RES``) and the tune's pools (``flowsynth.tune.trainer.render_pool`` of ``space.sources(key, res)``) for
+``protocol.RES``) and the tune's pools (``flowsynth.tune.pools.render_pool`` of ``space.sources(key, res)``) for
 ``TUNE_KEYS`` at the tune's two sizes (``RECIPE.res`` and ``QUICK.res``): each tensor of a pool is hashed (sha256 of
 its dtype, shape and bytes), a pool's hash is that of its four tensors in order. Neither size is 512 px wide, so the
 scaling of ``flow_px`` from the width it is given at is exercised. Trains nothing; a few minutes on one core.
@@ -48,7 +48,8 @@ def tune_key(label: str) -> str:
 def hashes(num: int, seed: int) -> dict:
     """{"learning/ARM": hash, "tune/WxH/KEY": hash} of the pools (module docstring)."""
     from flowsynth.tune.space import sources
-    from flowsynth.tune.trainer import QUICK, RECIPE, render_pool
+    from flowsynth.tune.pools import render_pool
+    from flowsynth.tune.trainer import QUICK, RECIPE
     from learning.pools import build_arms
     from learning.protocol import ARMS
 
