@@ -60,10 +60,10 @@ def train(steps: int = 200, *, width: int = 64, height: int = 48, batch_size: in
           lr: float = 2e-3, eval_batches: int = 2, log_every: int = 10, seed: int = 0) -> dict:
     """Train TinyFlowNet for ``steps`` steps; returns held-out EPE before and after and the loss history."""
     torch.manual_seed(seed)
-    # Motion in pixels, sized to these small images: 1/128 to 1/16 of the width per frame (the default
-    # config's 2-48 px suits 512x384; a tiny net on tiny images learns small motions first).
+    # Motion: 1/128 to 1/16 of the width per frame (4-32 px at 512 px wide, scaled to the width by the config;
+    # smaller than the default's 2-48: a tiny net on tiny images learns small motions first).
     cfg = fs.BouncingThingsConfig(width=width, height=height, num_frames=2, motion="kinematic",
-                                  render_mode="flat", num_objects=(3, 6), flow_px=(width / 128, width / 16))
+                                  render_mode="flat", num_objects=(3, 6), flow_px=(4.0, 32.0))
     held_out = list(zip(range(eval_batches), batches(cfg, seed + 1, batch_size, 0)))
     net = TinyFlowNet()
     opt = torch.optim.Adam(net.parameters(), lr=lr)

@@ -201,7 +201,7 @@ def test_as_ci_hides_every_bench_only_module(tmp_path):
 # The learning package's import order (issue 53: before it, learning.py and learning_raft.py imported each other): a
 # module imports only modules before it, so there is no circle; the scripts come last.
 LEARNING_ORDER = ("sets", "protocol", "pools", "trainers", "runs", "ensemble_rate", "summary", "diagnose",
-                  "checkpoints", "cli", "__main__", "magnitudes")
+                  "checkpoints", "cli", "__main__", "magnitudes", "pool_hashes")
 
 
 def package_imports(source: str, package: str) -> set[str]:

@@ -83,7 +83,9 @@ def test_planar_motion_moves_parallel_to_the_first_image_plane():
 
 @pytest.mark.parametrize("flow_px", [(2.0, 3.0), (6.0, 9.0)])
 def test_rendered_median_flow_lands_in_the_requested_range(flow_px):
-    cfg = BouncingThingsConfig(width=96, height=72, num_frames=2, motion="kinematic", flow_px=flow_px)
+    """flow_px in the rendered image's pixels (flow_px_width = width); tests/test_motion_width.py scales it."""
+    cfg = BouncingThingsConfig(width=96, height=72, num_frames=2, motion="kinematic", flow_px=flow_px,
+                               flow_px_width=96)
     ds = fs.datasets.BouncingThings(cfg, outputs=["flow_fw", "valid_fw", "category"], seed=5)
     pooled = []
     for i in range(4):
@@ -100,8 +102,9 @@ def test_rendered_median_flow_lands_in_the_requested_range(flow_px):
 
 
 def test_pixel_targets_scale_with_the_request():
-    lo = BouncingThingsConfig(motion="kinematic", num_frames=2, flow_px=(1.0, 1.0), max_speed=100.0)
-    hi = BouncingThingsConfig(motion="kinematic", num_frames=2, flow_px=(8.0, 8.0), max_speed=100.0)
+    # no speed clip at either end: at 320 px wide the 1 px target (at 512) is 0.625 px, slower than min_speed's 0.1
+    lo = BouncingThingsConfig(motion="kinematic", num_frames=2, flow_px=(1.0, 1.0), min_speed=0.0, max_speed=100.0)
+    hi = BouncingThingsConfig(motion="kinematic", num_frames=2, flow_px=(8.0, 8.0), min_speed=0.0, max_speed=100.0)
     for index in range(3):
         a, b = sample_layout(lo, 0, index), sample_layout(hi, 0, index)
         np.testing.assert_allclose(b.initial.velocity, 8.0 * a.initial.velocity, rtol=1e-12)

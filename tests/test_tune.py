@@ -81,7 +81,8 @@ def test_training_sources_scale_motion_with_the_width():
     small, small_layers = tune.sources(key, (256, 192))[0].values()
     assert (small.width, small.height) == (small_layers.width, small_layers.height) == (256, 192)
     assert big_layers.motion_scale == small_layers.motion_scale == tune.LAYERS_MOTION_SCALE * 96 / 48  # width-free
-    assert small.flow_px == pytest.approx(tuple(x / 2 for x in big.flow_px))
+    assert small.flow_px == big.flow_px == (4.0, 96.0)  # stated at 512 px wide; each config scales it to its width
+    assert small.flow_px_scaled == tuple(x / 2 for x in big.flow_px_scaled) == (2.0, 48.0)
     assert small.num_objects == big.num_objects and small.texture_families == big.texture_families
 
 

@@ -29,7 +29,6 @@ live loop's wait per step.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -47,12 +46,10 @@ LR = 4e-4
 
 
 def stream_config(res: tuple[int, int]):
-    """The default config at ``res`` (w, h), 2 frames, ``flow_px`` scaled from its 512 px width (as the judge)."""
+    """The default config at ``res`` (w, h), 2 frames (its ``flow_px`` scales from 512 px wide, as the judge's)."""
     import flowsynth as fs
 
-    base = fs.BouncingThingsConfig()
-    return dataclasses.replace(base, width=res[0], height=res[1], num_frames=2,
-                               flow_px=tuple(x * res[0] / 512 for x in base.flow_px))
+    return fs.BouncingThingsConfig(width=res[0], height=res[1], num_frames=2)
 
 
 def pairs(batch: dict) -> tuple:

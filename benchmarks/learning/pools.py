@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from .protocol import POOL, RES, SCALE
+from .protocol import POOL, RES
 from .sets import NATURAL_PHOTOS, natural_folder, photo_folder, photo_sources
 
 CHAIRS2D_ARMS = ("chairs2d", "mixture", "curriculum")  # the arms made from the chairs2d pool
@@ -38,8 +38,7 @@ def flowsynth_pool(n: int, seed: int, workers: int, overrides: dict | None = Non
     import flowsynth as fs
 
     base = fs.BouncingThingsConfig.from_dict(overrides or {})
-    cfg = dataclasses.replace(base, width=RES[0], height=RES[1], num_frames=2,
-                              flow_px=tuple(x / SCALE for x in base.flow_px))
+    cfg = dataclasses.replace(base, width=RES[0], height=RES[1], num_frames=2)  # flow_px scales with the width
     ds = fs.datasets.BouncingThings(cfg, outputs=[image, "flow_fw", "valid_fw"], seed=seed, length=n)
     w, h = RES
     img1, img2 = torch.empty(n, 3, h, w, dtype=torch.uint8), torch.empty(n, 3, h, w, dtype=torch.uint8)

@@ -8,8 +8,10 @@ arms, ``trainers`` trains and tests the nets, ``runs`` runs the whole protocol.
   in training and ``TEST_UPDATES`` at test; ``STEPS`` steps of ``BATCH`` random ``CROP`` crops with flips and colour
   jitter, the same augmentation for every arm.
 - Training pools: ``POOL`` pairs per arm rendered at ``RES`` (256x192), images kept as uint8.
-  - ``flowsynth``: ``BouncingThingsConfig()`` (with ``--set`` changes: a lever) at 256x192, 2 frames, its
-    ``flow_px`` divided by ``SCALE`` so motion keeps the proportions of a 512x384 rendering; procedural textures only.
+  - ``flowsynth``: ``BouncingThingsConfig()`` (with ``--set`` changes: a lever) at 256x192, 2 frames; its
+    ``flow_px``, stated at 512 px wide (``flow_px_width``), is scaled by the config to 1 / ``SCALE`` of it, so motion
+    keeps the proportions of a 512x384 rendering (the registered runs divided it by ``SCALE`` by hand: the same
+    bytes); procedural textures only.
   - ``chairs2d_photos``: the FlyingChairs-style 2D baseline (``pools.layers_pool``, the library's layers; the
     registered runs drew it with OpenCV, ``sets.chairs2d_pairs``) textured with crops of every photograph that ships
     with scikit-image (``NATURAL_PHOTOS``), as FlyingChairs is textured with photographs.
@@ -49,7 +51,7 @@ JUDGED = 2  # a net's score: the mean of its last JUDGED checkpoints
 LR = 4e-4  # RAFT's peak learning rate (AdamW, one-cycle)
 UPDATES, TEST_UPDATES = 8, 12
 POOL = 1200  # training pairs per arm
-SCALE = 512 // RES[0]  # flow_px is given at 512x384
+SCALE = 512 // RES[0]  # the pools are 1 / SCALE of the 512x384 scale that flow_px is stated at
 ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsynth_natural", "flowsynth_final",
         "mixture", "curriculum", "control", "still_natural")
 STAGES = {"curriculum": 2}  # arms trained in stages: the pool's k-th of n equal blocks feeds the k-th n-th of steps

@@ -24,7 +24,8 @@ from typing import Any
 from flowsynth.errors import AssetError, ConfigError
 from flowsynth.options import OPTION_NAMES, RENDER_MODES, RenderOptions, is_int
 
-__all__ = ["CAMERA_MOTIONS", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig", "config_from_dict"]
+__all__ = ["CAMERA_MOTIONS", "FLOW_PX_WIDTH", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig",
+           "config_from_dict"]
 
 MOTIONS = ("physics", "kinematic", "static")
 CAMERA_MOTIONS = ("static", "moving")
@@ -32,6 +33,9 @@ CAMERA_MOTIONS = ("static", "moving")
 # may fill at most this fraction of the objects' region (random sequential packing jams near 0.38).
 MAX_PACKING_FRACTION = 0.25
 _OPT = RenderOptions()  # the render options' defaults (RenderOptions is their one definition)
+FLOW_PX_WIDTH = 512
+"""[px] The default ``flow_px_width``: the image width ``flow_px`` is stated at (FlyingChairs' 512x384;
+docs/decisions/0029-flow-px-width.md)."""
 DATASET_MAX_OBJECTS = 32
 """The config's ``max_objects``: a stream pads every sample's object tables to one size so that default_collate
 stacks them (RenderOptions' None, the scene's own count, would not); 32 leaves room above ``num_objects``' 12."""
@@ -42,11 +46,14 @@ class BouncingThingsConfig:
     """Rigid objects bouncing in a box-shaped room, seen by a pinhole camera (FlyingThings-like)."""
 
     width: int = 320
-    """Image width [px], >= 1."""
+    """Image width [px], >= 1. The default 320x240 clips of 24 frames are a general stream (clips for tracks, frame
+    gaps and scene flow over time, as Kubric's MOVi); docs/statistics.md and the learning judge measure 512x384
+    pairs (``--width 512 --height 384 --num-frames 2``). Motion is stated at 512 px wide (``flow_px_width``), so
+    both move the same share of the image."""
     height: int = 240
     """Image height [px], >= 1."""
     num_frames: int = 24
-    """Frames per clip T, >= 1."""
+    """Frames per clip T, >= 1 (a flow pair is frames 0 and 1 of any clip; ``--num-frames 2`` renders only those)."""
     fps: float = 24.0
     """Frame rate [1/s], > 0."""
     fov_deg: float = 60.0
@@ -89,13 +96,19 @@ class BouncingThingsConfig:
     substeps: int | None = None
     """Physics substeps per frame [count]; None picks them from speeds and sizes (docs/scenes.md)."""
     flow_px: tuple[float, float] | None = (2.0, 48.0)
-    """(min, max) per-frame flow magnitude to aim for [px]; None sets speeds in m/s and rad/s directly.
-    When set, each object draws a target u log-uniformly from the range and its speed becomes
+    """(min, max) per-frame flow magnitude to aim for [px of an image ``flow_px_width`` wide]; None sets speeds in
+    m/s and rad/s directly. A sample ``width`` px wide aims at flow_px x width / flow_px_width (``flow_px_scaled``),
+    so its motion is the same share of the image at every size: (2, 48) is 2-48 px at 512 px wide and 0.25-6 px
+    at 64. Each object draws a target u log-uniformly from the scaled range and its speed becomes
     u * distance * fps / (f * max(0.5, sin angle(velocity, line of sight))) with f the focal length [px],
     clipped into [min_speed, max_speed]; the camera draws its own u and its drawn path (directions and the
     mix of translation, target motion and rotation from the camera fields below) is scaled so that the
     median flow of the room between frames 0 and 1 is u (flowsynth/scene/camerapath.py). What comes out is
     measured by ``flowsynth stats``, not promised."""
+    flow_px_width: int = FLOW_PX_WIDTH
+    """The image width [px] that ``flow_px`` is stated at, >= 1: 512, the width of the 512x384 pairs that
+    docs/statistics.md measures, so the default motion at any size has their proportions. Equal to ``width``,
+    flow_px is in the rendered image's own pixels."""
     rest_fraction: float = 0.0
     """Chance in [0, 1] that each object starts at rest (no velocity, no spin; it moves only when something hits
     it) and, drawn once more per clip, that the camera holds still: the still regions real video shows beside
@@ -228,6 +241,16 @@ class BouncingThingsConfig:
         return cls.from_dict({**PRESETS[name], **overrides})
 
     @property
+    def flow_px_scaled(self) -> tuple[float, float] | None:
+        """``flow_px`` at this config's ``width``: (min, max) x width / flow_px_width [px of the rendered image], the
+        range the flow targets are drawn from; None without flow_px. Equal to ``flow_px`` when width is
+        flow_px_width."""
+        if self.flow_px is None:
+            return None
+        s = self.width / self.flow_px_width
+        return self.flow_px[0] * s, self.flow_px[1] * s
+
+    @property
     def render_options(self) -> RenderOptions:
         """The render options this config's samples are made with (its fields of the same names). A sample
         re-renders from its provenance alone: ``cfg = BouncingThingsConfig.from_dict(meta["meta"]["config"])`` and
@@ -290,7 +313,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "num_objects": (8, 16), "motion": "kinematic",
     },
     "things": {
-        "width": 960, "height": 540, "num_frames": 10, "flow_px": (2.0, 100.0), "num_objects": (5, 20),
+        "width": 960, "height": 540, "num_frames": 10, "flow_px": (2.0, 100.0), "flow_px_width": 960,
+        "num_objects": (5, 20),
         "camera_clearance": 1.0, "spawn_margin": -0.2, "camera_target_speed": (0.5, 2.0),
         "camera_pan": 0.6, "camera_tilt": 0.3, "camera_roll": 0.3, "camera_angle_limit": (0.7, 0.4, 0.4),
         "motion": "kinematic",
@@ -298,12 +322,13 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 """Named configs (``BouncingThingsConfig.preset(name)``, ``--preset NAME``): changes from the defaults.
 
-- "default": the recommended flow-training stream (moving, rotating camera; flow aimed at 2-48 px).
+- "default": the recommended flow-training stream (moving, rotating camera; flow aimed at 2-48 px at 512 px wide).
 - "chairs": FlyingChairs-like (Dosovitskiy et al. 2015): 512x384 pairs, large mostly planar motions of
   objects and camera (image-plane translation and roll), flow aimed at 1-40 px.
 - "things": FlyingThings3D-like (Mayer et al. 2016): 960x540, 10-frame clips, 5-20 objects that
   intersect freely (kinematic, as in FlyingThings3D), some near the camera and partly out of frame, a
-  moving and rotating camera, flow aimed at 2-100 px.
+  moving and rotating camera, flow aimed at 2-100 px at its 960 px width (``flow_px_width``).
+Each preset's motion scales with the width it is rendered at (``flow_px_width``).
 docs/statistics.md lists what each one measures against the published datasets.
 """
 
@@ -434,6 +459,7 @@ def _validate(cfg: BouncingThingsConfig) -> None:
                                           for i, v in enumerate(limit)))
     if cfg.flow_px is not None:
         _range(cfg, "flow_px", lo=0.0, lo_open=True)
+    _int(cfg, "flow_px_width", 1)
     _set(cfg, "rest_fraction", _float(cfg, "rest_fraction", lo=0.0, hi=1.0))
     if not isinstance(cfg.planar_motion, bool):
         raise ConfigError(f"planar_motion must be True or False, got {cfg.planar_motion!r}")

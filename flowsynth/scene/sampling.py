@@ -23,7 +23,8 @@ target and pans, tilts and rolls (flowsynth/scene/camerapath.py). Objects start 
 with disjoint bounding spheres, preferably inside the camera's view frustum (aimed at the image inset by
 ``cfg.spawn_margin``, at a distance drawn log-uniformly along the ray, so near objects are common).
 With ``cfg.flow_px`` set, the camera's path and every object's speed are scaled to per-frame flow
-targets in pixels (config docstring); the targets drawn are kept in ``scene.meta["motion"]``.
+targets in pixels, drawn from ``cfg.flow_px_scaled`` (flow_px at the rendered width: config docstring); the
+targets drawn are kept in ``scene.meta["motion"]``, in the rendered image's pixels.
 
 Draw order (changing it changes every dataset): n, asset indices, size levels, camera path
 (flowsynth.scene.camerapath.sample_camera_motion), camera flow target, object positions (rejection sampling),
@@ -168,7 +169,7 @@ def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> SceneLayo
     path = sample_camera_motion(cfg, rng)
     motion: dict = {}
     if cfg.flow_px is not None:
-        motion["camera_flow_px"] = _log_uniform(rng, cfg.flow_px)
+        motion["camera_flow_px"] = _log_uniform(rng, cfg.flow_px_scaled)
         if cfg.camera_motion == "moving":
             path, motion["camera_flow_px_achieved"] = scale_to_flow(cfg, path, motion["camera_flow_px"])
     world_T_cam = camera_poses(cfg, path)
@@ -181,7 +182,7 @@ def sample_layout(cfg: BouncingThingsConfig, seed: int, index: int) -> SceneLayo
         direction = _unit(direction - (direction @ forward)[:, None] * forward)
     speed = rng.uniform(cfg.min_speed, cfg.max_speed, size=(n, 1))
     if cfg.flow_px is not None:
-        u = np.array([_log_uniform(rng, cfg.flow_px) for _ in range(n)])
+        u = np.array([_log_uniform(rng, cfg.flow_px_scaled) for _ in range(n)])
         motion["object_flow_px"] = u.tolist()
         speed = np.clip(_speed_for_flow(cfg, camera, world_T_cam[0], position, direction, u),
                         cfg.min_speed, cfg.max_speed)[:, None]

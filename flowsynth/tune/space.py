@@ -7,10 +7,11 @@ field), and, where the ``layers`` knob's share is above 0, "layers", a ``LayersC
 layers) of the same size, weighted by that share. Each knob's default label holds the generator's default, so the
 all-default point is ``BouncingThingsConfig()`` alone (at the preset's size).
 
-Motion is given at ``REFERENCE_WIDTH`` (512 px, FlyingChairs' width, as the learning judge gives ``flow_px``) and
-scaled to the width a tune renders at; the preset a tune writes is at ``PRESET_SIZE`` with the motion as given. The
-2D layers follow the same knob: their ``motion_scale`` is ``LAYERS_MOTION_SCALE`` (their mean |flow| then matches the
-default 3D stream's, as the learning judge matched its 2D pools) times the knob's largest flow over the default's.
+Motion is given at ``REFERENCE_WIDTH`` (512 px, FlyingChairs' width: every config's ``flow_px_width``), and each
+config scales it to the width a tune renders at; the preset a tune writes is at ``PRESET_SIZE`` with the motion as
+given. The 2D layers follow the same knob: their ``motion_scale`` is ``LAYERS_MOTION_SCALE`` (their mean |flow| then
+matches the default 3D stream's, as the learning judge matched its 2D pools) times the knob's largest flow over the
+default's.
 """
 
 from __future__ import annotations
@@ -23,11 +24,12 @@ import numpy as np
 
 from flowsynth.errors import ConfigError
 from flowsynth.scene import BouncingThingsConfig
+from flowsynth.scene.config import FLOW_PX_WIDTH
 
 __all__ = ["LAYERS", "LAYERS_MOTION_SCALE", "PRESET_SIZE", "REFERENCE_WIDTH", "SPACE", "Knob", "default_point",
            "draw_candidates", "grid", "key_of", "point_of", "preset", "sources"]
 
-REFERENCE_WIDTH = 512  # [px] the image width at which the motion knob's flow_px values are given
+REFERENCE_WIDTH = FLOW_PX_WIDTH  # [px] the image width the motion knob's flow_px values are given at
 PRESET_SIZE = (512, 384)  # (width, height) [px] of the preset a tune writes
 PRESET_FRAMES = 2  # frames per clip of the preset: one flow pair, as a tune trains on
 LAYERS = "layers"  # the knob (and the mixture source) of the 2D layers' share
@@ -116,12 +118,11 @@ def draw_candidates(n: int, seed: int) -> list[str]:
 def sources(key: str, res: tuple[int, int] = PRESET_SIZE) -> tuple[dict, dict]:
     """Point ``key``'s ``Mixture`` arguments (configs, weights) at ``res`` = (width, height) [px], ``PRESET_FRAMES``
     frames: {"things": its ``BouncingThingsConfig``, and "layers": a ``LayersConfig`` of the same size where its share
-    is above 0}, {name: weight}. Motion (``flow_px``) is scaled by width / ``REFERENCE_WIDTH``."""
+    is above 0}, {name: weight}. Motion (``flow_px``, at ``REFERENCE_WIDTH``) is scaled to the width by the config."""
     from flowsynth.datasets import LayersConfig
 
     point = point_of(key)
     fields = {k.field: k.values[point[k.name]] for k in SPACE if k.field != LAYERS}
-    fields["flow_px"] = tuple(x * res[0] / REFERENCE_WIDTH for x in fields["flow_px"])
     things = BouncingThingsConfig(width=res[0], height=res[1], num_frames=PRESET_FRAMES, **fields)
     share = next(k.values[point[k.name]] for k in SPACE if k.field == LAYERS)
     if share == 0:
