@@ -37,7 +37,7 @@ def digest(tensors) -> str:
 
 def tune_key(label: str) -> str:
     """A ``TUNE_KEYS`` entry as a point's key: "default" is the default point, else knob=label pairs over it."""
-    from flowsynth.tune.space import default_point, key_of
+    from flowsynth.tune import default_point, key_of
 
     point = default_point()
     if label != "default":
@@ -47,9 +47,7 @@ def tune_key(label: str) -> str:
 
 def hashes(num: int, seed: int) -> dict:
     """{"learning/ARM": hash, "tune/WxH/KEY": hash} of the pools (module docstring)."""
-    from flowsynth.tune.space import sources
-    from flowsynth.tune.pools import render_pool
-    from flowsynth.tune.trainer import QUICK, RECIPE
+    from flowsynth.tune import QUICK, RECIPE, render_pool, sources
     from learning.pools import build_arms
     from learning.protocol import ARMS
 

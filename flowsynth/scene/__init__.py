@@ -5,7 +5,7 @@ camera and its path, motion (kinematic, static, or rigid-body physics on Newton)
 from flowsynth.scene import physics
 from flowsynth.scene.assets import resolve_assets
 from flowsynth.scene.camera import Camera, check_lens_outputs
-from flowsynth.scene.config import PRESETS, BouncingThingsConfig, config_from_dict
+from flowsynth.scene.config import FLOW_PX_WIDTH, PRESETS, BouncingThingsConfig, config_from_dict
 from flowsynth.scene.meshes import freeze
 from flowsynth.scene.motion import simulate
 from flowsynth.scene.physics import DENSITY, SUBSTEP_FRACTION, NewtonScene, choose_substeps, wall_boxes
@@ -14,6 +14,7 @@ from flowsynth.scene.scene import Scene, SceneObject, provenance_json
 
 __all__ = [
     "DENSITY",
+    "FLOW_PX_WIDTH",
     "OBJECT_CATEGORY_OFFSET",
     "PRESETS",
     "ROOM_CATEGORY",

@@ -23,8 +23,7 @@ from typing import Any
 import numpy as np
 
 from flowsynth.errors import ConfigError
-from flowsynth.scene import BouncingThingsConfig
-from flowsynth.scene.config import FLOW_PX_WIDTH
+from flowsynth.scene import FLOW_PX_WIDTH, BouncingThingsConfig
 
 __all__ = ["LAYERS", "LAYERS_MOTION_SCALE", "PRESET_SIZE", "REFERENCE_WIDTH", "SPACE", "Knob", "default_point",
            "draw_candidates", "grid", "key_of", "point_of", "preset", "sources"]
