@@ -64,8 +64,11 @@ def _read_config_file(path: str) -> dict:
         if p.suffix == ".json":
             data = json.loads(text)
         elif p.suffix == ".toml":
-            import tomllib
-
+            try:
+                import tomllib
+            except ImportError as e:  # Python 3.10: tomllib is 3.11's
+                raise DependencyError(f"config file {path}: TOML needs Python 3.11 or newer (tomllib); write the "
+                                      "config as JSON or YAML on this Python") from e
             data = tomllib.loads(text)
         elif p.suffix in (".yaml", ".yml"):
             try:
