@@ -365,3 +365,25 @@ def test_equivalence_reads_protocol_0025s_rule(tmp_path, monkeypatch):
     out = summary.equivalence("learning_raft_*.json")
     assert not out["equivalent"] and all(out["stereo"]["held"].values())
     assert out["middlebury"]["held"] == {"1 geometric mean": False, "2 every ratio": False, "3 same direction": False}
+
+
+def test_a_config_stating_flow_px_at_512_pairs_with_one_in_pixels(tmp_path, monkeypatch):
+    """A run recorded after decision 0029 (flow_px (2, 48) at flow_px_width 512, width 256) pools with one recorded
+    before it (flow_px (1, 24) in its own pixels); one of another motion does not."""
+    import json
+
+    monkeypatch.setattr(summary, "RESULTS_DIR", tmp_path)
+    old = {"width": 256, "flow_px": [1.0, 24.0]}
+    _result(tmp_path / "learning_raft_s0.json", {}, {"flowsynth": [(3.0, 2.0), (3.0, 2.0)]})
+    _result(tmp_path / "learning_raft_s0_lever.json", {}, {"flowsynth_photos": [(1.5, 1.0), (1.5, 1.0)]})
+    for name, cfg in (("learning_raft_s0.json", old),
+                      ("learning_raft_s0_lever.json", {"width": 256, "flow_px": [2.0, 48.0], "flow_px_width": 512})):
+        d = json.loads((tmp_path / name).read_text())
+        (tmp_path / name).write_text(json.dumps({**d, "flowsynth_config": cfg}))
+    out = summary.summarize("learning_raft_s0*.json", "flowsynth_photos", "flowsynth")
+    assert out["judges"]["middlebury"]["ratios"] == [pytest.approx(0.5)]
+    d = json.loads((tmp_path / "learning_raft_s0_lever.json").read_text())
+    d["flowsynth_config"]["flow_px"] = [4.0, 48.0]
+    (tmp_path / "learning_raft_s0_lever.json").write_text(json.dumps(d))
+    with pytest.raises(SystemExit, match="flowsynth_config"):
+        summary.summarize("learning_raft_s0*.json", "flowsynth_photos", "flowsynth")

@@ -12,6 +12,18 @@ from _common import RESULTS_DIR, plot_curves, print_table, pyplot, save_figure
 from .protocol import JUDGED, JUDGES, NET, score
 
 
+def absolute_motion(config: dict | None) -> dict | None:
+    """A results file's ``flowsynth_config`` with ``flow_px`` in pixels of its own width: a config that states it at
+    ``flow_px_width`` (decision 0029) scaled to ``width`` and the field dropped, so that a run made before the field
+    existed (``flow_px`` already in its pixels) and one made after compare equal when they rendered the same motion."""
+    if not config or "flow_px_width" not in config:
+        return config
+    out = dict(config)
+    k = out["width"] / out.pop("flow_px_width")
+    out["flow_px"] = [x * k for x in out["flow_px"]]
+    return out
+
+
 def _complete_runs(pattern: str, who: str, precision: str = "fp32"):
     """(file, its JSON, one seed's run) for every seed of the complete runs of this judge in the results/ files
     matching ``pattern``, in name order; unfinished runs, other judges and runs trained in another ``precision`` (a
@@ -45,11 +57,11 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
         if not names:
             continue
         seed = runs.setdefault(r["seed"], {"seed": r["seed"], "results": {}, "zero_flow_epe": r["zero_flow_epe"],
-                                           "config": d.get("flowsynth_config"), "file": f.name})
+                                           "config": absolute_motion(d.get("flowsynth_config")), "file": f.name})
         zero, other = seed["zero_flow_epe"], r["zero_flow_epe"]  # float32 sums differ in the 7th digit
         if set(zero) != set(other) or any(abs(zero[k] - other[k]) > 1e-5 * abs(zero[k]) for k in zero):
             differ = "their judges (zero flow EPE)"  # another --middlebury: not one comparison
-        elif d.get("flowsynth_config") != seed["config"]:
+        elif absolute_motion(d.get("flowsynth_config")) != seed["config"]:
             differ = "flowsynth_config"  # another default
         else:
             differ = None
