@@ -8,6 +8,8 @@ Fixtures (use them instead of copying the values into a new test file):
   for a variant.
 - ``layout_config``: 48x32, 3 frames, 3-4 objects moving 2-3 m/s: enough motion for the export layouts' tests.
 - ``ray_cluster``: a local 2-CPU Ray cluster for one test module (the ``ray`` module; skipped without Ray).
+- ``photos``: a folder of 2 small patterned images, a Layers source's ``texture_dir`` (no default bank to render); a
+  module may define its own ``photos`` instead.
 
 Geometry helpers (poses, rotations, a quad mesh, brute-force flow) are plain functions in ``tests/oracle.py``.
 
@@ -42,6 +44,20 @@ _DATABASE = DirectoryBasedExampleDatabase(str(ROOT / ".cache" / "hypothesis" / "
 settings.register_profile("ci", derandomize=True, database=None, deadline=None)
 settings.register_profile("dev", derandomize=False, database=_DATABASE, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+@pytest.fixture
+def photos(tmp_path) -> str:
+    """A folder of 2 small patterned images: a Layers source's texture_dir (no default bank to render)."""
+    import numpy as np
+    from PIL import Image
+
+    d = tmp_path / "photos"
+    d.mkdir()
+    ys, xs = np.mgrid[0:40, 0:60]
+    Image.fromarray(np.stack([xs * 4, ys * 6, (xs + ys) % 256], -1).astype(np.uint8)).save(d / "a.png")
+    Image.fromarray(((xs * ys) % 256).astype(np.uint8)).save(d / "b.png")
+    return str(d)
+
 
 SMALL_FLAGS = ("--width", "32", "--height", "24", "--num-frames", "2", "--motion", "kinematic",
                "--num-objects", "2,3", "--max-objects", "4")

@@ -7,9 +7,7 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
-from PIL import Image
 
 import flowsynth as fs
 from flowsynth.cli import main
@@ -17,17 +15,6 @@ from flowsynth.datasets import Exported, LayersConfig, Mixture, make_stream
 from flowsynth.io import json_differences
 
 SIZE = {"width": 48, "height": 32, "num_frames": 2}
-
-
-@pytest.fixture
-def photos(tmp_path):
-    """A folder of 2 small patterned images: the Layers sources' texture_dir (no default bank to render)."""
-    d = tmp_path / "photos"
-    d.mkdir()
-    ys, xs = np.mgrid[0:40, 0:60]
-    Image.fromarray(np.stack([xs * 4, ys * 6, (xs + ys) % 256], -1).astype(np.uint8)).save(d / "a.png")
-    Image.fromarray(((xs * ys) % 256).astype(np.uint8)).save(d / "b.png")
-    return str(d)
 
 
 def _layers(photos, **kw):

@@ -24,17 +24,6 @@ RGB_STEP = 0.5 / 255 + 1e-6  # 8-bit rounding of an exported frame
 SIZE = {"width": 48, "height": 32, "num_frames": 2}
 
 
-@pytest.fixture
-def photos(tmp_path):
-    """A folder of 2 small patterned images: the Layers source's texture_dir (no default bank to render)."""
-    d = tmp_path / "photos"
-    d.mkdir()
-    ys, xs = np.mgrid[0:40, 0:60]
-    Image.fromarray(np.stack([xs * 4, ys * 6, (xs + ys) % 256], -1).astype(np.uint8)).save(d / "a.png")
-    Image.fromarray(((xs * ys) % 256).astype(np.uint8)).save(d / "b.png")
-    return str(d)
-
-
 def _sources(photos):
     things = fs.BouncingThingsConfig(**SIZE, motion="kinematic", num_objects=(1, 2), max_objects=2,
                                      render_mode="flat")
