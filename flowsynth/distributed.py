@@ -28,6 +28,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 
 __all__ = ["INSTALL_HINT", "connect", "export_results", "ray_dataset", "require_ray"]
 
@@ -60,8 +61,8 @@ def _cluster_cpus(ray) -> int:
 
 def _pool_size(ray, actors: int | None, items: int) -> int:
     """Actors in a pool: ``actors`` (default: every CPU of the cluster), at most one per item."""
-    if actors is not None and (isinstance(actors, bool) or not isinstance(actors, int) or actors < 1):
-        raise ConfigError(f"actors must be None (one per cluster CPU) or an integer >= 1, got {actors!r}")
+    if actors is not None:
+        actors = check_int("actors (None: one per cluster CPU)", actors, 1)
     return min(actors or _cluster_cpus(ray), items)
 
 
@@ -116,8 +117,7 @@ def ray_dataset(config, num_samples: int, seed: int = 0, outputs: Sequence[str] 
     from flowsynth.datasets import BouncingThings
 
     config = BouncingThingsConfig() if config is None else config
-    if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
-        raise ConfigError(f"num_samples must be an integer >= 1, got {num_samples!r}")
+    num_samples = check_int("num_samples", num_samples, 1)
     outputs = BouncingThings(config, outputs=outputs, seed=seed, start=start, occlusion=occlusion).outputs
     ray = connect(address)
     items = list(range(start, start + num_samples))

@@ -20,7 +20,7 @@ from flowsynth.kernels import RENDER_MODES
 
 __all__ = ["DEFAULT_BOUNCES", "DEFAULT_RENDER_MODE", "DEFAULT_TONEMAP", "FINAL_OPTIONS", "MAX_BOUNCES",
            "OPTION_NAMES", "RENDER_MODES", "TONEMAPS", "TRACK_SAMPLING", "FinalPass", "RenderOptions",
-           "check_flow_gaps", "is_int"]
+           "check_flow_gaps", "check_int", "is_int"]
 
 # RGB options: the one definition of their choices, ranges and defaults (the models: docs/rendering.md).
 # RENDER_MODES is defined beside the kernels that implement them.

@@ -30,7 +30,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 from flowsynth.processes import is_worker_process
 
 __all__ = ["BAND0", "BANDS_PER_THREAD", "default_threads", "launch_bands", "launch_image", "pixel_threads",
@@ -78,9 +78,7 @@ def resolve_threads(threads: int | None) -> int:
     """``threads`` validated (an integer >= 1), or ``default_threads()`` for None."""
     if threads is None:
         return default_threads()
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ConfigError(f"threads must be None (all cores) or an integer >= 1, got {threads!r}")
-    return threads
+    return check_int("threads (None: all cores)", threads, 1)
 
 
 def _get_pool(size: int) -> ThreadPoolExecutor:

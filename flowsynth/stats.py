@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from flowsynth.errors import ConfigError, ShapeError
+from flowsynth.options import check_int
 
 __all__ = ["GREY_WEIGHTS", "HIST_BIN_PX", "STATS_OUTPUTS", "TEXTURELESS_STD", "ZERO_FLOW_PX", "cheap_stats_outputs",
            "dataset_stats",
@@ -192,8 +193,7 @@ def dataset_stats(cfg=None, num: int = 16, *, seed: int = 0, start: int = 0, occ
     from flowsynth.scene import BouncingThingsConfig
 
     cfg = BouncingThingsConfig() if cfg is None else cfg
-    if isinstance(num, bool) or not isinstance(num, int) or num < 1:
-        raise ConfigError(f"num must be an integer >= 1, got {num!r}")
+    num = check_int("num", num, 1)
     if cfg.num_frames < 2:
         raise ConfigError("statistics need flow: num_frames >= 2")
     ds = make_stream(cfg, STATS_OUTPUTS, seed, start=start, occlusion=occlusion)

@@ -67,7 +67,7 @@ def test_parse_errors_name_the_flag_and_the_form(tmp_path, capsys, flag, value, 
 
 def test_config_value_errors_name_the_flag(tmp_path, capsys):
     assert main(["export", "--out", str(tmp_path / "o"), "--num", "1", "--width", "-3"]) == 2
-    assert "--width: width must be >= 1" in capsys.readouterr().err
+    assert "--width: width must be an integer >= 1" in capsys.readouterr().err
 
 
 def test_exit_codes_documented_in_docstring_help_and_readme(capsys):

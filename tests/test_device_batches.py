@@ -125,7 +125,7 @@ def test_state_round_trip_and_stateful_dataloader():
     (dict(batch_size=0), "batch_size must be an integer >= 1"),
     (dict(num_workers=-1), "num_workers must be an integer >= 0"),
     (dict(num_workers=1.5), "num_workers must be"),
-    (dict(length=0), r"length must be None \(endless\) or an integer >= 1"),
+    (dict(length=0), r"length \(None: endless\) must be an integer >= 1"),
     (dict(seed=-1), "seed must be"),
     (dict(start=True), "start must be"),
     (dict(device="gpu"), "device 'gpu' is not available"),

@@ -28,9 +28,10 @@ from torch.utils.data import Dataset, Sampler, get_worker_info
 
 from flowsynth.datasets.bouncing import stream_plan
 from flowsynth.datasets.meta import PROVENANCE
-from flowsynth.datasets.stream import StreamPosition, count, shard_indices, shard_size
+from flowsynth.datasets.stream import StreamPosition, shard_indices, shard_size
 from flowsynth.datasets.workers import loader
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 from flowsynth.renderer import batch_tables, check_batch_plan, render_batch_plan
 from flowsynth.scene import Scene, provenance_json
 
@@ -127,7 +128,8 @@ class DeviceBatches(StreamPosition):
         cfg = BouncingThingsConfig() if cfg is None else cfg
         if not isinstance(cfg, BouncingThingsConfig):
             raise ConfigError(f"cfg must be a BouncingThingsConfig, got {type(cfg).__name__}")
-        self.batch_size, self.num_workers = count("batch_size", batch_size, 1), count("num_workers", num_workers, 0)
+        self.batch_size = check_int("batch_size", batch_size, 1)
+        self.num_workers = check_int("num_workers", num_workers, 0)
         self._init_stream(seed, length, start)
         if cfg.camera_dist_max is not None:
             raise ConfigError("camera_dist_max draws a lens per sample, and a batch needs one camera: leave "

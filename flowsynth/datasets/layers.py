@@ -26,6 +26,7 @@ from flowsynth.datasets.layer_textures import TEXTURE_SEED, TextureBank
 from flowsynth.datasets.meta import ALL, PROVENANCE, split_meta
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError, ShapeError
+from flowsynth.options import check_int
 from flowsynth.scene import config_from_dict
 
 __all__ = ["LAYERS_OUTPUTS", "Layers", "LayersConfig", "layer_outputs", "layers_pairs", "refuse_scene_options"]
@@ -72,10 +73,7 @@ class LayersConfig:
     def __post_init__(self) -> None:
         for name, lo in (("width", MIN_SIZE), ("height", MIN_SIZE), ("num_frames", 1), ("texture_bank", 1),
                          ("texture_seed", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
-            object.__setattr__(self, name, int(v))
+            object.__setattr__(self, name, check_int(name, getattr(self, name), lo))
         object.__setattr__(self, "motion_scale", check_motion_scale(self.motion_scale, self.num_frames))
         if self.texture_dir is not None:
             if not isinstance(self.texture_dir, (str, bytes)) and not hasattr(self.texture_dir, "__fspath__"):
@@ -223,8 +221,7 @@ def layers_pairs(n: int, seed: int, sources: torch.Tensor, motion_scale: float =
         {key: (n, ...) tensor}: each key as in a ``Layers`` sample of 2 frames, stacked (``rgb`` (n, 2, 3, H, W),
         ``flow_fw`` (n, 1, 2, H, W), ...).
     """
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ConfigError(f"n must be an integer >= 1, got {n!r}")
+    n = check_int("n", n, 1)
     if not isinstance(sources, torch.Tensor) or sources.ndim != 4 or sources.shape[1] != 3 or len(sources) == 0:
         raise ShapeError(f"sources must be a (m, 3, H, W) tensor with m >= 1, got "
                          f"{tuple(sources.shape) if isinstance(sources, torch.Tensor) else type(sources).__name__}")

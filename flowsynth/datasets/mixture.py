@@ -45,6 +45,7 @@ from flowsynth.datasets.bouncing import BouncingThings
 from flowsynth.datasets.layers import Layers, LayersConfig, refuse_scene_options
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 
 __all__ = ["PRESET_FORMAT", "SOURCE_KINDS", "Mixture", "MixtureConfig", "source_config", "source_kind"]
 
@@ -346,8 +347,8 @@ def _stages(weights, names: list[str]) -> list[tuple[int | None, np.ndarray]]:
         if not (isinstance(stage, Sequence) and len(stage) == 2):
             raise ConfigError(f"curriculum stage {n} must be (until, weights), got {stage!r}")
         until, w = stage
-        if until is not None and (not isinstance(until, (int, np.integer)) or until <= last):
-            raise ConfigError(f"curriculum stage {n}: until must be an integer > {last} (increasing), got {until!r}")
+        if until is not None:
+            until = check_int(f"curriculum stage {n}'s until (increasing)", until, last + 1)
         if until is None and n != len(stages) - 1:
             raise ConfigError(f"curriculum stage {n}: only the last stage may be open-ended (until None)")
         w = dict.fromkeys(names, 1.0) if w is None else w

@@ -32,6 +32,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.datasets.stream import rank_world
 from flowsynth.errors import ConfigError, ExportError
+from flowsynth.options import check_int
 from flowsynth.io import read_manifest
 
 __all__ = ["Shards"]
@@ -61,15 +62,14 @@ class Shards(IterableDataset):
     def __init__(self, source: str | Path | Sequence[str | Path], *, shuffle: bool = True, seed: int = 0,
                  buffer: int = 64, rank: int | None = None, world_size: int | None = None) -> None:
         self.urls = _shard_paths(source)
-        if isinstance(buffer, bool) or not isinstance(buffer, int) or buffer < 1:
-            raise ConfigError(f"buffer must be an integer >= 1, got {buffer!r}")
+        buffer = check_int("buffer", buffer, 1)
         if (rank is None) != (world_size is None):
             raise ConfigError("give both rank and world_size, or neither (then RANK and WORLD_SIZE, or "
                               "torch.distributed, say)")
-        if world_size is not None and not (isinstance(world_size, int) and isinstance(rank, int)
-                                           and world_size >= 1 and 0 <= rank < world_size):
-            raise ConfigError(f"need 0 <= rank < world_size, got rank={rank!r}, world_size={world_size!r}")
-        self.shuffle, self.seed, self.buffer = bool(shuffle), int(seed), buffer
+        if world_size is not None:
+            world_size = check_int("world_size", world_size, 1)
+            rank = check_int("rank", rank, 0, world_size - 1)
+        self.shuffle, self.seed, self.buffer = bool(shuffle), check_int("seed", seed, 0), buffer
         self.rank, self.world_size = rank, world_size
         self._epoch = 0
 

@@ -33,13 +33,13 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 
-import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 
-__all__ = ["LAYOUT_KEYS", "IndexStream", "StreamPosition", "check_index", "count", "rank_world", "read_state",
+__all__ = ["LAYOUT_KEYS", "IndexStream", "StreamPosition", "check_index", "rank_world", "read_state",
            "shard_indices", "shard_size"]
 
 LAYOUT_KEYS = ("rank", "world_size", "worker", "num_workers")
@@ -90,16 +90,9 @@ def _describe(layout: dict) -> str:
             f"{layout['world_size']}, worker {layout['worker']} of {layout['num_workers']})")
 
 
-def count(name: str, v, lo: int = 0) -> int:
-    """``v`` as an int; ConfigError naming ``name`` unless it is an integer >= ``lo``."""
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-        raise ConfigError(f"{name} must be an integer >= {lo}, got {v!r}")
-    return int(v)
-
-
 def check_index(i) -> int:
     """``i`` as an int; ConfigError unless it is an integer >= 0 (a sample index)."""
-    return count("sample index", i)
+    return check_int("sample index", i, 0)
 
 
 def read_state(state, owner: str, seed: int, start: int, length: int | None) -> tuple[int, int, dict]:
@@ -116,8 +109,8 @@ def read_state(state, owner: str, seed: int, start: int, length: int | None) -> 
     if state["seed"] != seed or state["start"] != start:
         raise ConfigError(f"state was saved with seed={state['seed']}, start={state['start']}; "
                           f"this {owner} has seed={seed}, start={start}")
-    epoch, pos = count("state's epoch", state["epoch"]), count("state's pos", state["pos"])
-    layout = {k: count(f"state's {k}", state[k], 1 if k in ("world_size", "num_workers") else 0)
+    epoch, pos = check_int("state's epoch", state["epoch"], 0), check_int("state's pos", state["pos"], 0)
+    layout = {k: check_int(f"state's {k}", state[k], 1 if k in ("world_size", "num_workers") else 0)
               for k in LAYOUT_KEYS}
     if layout["rank"] >= layout["world_size"] or layout["worker"] >= layout["num_workers"]:
         raise ConfigError(f"state's layout {layout} is no shard: it needs rank < world_size and "
@@ -140,11 +133,8 @@ class StreamPosition:
     def _init_stream(self, seed: int, length: int | None, start: int) -> None:
         """Check and keep ``seed`` (>= 0), ``length`` (None or >= 1) and ``start`` (>= 0); ConfigError otherwise.
         Reads this process's rank and world size (``rank_world``)."""
-        self.seed, self.start = count("seed", seed), count("start", start)
-        if length is not None and (isinstance(length, bool) or not isinstance(length, (int, np.integer))
-                                   or length < 1):
-            raise ConfigError(f"length must be None (endless) or an integer >= 1, got {length!r}")
-        self.length = None if length is None else int(length)
+        self.seed, self.start = check_int("seed", seed, 0), check_int("start", start, 0)
+        self.length = None if length is None else check_int("length (None: endless)", length, 1)
         self._ranks = rank_world()
         self._epoch = 0
         self._pos = 0  # samples this shard has produced in the current epoch (endless: ever)
@@ -193,7 +183,7 @@ class StreamPosition:
         if self.length is None:
             raise ConfigError(f"set_epoch needs a finite stream (length=...): an endless {type(self).__name__} "
                               "has no epochs and continues where it stopped")
-        self._epoch, self._pos = count("epoch", epoch), 0
+        self._epoch, self._pos = check_int("epoch", epoch, 0), 0
 
     def state_dict(self) -> dict:
         """This copy's position (per worker under StatefulDataLoader): {"epoch", "pos" (this shard's samples of the

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from torch.utils.data import DataLoader, Dataset
 
-from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 from flowsynth.processes import worker_context
 
 __all__ = ["loader"]
@@ -38,8 +38,7 @@ def loader(dataset: Dataset, batch_size: int | None = 1, num_workers: int = 0, *
     Raises:
         ConfigError: ``num_workers`` is not an integer >= 0.
     """
-    if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
-        raise ConfigError(f"num_workers must be an integer >= 0, got {num_workers!r}")
+    num_workers = check_int("num_workers", num_workers, 0)
     if num_workers > 0:
         kwargs.setdefault("multiprocessing_context", worker_context(fork_ok=False))
         kwargs.setdefault("persistent_workers", True)

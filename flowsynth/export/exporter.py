@@ -62,6 +62,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from flowsynth.errors import ConfigError, ExportError, StorageError
+from flowsynth.options import check_int
 from flowsynth.export.writer import ExportWriter, run_job
 from flowsynth.io import file_records, layouts
 from flowsynth.processes import worker_context
@@ -102,10 +103,8 @@ def _resolve(cfg, num, outputs, layout: str, workers: int | None, exr_compressio
         if "shard_size" not in lay.options():
             raise ConfigError(f"--shard-size applies to layouts that write shards (webdataset), not {layout}")
         lay = layouts.get(layout, exr_compression=exr_compression, shard_size=shard_size)
-    if not isinstance(num, int) or num < 1:
-        raise ConfigError(f"num must be an integer >= 1, got {num!r}")
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-        raise ConfigError(f"workers must be None or an integer >= 1, got {workers!r}")
+    num = check_int("num", num, 1)
+    workers = None if workers is None else check_int("workers (None: one per core)", workers, 1)
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, got {engine!r}")
     if engine == "ray":

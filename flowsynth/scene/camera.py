@@ -30,6 +30,7 @@ import torch
 
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 from flowsynth.scene._checks import as_float64_array
 
 __all__ = ["LENS_MODELS", "LENS_UNSUPPORTED", "NEWTON_TOL", "Camera", "check_lens_outputs"]
@@ -71,10 +72,7 @@ class Camera:
 
     def __init__(self, K, width: int, height: int, *, model: str = "pinhole", dist=None) -> None:
         K = as_float64_array(K, "K", (3, 3))
-        if not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))):
-            raise ConfigError(f"width and height must be integers, got {width!r} x {height!r}")
-        if width < 1 or height < 1:
-            raise ConfigError(f"image size must be at least 1x1 px, got width={width}, height={height}")
+        width, height = check_int("width", width, 1), check_int("height", height, 1)
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ConfigError(f"focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
         if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
@@ -95,8 +93,7 @@ class Camera:
         square pixels and the principal point at the image centre ((W-1)/2, (H-1)/2)."""
         if not (isinstance(fov_deg, (int, float)) and math.isfinite(fov_deg) and 0.0 < fov_deg < 180.0):
             raise ConfigError(f"fov_deg must be in (0, 180), got {fov_deg!r}")
-        if not (isinstance(width, (int, np.integer)) and width >= 1):
-            raise ConfigError(f"width must be an integer >= 1, got {width!r}")
+        width, height = check_int("width", width, 1), check_int("height", height, 1)
         f = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
         K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
         return cls(K, width, height, model=model, dist=dist)

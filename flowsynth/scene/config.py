@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from flowsynth.errors import AssetError, ConfigError
-from flowsynth.options import OPTION_NAMES, RENDER_MODES, RenderOptions, is_int
+from flowsynth.options import OPTION_NAMES, RENDER_MODES, RenderOptions, check_int, is_int
 
 __all__ = ["CAMERA_MOTIONS", "FLOW_PX_WIDTH", "MOTIONS", "PRESETS", "RENDER_MODES", "BouncingThingsConfig",
            "config_from_dict"]
@@ -342,13 +342,7 @@ def _set(cfg: BouncingThingsConfig, name: str, value: Any) -> None:
 
 
 def _int(cfg, name: str, lo: int, hi: int | None = None) -> int:
-    v = getattr(cfg, name)
-    if not is_int(v):
-        raise ConfigError(f"{name} must be an integer, got {v!r}")
-    v = int(v)
-    if v < lo or (hi is not None and v > hi):
-        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ConfigError(f"{name} must be {bound}, got {v}")
+    v = check_int(name, getattr(cfg, name), lo, hi)
     _set(cfg, name, v)
     return v
 

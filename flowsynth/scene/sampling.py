@@ -41,6 +41,7 @@ import numpy as np
 
 from flowsynth.appearance import Light, sample_lights, sample_material
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 from flowsynth.scene.assets import ROOM_WALLS, Asset, get_asset, resolve_assets, room_walls
 from flowsynth.scene.camera import Camera
 from flowsynth.scene.camerapath import camera_poses, look_at, sample_camera_motion, scale_to_flow
@@ -111,10 +112,8 @@ class SceneLayout:
 
 def make_rng(seed: int, index: int) -> np.random.Generator:
     """The generator of sample ``index`` of a dataset with ``seed`` (both non-negative integers)."""
-    for name, v in (("seed", seed), ("index", index)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
-            raise ConfigError(f"{name} must be a non-negative integer, got {v!r}")
-    return np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
+    seed, index = check_int("seed", seed, 0), check_int("index", index, 0)
+    return np.random.default_rng(np.random.SeedSequence([seed, index]))
 
 
 def sample_scene(cfg: BouncingThingsConfig, seed: int, index: int) -> Scene:

@@ -16,6 +16,7 @@ import numpy as np
 import trimesh
 
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 from flowsynth.scene._checks import as_float64_array, check_rigid
 from flowsynth.scene.camera import Camera
 from flowsynth.scene.meshes import clean_mesh, library_copy
@@ -65,8 +66,7 @@ class Scene:
     def __init__(self, camera: Camera, num_frames: int, fps: float = 24.0) -> None:
         if not isinstance(camera, Camera):
             raise ConfigError(f"camera must be a flowsynth.Camera, got {type(camera).__name__}")
-        if not isinstance(num_frames, (int, np.integer)) or num_frames < 1:
-            raise ConfigError(f"num_frames must be an integer >= 1, got {num_frames!r}")
+        num_frames = check_int("num_frames", num_frames, 1)
         if not (fps > 0 and np.isfinite(fps)):
             raise ConfigError(f"fps must be positive and finite, got {fps!r}")
         self.camera = camera
@@ -105,8 +105,7 @@ class Scene:
         """
         from flowsynth.appearance import resolve_material
 
-        if not isinstance(category, (int, np.integer)) or category < 0:
-            raise ConfigError(f"category must be a non-negative integer, got {category!r}")
+        category = check_int("category", category, 0)
         poses = np.tile(np.eye(4), (self.num_frames, 1, 1)) if poses is None else self._poses(poses, "poses")
         key = id(mesh)
         if key not in self._assets:

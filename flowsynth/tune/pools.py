@@ -28,6 +28,7 @@ import torch
 
 from flowsynth.caches import register
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 
 __all__ = ["OUTPUTS", "POOL_BYTES", "PoolCache", "PoolRenderer", "pool_bytes", "render_pool"]
 
@@ -85,9 +86,7 @@ class PoolRenderer:
     render: render(sources, seed, n)``."""
 
     def __init__(self, workers: int = 0) -> None:
-        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
-            raise ConfigError(f"workers must be an integer >= 0, got {workers!r}")
-        self.workers = workers
+        self.workers = check_int("workers", workers, 0)
         self.pids: set[int] = set()
         self._pool: ProcessPoolExecutor | None = None
 

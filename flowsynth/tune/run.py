@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 from flowsynth.io import atomic_path, atomic_write_bytes, write_json
 from flowsynth.tune.halving import TWIN, TWIN_SEED, plan_cost, plan_rungs, rank, search
 from flowsynth.tune.pairs import find_pairs, image_size, load_pairs
@@ -52,12 +53,6 @@ def _fingerprint(pairs: dict[str, Pair]) -> str:
         for x in (*pair.images(), pair.flow, pair.valid):
             h.update(x.numpy().tobytes())
     return h.hexdigest()[:16]
-
-
-def _positive(name: str, value, low: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ConfigError(f"{name} must be an integer >= {low}, got {value!r}")
-    return value
 
 
 def _device(name: str) -> torch.device:
@@ -139,13 +134,13 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         recipe = dataclasses.replace(recipe, pool=pool)
     if candidates is None:
         candidates = QUICK_CANDIDATES if quick else DEFAULT_CANDIDATES
-    candidates = _positive("candidates", candidates, 2)
-    seed, workers = _positive("seed", seed, 0), _positive("workers", workers, 0)
+    candidates = check_int("candidates", candidates, 2)
+    seed, workers = check_int("seed", seed, 0), check_int("workers", workers, 0)
     check_precision(precision, _device(device))
     keys = draw_candidates(candidates, seed)
     if budget is None:
         budget = plan_cost(candidates, 2) if quick else DEFAULT_BUDGET
-    rungs = plan_rungs(candidates, _positive("budget", budget))
+    rungs = plan_rungs(candidates, check_int("budget", budget, 1))
     layout, files = find_pairs(val, pairs)
     if net is None:
         from flowsynth.nets import raft_small

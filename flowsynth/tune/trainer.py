@@ -24,6 +24,7 @@ from typing import NamedTuple
 import torch
 
 from flowsynth.errors import ConfigError
+from flowsynth.options import check_int
 
 __all__ = ["QUICK", "RECIPE", "EnsembleTrainer", "Pair", "Recipe"]
 
@@ -62,10 +63,8 @@ class Recipe:
     """Training pairs rendered per net [count]."""
 
     def __post_init__(self) -> None:
-        ints = {"batch": self.batch, "updates": self.updates, "test_updates": self.test_updates, "pool": self.pool}
-        bad = [f"{k}={v!r}" for k, v in ints.items() if isinstance(v, bool) or not isinstance(v, int) or v < 1]
-        if bad:
-            raise ConfigError(f"recipe: {', '.join(bad)}; each must be an integer >= 1")
+        for name in ("batch", "updates", "test_updates", "pool"):
+            object.__setattr__(self, name, check_int(f"recipe's {name}", getattr(self, name), 1))
         if not self.lr > 0:
             raise ConfigError(f"recipe: lr must be > 0, got {self.lr!r}")
         (w, h), (ch, cw) = self.res, self.crop

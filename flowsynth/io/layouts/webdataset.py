@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from flowsynth.errors import ConfigError, ExportError
+from flowsynth.options import check_int
 from flowsynth.io.atomic import atomic_path
 from flowsynth.io.layouts import register
 from flowsynth.io.layouts.base import Layout
@@ -108,9 +109,7 @@ class WebDataset(Layout):
 
     def __init__(self, *, shard_size: int = DEFAULT_SHARD_SIZE, exr_compression: str = "zip") -> None:
         super().__init__(exr_compression=exr_compression)
-        if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:
-            raise ConfigError(f"--shard-size must be an integer >= 1, got {shard_size!r}")
-        self.shard_size = shard_size
+        self.shard_size = check_int("shard_size (--shard-size)", shard_size, 1)
         self._index: dict[tuple[str, int, int], dict[str, list[tuple[str, int, int]]]] = {}
 
     def options(self) -> dict:
