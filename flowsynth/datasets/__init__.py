@@ -5,15 +5,16 @@ tuples, ``loader`` workers survive CUDA; ``Exported`` and ``Shards`` read what `
 from flowsynth.datasets.bouncing import BouncingThings, sample_seed
 from flowsynth.datasets.device_batches import DeviceBatches
 from flowsynth.datasets.flowpairs import FlowPairs
-from flowsynth.datasets.kinds import KINDS, config_from, config_kind, make_stream, stream_outputs
+from flowsynth.datasets.kinds import KINDS, SOURCE_KINDS, config_from, config_kind, make_stream, stream_outputs
 from flowsynth.datasets.layer_draws import PairDraw, draw_pair
 from flowsynth.datasets.layer_render import CATEGORY_NAMES as LAYER_CATEGORIES
 from flowsynth.datasets.layer_render import render_layers
 from flowsynth.datasets.layers import LAYERS_OUTPUTS, Layers, LayersConfig, layers_pairs
 from flowsynth.datasets.meta import ALL, ALWAYS_KEYS, META, META_OUTPUTS
+from flowsynth.datasets.mixture import Mixture, MixtureConfig  # registers the mixture kind (kinds.register_kind)
 from flowsynth.datasets.workers import loader
 
-__all__ = ["ALL", "ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "META", "META_OUTPUTS",
+__all__ = ["ALL", "ALWAYS_KEYS", "KINDS", "LAYERS_OUTPUTS", "LAYER_CATEGORIES", "META", "META_OUTPUTS", "SOURCE_KINDS",
            "BouncingThings", "DeviceBatches", "Exported", "FlowPairs", "Layers", "LayersConfig", "Mixture",
            "MixtureConfig", "PairDraw", "Shards", "config_from", "config_kind", "draw_pair", "layers_pairs", "loader",
            "make_stream", "render_layers", "sample_seed", "stream_outputs"]
@@ -24,14 +25,6 @@ def __getattr__(name: str):
         from flowsynth.datasets.exported import Exported
 
         return Exported
-    if name == "Mixture":
-        from flowsynth.datasets.mixture import Mixture
-
-        return Mixture
-    if name == "MixtureConfig":
-        from flowsynth.datasets.mixture import MixtureConfig
-
-        return MixtureConfig
     if name == "Shards":
         from flowsynth.datasets.shards import Shards
 

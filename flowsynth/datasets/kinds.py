@@ -1,7 +1,11 @@
 """The kinds of generated dataset, by name: ``"bouncing"`` (``BouncingThingsConfig`` -> ``BouncingThings``),
 ``"layers"`` (``LayersConfig`` -> ``Layers``) and ``"mixture"`` (``MixtureConfig`` -> ``Mixture``, whose sources are of
-the first two kinds). What export, statistics, previews and ``FlowPairs`` use to take any kind the same way:
-``config_kind``, ``config_from``, ``make_stream``, ``stream_outputs``."""
+the first two kinds, ``SOURCE_KINDS``). The one description of a kind: what export, statistics, previews,
+``FlowPairs`` and a mixture's presets use to take any kind the same way: ``config_kind``, ``config_from``,
+``make_stream``, ``stream_outputs``.
+
+The mixture kind is registered by ``datasets/mixture.py`` (``register_kind``), which builds on this module; importing
+``flowsynth.datasets`` registers it."""
 
 from __future__ import annotations
 
@@ -9,39 +13,51 @@ from collections.abc import Sequence
 from typing import Any
 
 from flowsynth.datasets.bouncing import BouncingThings
-from flowsynth.datasets.layers import Layers, layer_outputs, refuse_scene_options
+from flowsynth.datasets.layers import Layers, LayersConfig, layer_outputs, refuse_scene_options
 from flowsynth.errors import ConfigError
+from flowsynth.scene import BouncingThingsConfig
 
-__all__ = ["KINDS", "config_from", "config_kind", "make_stream", "stream_outputs"]
+__all__ = ["KINDS", "SOURCE_KINDS", "config_from", "config_kind", "make_stream", "register_kind", "stream_outputs"]
 
 KINDS = ("bouncing", "layers", "mixture")
 """Names of the dataset kinds."""
+SOURCE_KINDS = ("bouncing", "layers")
+"""The kinds a source of a mixture may be."""
+_CONFIGS: dict[str, type] = {"bouncing": BouncingThingsConfig, "layers": LayersConfig}
+_MIXTURE: list = []  # (MixtureConfig, Mixture), once datasets/mixture.py has registered them
+_NAMES = {"bouncing": "a BouncingThingsConfig", "layers": "a LayersConfig", "mixture": "a MixtureConfig"}
 
 
-def config_kind(cfg) -> str:
+def register_kind(config_cls: type, stream_cls: type) -> None:
+    """Make ``config_cls`` the config and ``stream_cls`` the stream of the ``"mixture"`` kind (what
+    ``datasets/mixture.py`` calls once, at import)."""
+    _CONFIGS["mixture"] = config_cls
+    _MIXTURE[:] = [(config_cls, stream_cls)]
+
+
+def _expected(kinds: Sequence[str]) -> str:
+    names = [_NAMES[k] for k in kinds]
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} or {names[-1]}"
+
+
+def config_kind(cfg, kinds: Sequence[str] = KINDS) -> str:
     """``"bouncing"`` for a ``BouncingThingsConfig``, ``"layers"`` for a ``LayersConfig``, ``"mixture"`` for a
-    ``MixtureConfig``; ConfigError otherwise."""
-    from flowsynth.datasets.mixture import MixtureConfig, source_kind
-
-    if isinstance(cfg, MixtureConfig):
-        return "mixture"
-    try:
-        return source_kind(cfg)
-    except ConfigError:
-        raise ConfigError(f"a dataset config must be a BouncingThingsConfig, a LayersConfig or a MixtureConfig, got "
-                          f"{type(cfg).__name__}") from None
+    ``MixtureConfig``; ConfigError for anything else or a kind not among ``kinds`` (``SOURCE_KINDS``: a mixture's
+    source)."""
+    for kind in kinds:
+        if kind in _CONFIGS and isinstance(cfg, _CONFIGS[kind]):
+            return kind
+    what = "a source config" if tuple(kinds) == SOURCE_KINDS else "a dataset config"
+    raise ConfigError(f"{what} must be {_expected(kinds)}, got {type(cfg).__name__}")
 
 
-def config_from(kind: str, values: dict[str, Any]):
-    """The config of ``kind`` (``KINDS``) from a dict of its fields (``to_dict``'s form: for a mixture, its preset
-    dict); ConfigError for an unknown kind or field."""
-    from flowsynth.datasets.mixture import SOURCE_KINDS, MixtureConfig, source_config
-
-    if kind == "mixture":
-        return MixtureConfig.from_dict(values)
-    if kind in SOURCE_KINDS:
-        return source_config(kind, values)
-    raise ConfigError(f"unknown dataset kind {kind!r}; kinds: {list(KINDS)}")
+def config_from(kind: str, values: dict[str, Any], kinds: Sequence[str] = KINDS):
+    """The config of ``kind`` (one of ``kinds``: ``KINDS``, or ``SOURCE_KINDS`` for a mixture's source) from a dict
+    of its fields (``to_dict``'s form: for a mixture, its preset dict); ConfigError for an unknown kind or field."""
+    if kind not in kinds or kind not in _CONFIGS:
+        raise ConfigError(f"unknown {'source' if tuple(kinds) == SOURCE_KINDS else 'dataset'} kind {kind!r}; "
+                          f"kinds: {list(kinds)}")
+    return _CONFIGS[kind].from_dict(dict(values) if kind in SOURCE_KINDS else values)
 
 
 def stream_outputs(cfg, outputs: Sequence[str], *, drop_unknown: bool = False) -> tuple[str, ...]:
@@ -79,9 +95,8 @@ def make_stream(cfg, outputs: Sequence[str], seed: int = 0, length: int | None =
         return BouncingThings(cfg, outputs, seed, length, start=start, occlusion=occlusion, device=device,
                               threads=threads)
     if kind == "mixture":
-        from flowsynth.datasets.mixture import Mixture
-
-        return Mixture(cfg, None, outputs, seed, length, start=start, occlusion=occlusion, device=device,
+        mixture = _MIXTURE[0][1]
+        return mixture(cfg, None, outputs, seed, length, start=start, occlusion=occlusion, device=device,
                        threads=threads)
     refuse_scene_options(occlusion, device, threads)
     return Layers(cfg, outputs, seed, length, start=start)

@@ -23,8 +23,8 @@ A preset file is JSON::
                  {"name": "chairs", "kind": "layers", "config": {...}}],
      "weights": {"things": 1, "chairs": 1}}
 
-``kind`` is one of ``SOURCE_KINDS``, ``config`` the config's ``to_dict()``, and ``weights`` null (equal weights), a
-dict, or a curriculum ``[[until, {...}], ..., [null, {...}]]``. ``MixtureConfig.to_dict`` / ``from_dict`` /
+``kind`` is one of ``kinds.SOURCE_KINDS``, ``config`` the config's ``to_dict()``, and ``weights`` null (equal weights),
+a dict, or a curriculum ``[[until, {...}], ..., [null, {...}]]``. ``MixtureConfig.to_dict`` / ``from_dict`` /
 ``from_file`` and ``Mixture.to_preset`` / ``from_preset`` write and read one; the outputs, seed and stream options
 are arguments, not part of the preset.
 """
@@ -42,45 +42,20 @@ import numpy as np
 import torch
 
 from flowsynth.datasets.bouncing import BouncingThings
-from flowsynth.datasets.layers import Layers, LayersConfig, refuse_scene_options
+from flowsynth.datasets.kinds import SOURCE_KINDS, config_from, config_kind, register_kind
+from flowsynth.datasets.layers import Layers, refuse_scene_options
 from flowsynth.datasets.stream import IndexStream, check_index
 from flowsynth.errors import ConfigError
 from flowsynth.options import check_int
 
-__all__ = ["PRESET_FORMAT", "SOURCE_KINDS", "Mixture", "MixtureConfig", "source_config", "source_kind"]
+__all__ = ["PRESET_FORMAT", "Mixture", "MixtureConfig"]
 
 MIX_SALT = 0x6D1C  # keeps the source draw apart from every other generator seeded by (seed, i)
 SHAPE_FIELDS = ("width", "height", "num_frames")
 PRESET_FORMAT = "flowsynth-mixture"
 """The ``format`` of a preset file (version 1)."""
-SOURCE_KINDS = ("bouncing", "layers")
-"""The kinds a source of a mixture may be (``source_kind``)."""
 _ALWAYS = ("index", "seed")  # keys every source's items hold besides the outputs
 
-
-
-def source_kind(cfg) -> str:
-    """``"bouncing"`` for a ``BouncingThingsConfig``, ``"layers"`` for a ``LayersConfig``: the kind of a mixture's
-    source; ConfigError otherwise."""
-    from flowsynth.scene import BouncingThingsConfig
-
-    if isinstance(cfg, BouncingThingsConfig):
-        return "bouncing"
-    if isinstance(cfg, LayersConfig):
-        return "layers"
-    raise ConfigError(f"a source config must be a BouncingThingsConfig or a LayersConfig, got {type(cfg).__name__}")
-
-
-def source_config(kind: str, values: dict[str, Any]):
-    """The source config of ``kind`` (``SOURCE_KINDS``) from a dict of its fields (``to_dict``'s form); ConfigError
-    for an unknown kind or field."""
-    from flowsynth.scene import BouncingThingsConfig
-
-    if kind == "bouncing":
-        return BouncingThingsConfig.from_dict(dict(values))
-    if kind == "layers":
-        return LayersConfig.from_dict(dict(values))
-    raise ConfigError(f"unknown source kind {kind!r}; kinds: {list(SOURCE_KINDS)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,7 +92,7 @@ class MixtureConfig:
         items = [(str(k), BouncingThingsConfig.preset(c) if isinstance(c, str) else c) for k, c in items]
         for name, c in items:
             try:
-                source_kind(c)
+                config_kind(c, SOURCE_KINDS)
             except ConfigError:
                 raise ConfigError(f"config {name!r} must be a BouncingThingsConfig, a LayersConfig or a preset name, "
                                   f"got {type(c).__name__}") from None
@@ -157,7 +132,7 @@ class MixtureConfig:
 
     def to_dict(self) -> dict:
         """The preset (module docstring) as a JSON-compatible dict; ``from_dict(cfg.to_dict()) == cfg``."""
-        sources = [{"name": n, "kind": source_kind(c), "config": c.to_dict()} for n, c in self.sources]
+        sources = [{"name": n, "kind": config_kind(c, SOURCE_KINDS), "config": c.to_dict()} for n, c in self.sources]
         return {"format": PRESET_FORMAT, "version": 1, "sources": sources, "weights": self.weights}
 
     @classmethod
@@ -181,7 +156,7 @@ class MixtureConfig:
             if str(s["name"]) in configs:
                 raise ConfigError(f"mixture preset source name {s['name']!r} is used twice")
             try:
-                configs[str(s["name"])] = source_config(s["kind"], s["config"])
+                configs[str(s["name"])] = config_from(s["kind"], s["config"], SOURCE_KINDS)
             except ConfigError as e:
                 raise ConfigError(f"mixture preset source {s['name']!r}: {e}") from e
         weights = preset.get("weights")
@@ -241,13 +216,14 @@ class Mixture(IndexStream):
         self.weights = self.config.weights
         self.stages = _stages(self.weights, self.names)
         self._init_stream(seed, length, start)
-        if all(source_kind(c) == "layers" for _, c in items):
+        if all(config_kind(c, SOURCE_KINDS) == "layers" for _, c in items):
             refuse_scene_options(occlusion, device, threads, what="a Mixture of Layers sources only")
         self.parts = []
         for name, c in items:
             try:
                 self.parts.append(BouncingThings(c, outputs, seed, length, start=start, occlusion=occlusion,
-                                                 device=device, threads=threads) if source_kind(c) == "bouncing"
+                                                 device=device, threads=threads)
+                                  if config_kind(c, SOURCE_KINDS) == "bouncing"
                                   else Layers(c, outputs, seed, length, start=start))
             except ConfigError as e:
                 raise ConfigError(f"mixture source {name!r}: {e}") from e
@@ -316,7 +292,7 @@ def _check_shapes(items: list) -> None:
         if diff:
             raise ConfigError(f"config {name!r} differs from {name0!r} in {diff}: a Mixture's samples must share one "
                               f"shape (set {', '.join(diff)} alike)")
-    things = [(name, c) for name, c in items if source_kind(c) == "bouncing"]
+    things = [(name, c) for name, c in items if config_kind(c, SOURCE_KINDS) == "bouncing"]
     for name, c in things:
         if c.max_objects != things[0][1].max_objects:
             raise ConfigError(f"config {name!r} differs from {things[0][0]!r} in ['max_objects']: a Mixture's "
@@ -362,3 +338,6 @@ def _stages(weights, names: list[str]) -> list[tuple[int | None, np.ndarray]]:
     if out[-1][0] is not None:
         out.append((None, out[-1][1]))  # past the last stage: its weights go on
     return out
+
+
+register_kind(MixtureConfig, Mixture)
