@@ -15,7 +15,8 @@ from torch.utils.data import DataLoader
 
 import flowsynth as fs
 from flowsynth.cli import main
-from flowsynth.datasets import LAYERS_OUTPUTS, Exported, Layers, LayersConfig, Mixture, layers_pairs, make_stream
+from flowsynth.datasets import LAYERS_OUTPUTS, Exported, Layers, LayersConfig, Mixture, MixtureConfig, layers_pairs
+from flowsynth.datasets import make_stream
 from flowsynth.export import export_dataset
 
 HALF_STEP = 0.5 / 64  # KITTI's flow PNGs round to 1/64 px
@@ -166,7 +167,7 @@ def test_mixture_of_both_kinds_and_its_preset_round_trip(photos, tmp_path):
         text = json.loads(path.read_text())
         assert [s["kind"] for s in text["sources"]] == ["bouncing", "layers"]
         back = Mixture.from_preset(path, outputs=outs, seed=2)
-        assert back.names == m.names and back.preset_dict() == m.preset_dict()
+        assert back.names == m.names and back.config == m.config
         assert [back.source(i) for i in range(200)] == [m.source(i) for i in range(200)]
         i = next(i for i in range(50) if m.source(i) == 1)
         _equal(back.sample(i), m.sample(i), outs)
@@ -191,9 +192,9 @@ def test_mixture_of_both_kinds_and_its_preset_round_trip(photos, tmp_path):
     (lambda p: Mixture({"a": _cfg(p), "b": fs.BouncingThingsConfig(width=64, height=48, num_frames=2)},
                        outputs=["rgb", "depth"]), "Layers gives"),
     (lambda p: Mixture.from_preset(p + "/none.json"), "does not exist"),
-    (lambda p: Mixture.from_preset_dict({"format": "flowsynth-mixture", "version": 1,
-                                         "sources": [{"name": "a", "kind": "blobs", "config": {}}]}), "kind"),
-    (lambda p: Mixture.from_preset_dict({"sources": []}), "format"),
+    (lambda p: MixtureConfig.from_dict({"format": "flowsynth-mixture", "version": 1,
+                                        "sources": [{"name": "a", "kind": "blobs", "config": {}}]}), "kind"),
+    (lambda p: MixtureConfig.from_dict({"sources": []}), "format"),
     (lambda p: layers_pairs(0, 0, torch.rand(2, 3, 32, 32)), "n must be"),
 ])
 def test_bad_input_is_a_config_error_that_says_what_to_do(photos, make, match):

@@ -42,9 +42,9 @@ def test_grid_is_the_product_of_the_knobs_and_every_point_makes_its_mixture():
             else:
                 assert getattr(configs["things"], knob.field) == value
     for key in keys[::29]:  # the preset file's dict, read back by the Mixture
-        mix = fs.datasets.Mixture.from_preset_dict(tune.preset(key))
+        mix = fs.datasets.MixtureConfig.from_dict(tune.preset(key).to_dict())
         configs, weights = tune.sources(key)
-        assert mix.configs == configs and mix.preset_dict()["weights"] == weights
+        assert mix.configs == configs and mix.weights == weights
 
 
 def _fmt(v):

@@ -24,9 +24,10 @@ A preset file is JSON::
      "weights": {"things": 1, "chairs": 1}}
 
 ``kind`` is one of ``kinds.SOURCE_KINDS``, ``config`` the config's ``to_dict()``, and ``weights`` null (equal weights),
-a dict, or a curriculum ``[[until, {...}], ..., [null, {...}]]``. ``MixtureConfig.to_dict`` / ``from_dict`` /
-``from_file`` and ``Mixture.to_preset`` / ``from_preset`` write and read one; the outputs, seed and stream options
-are arguments, not part of the preset.
+a dict, or a curriculum ``[[until, {...}], ..., [null, {...}]]``. ``MixtureConfig.to_file`` writes one and
+``MixtureConfig.from_file`` reads one (``to_dict`` / ``from_dict``: the same JSON as a dict, as every dataset config
+has); ``Mixture.to_preset`` / ``from_preset`` call them. The outputs, seed and stream options are arguments, not part
+of the preset.
 """
 
 from __future__ import annotations
@@ -164,10 +165,20 @@ class MixtureConfig:
             weights = [tuple(stage) if isinstance(stage, list) else stage for stage in weights]
         return cls(configs, weights)
 
+    def to_file(self, path: str | os.PathLike) -> Path:
+        """Write the preset file ``path``: ``to_dict()`` as JSON, atomically, its folder made if missing; returns its
+        path. The one writer of preset files (``flowsynth tune`` and ``Mixture.to_preset`` call it)."""
+        from flowsynth.io import write_json
+
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        write_json(Path(path), self.to_dict())
+        return Path(path)
+
     @classmethod
     def from_file(cls, path: str | os.PathLike) -> MixtureConfig:
-        """The config of the preset file ``path`` (JSON, ``Mixture.to_preset``'s); ConfigError for a missing file,
-        bad JSON or a bad preset, naming the file and what is wrong."""
+        """The config of the preset file ``path`` (JSON, ``to_file``'s); ConfigError for a missing file, bad JSON or
+        a bad preset, naming the file and what is wrong. The one reader of preset files (the CLI's ``--mixture`` and
+        ``Mixture.from_preset`` call it)."""
         p = Path(path)
         if not p.is_file():
             raise ConfigError(f"mixture preset {str(p)!r} does not exist")
@@ -256,31 +267,16 @@ class Mixture(IndexStream):
         out["source"] = torch.tensor(k, dtype=torch.int64)
         return out
 
-    # -- presets -------------------------------------------------------------------------------------------------
-    def preset_dict(self) -> dict:
-        """This mixture's preset (module docstring) as a JSON-compatible dict: ``self.config.to_dict()``."""
-        return self.config.to_dict()
-
+    # -- presets: MixtureConfig.to_file / from_file, on the stream ------------------------------------------------
     def to_preset(self, path: str | os.PathLike) -> Path:
-        """Write the preset file ``path`` (JSON, atomically; its folder made if missing); returns its path."""
-        from flowsynth.io import write_json
-
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        write_json(Path(path), self.preset_dict())
-        return Path(path)
-
-    @classmethod
-    def from_preset_dict(cls, preset: dict, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
-                         length: int | None = None, **kwargs) -> Mixture:
-        """The mixture of a preset dict (``preset_dict``'s form); ``outputs``, ``seed``, ``length`` and the keywords
-        as ``Mixture``'s. ConfigError naming what is wrong with the preset."""
-        return cls(MixtureConfig.from_dict(preset), None, outputs, seed, length, **kwargs)
+        """``self.config.to_file(path)``: write this mixture's preset file; returns its path."""
+        return self.config.to_file(path)
 
     @classmethod
     def from_preset(cls, path: str | os.PathLike, outputs: Sequence[str] = ("rgb", "flow_fw"), seed: int = 0,
                     length: int | None = None, **kwargs) -> Mixture:
-        """The mixture of the preset file ``path`` (``to_preset``); ``outputs``, ``seed``, ``length`` and the
-        keywords as ``Mixture``'s. ConfigError for a missing file, bad JSON or a bad preset, naming the file."""
+        """``Mixture(MixtureConfig.from_file(path), None, outputs, seed, length, **kwargs)``: the mixture of the
+        preset file ``path``, the keywords as ``Mixture``'s. ConfigError as ``MixtureConfig.from_file`` raises."""
         return cls(MixtureConfig.from_file(path), None, outputs, seed, length, **kwargs)
 
 

@@ -199,7 +199,6 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
     write_json(work / "report.json", summary)
     atomic_write_bytes(work / "report.md", markdown(summary).encode())
     plot(summary, work / "curves.png")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, preset(summary["winner"]))
+    preset(summary["winner"]).to_file(out)
     return summary
 

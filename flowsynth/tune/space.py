@@ -132,9 +132,9 @@ def sources(key: str, res: tuple[int, int] = PRESET_SIZE) -> tuple[dict, dict]:
     return {"things": things, LAYERS: layers}, {"things": 1.0 - share, LAYERS: share}
 
 
-def preset(key: str) -> dict:
-    """Point ``key``'s preset at ``PRESET_SIZE``: the JSON of ``fs.datasets.Mixture.from_preset`` (one source, or two
-    with the 2D layers)."""
-    from flowsynth.datasets import Mixture
+def preset(key: str):
+    """Point ``key``'s preset at ``PRESET_SIZE``: a ``fs.datasets.MixtureConfig`` (one source, or two with the 2D
+    layers); its ``to_file`` writes the preset file."""
+    from flowsynth.datasets import MixtureConfig
 
-    return Mixture(*sources(key)).preset_dict()
+    return MixtureConfig(*sources(key))
