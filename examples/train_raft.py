@@ -5,14 +5,14 @@
     python examples/train_raft.py --steps 2400 --checkpoint raft.pt --sintel /data/Sintel   # or --kitti ROOT
 
 ``fs.datasets.BouncingThings`` renders pairs in DataLoader workers (no disk); each batch is cropped, flipped and
-colour-jittered and trained on by ``flowsynth.training.train_step``: the step the learning judge
+colour-jittered and trained on by ``flowsynth.train.steps.train_step``: the step the learning judge
 (``benchmarks/learning/trainers.py``) measures. A progress bar shows the loss; the checkpoint (model, optimiser,
 schedule and step) is written atomically every ``--save-every`` steps and at the end, and the same command resumes
 from it. With ``--eval DIR`` (NAME/frame10.png, frame11.png, flow10.flo for each pair, as Middlebury ships them),
 ``--sintel ROOT`` or ``--kitti ROOT`` (read by torchvision's dataset classes), the end-point error (EPE) on those
 real pairs is printed before and after training. ``--precision bf16`` trains under bfloat16 autocast (CPU or CUDA),
 ``--precision fp16`` under float16 autocast with a gradient scaler (CUDA); ``--channels-last`` keeps the net and the
-images in channels_last memory (``flowsynth.training``'s module docstring; ``benchmarks/speed/precision.py`` times
+images in channels_last memory (``flowsynth.train.steps``'s module docstring; ``benchmarks/speed/precision.py`` times
 both).
 
 The workers come from ``fs.datasets.loader``, a DataLoader whose workers start with forkserver: the net is on the GPU
@@ -35,14 +35,14 @@ import torch
 
 import flowsynth as fs
 from flowsynth.errors import ConfigError, DependencyError
-from flowsynth.training import PRECISIONS, augment, check_precision, epe, grad_scaler, one_cycle, predict, train_step
+from flowsynth.train.steps import PRECISIONS, augment, check_precision, epe, grad_scaler, one_cycle, predict, train_step
 
 EXIT_NO_PAIRS = 3
 
 
 def build_raft():
-    """torchvision's RAFT-small with random weights (``flowsynth.nets.raft_small``)."""
-    from flowsynth.nets import raft_small
+    """torchvision's RAFT-small with random weights (``flowsynth.train.nets.raft_small``)."""
+    from flowsynth.train.nets import raft_small
 
     return raft_small(weights=None)
 
@@ -71,8 +71,8 @@ def middlebury_pairs(root: str) -> list[tuple]:
 
 def torchvision_pairs(kind: str, root: str, limit: int) -> list[tuple]:
     """Up to ``limit`` training pairs of torchvision's Sintel (clean pass) or KittiFlow under ``root``; DependencyError
-    where torchvision is missing or built for another torch (``flowsynth.nets.torchvision_datasets``)."""
-    from flowsynth.nets import torchvision_datasets
+    where torchvision is missing or built for another torch (``flowsynth.train.nets.torchvision_datasets``)."""
+    from flowsynth.train.nets import torchvision_datasets
 
     datasets = torchvision_datasets()
     ds = datasets.Sintel(root, split="train", pass_name="clean") if kind == "sintel" else \
@@ -109,7 +109,7 @@ def train(steps: int = 2400, *, width: int = 256, height: int = 192, crop: tuple
           checkpoint: str | None = None, save_every: int = 200, pairs: list | None = None,
           progress: bool = True, precision: str = "fp32", channels_last: bool = False) -> dict:
     """Train RAFT-small for ``steps`` steps on the stream (resuming from ``checkpoint`` when it exists) in
-    ``precision`` (``flowsynth.training.PRECISIONS``), net and batches in channels_last memory if ``channels_last``;
+    ``precision`` (``flowsynth.train.steps.PRECISIONS``), net and batches in channels_last memory if ``channels_last``;
     returns the EPE on ``pairs`` before ("before", from the start or the resumed net) and after ("after"), the losses
     of the steps run here, and the step reached. Raises ConfigError for an unknown precision or fp16 off CUDA."""
     from tqdm import tqdm

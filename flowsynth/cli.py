@@ -314,7 +314,7 @@ def _parsers(fields: bool = False) -> tuple[argparse.ArgumentParser, dict[str, a
 
 
 def _tune_parser(sub, sub_kw: dict) -> argparse.ArgumentParser:
-    from flowsynth.training import PRECISIONS
+    from flowsynth.train.steps import PRECISIONS
     from flowsynth.tune import DEFAULT_BUDGET, DEFAULT_CANDIDATES, QUICK, RECIPE
 
     tn = sub.add_parser("tune", help="fit the generator's knobs to your validation pairs (docs/tune.md; resumable)",

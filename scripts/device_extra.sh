@@ -5,7 +5,7 @@
 # machine's CPU cores (forkserver workers) while device_run.sh's steps run; training waits for $GPU_DONE_MARKER
 # (default /tmp/gpu_steps_done; device_run.sh removes it at its start and writes it after its last timing step), so
 # the timings have the GPU to themselves. Then every net trains at once in one process (--ensemble:
-# flowsynth.ensemble, vmap over the 20 nets), which prints the ensemble's steps/s at each checkpoint (learn.log,
+# flowsynth.train.ensemble, vmap over the 20 nets), which prints the ensemble's steps/s at each checkpoint (learn.log,
 # rate.txt). When it ends well, --diagnose-checkpoints reads every net's kept checkpoints there (the weights stay on
 # the machine): the motion each invents on the still photographs, and the goal decision 0023 sets for it
 # (learning_raft_diagnose_checkpoints_gpu.json, .png; DIAGNOSE=0 skips it). Results come back in one archive,

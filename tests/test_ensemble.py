@@ -1,6 +1,6 @@
-"""flowsynth.ensemble against the single-net path: K RAFT-small nets trained at once (vmap over stacked weights) equal
-K separate runs of ``training.train_step`` with ``one_cycle`` (same init, same batches); each net is clipped by its
-own gradient norm, and a joint clip (the mutant) would be caught; ``learning.trainers.train_many`` equals ``train``
+"""flowsynth.train.ensemble against the single-net path: K RAFT-small nets trained at once (vmap over stacked weights)
+equal K separate runs of ``training.train_step`` with ``one_cycle`` (same init, same batches); each net is clipped by
+its own gradient norm, and a joint clip (the mutant) would be caught; ``learning.trainers.train_many`` equals ``train``
 per net.
 
 The comparisons run in float64. Adam divides each gradient element by its own running magnitude plus eps (1e-8). In
@@ -22,10 +22,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from flowsynth.ensemble import Ensemble, clip_grad_norms_
+from flowsynth.train.ensemble import Ensemble, clip_grad_norms_
 from flowsynth.errors import ConfigError, ShapeError
-from flowsynth.nets import raft_small
-from flowsynth.training import one_cycle, train_step
+from flowsynth.train.nets import raft_small
+from flowsynth.train.steps import one_cycle, train_step
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -152,9 +152,9 @@ def test_each_net_is_clipped_by_its_own_gradient_norm(float64, monkeypatch):
             g.mul_((c / (total + 1e-6)).clamp(max=1.0))
         return total
 
-    import flowsynth.ensemble
+    import flowsynth.train.ensemble
 
-    monkeypatch.setattr(flowsynth.ensemble, "clip_grad_norms_", joint)
+    monkeypatch.setattr(flowsynth.train.ensemble, "clip_grad_norms_", joint)
     mutant = Ensemble(_nets(range(3)), LR, STEPS, updates=UPDATES)
     for b in batches:
         mutant.step(b)
@@ -166,13 +166,13 @@ def test_train_many_is_train_per_net(float64, monkeypatch, tmp_path):
     """Two nets at once, a curriculum of two stages beside a plain pool, equal two ``train`` runs: the same draws,
     checkpoints, losses and saved weights. The protocol shrinks to one 128x128 crop and two updates a step, and
     ``evaluate`` is a function of the weights, so each checkpoint's entry shows the weights it saw."""
-    import flowsynth.training
+    import flowsynth.train.steps
 
     monkeypatch.setattr(trainers, "BATCH", 1)
     monkeypatch.setattr(trainers, "CROP", (H, W))
     monkeypatch.setattr(trainers, "UPDATES", UPDATES)
-    crop = flowsynth.training.augment
-    monkeypatch.setattr(flowsynth.training, "augment", lambda *a: tuple(x.double() for x in crop(*a)))
+    crop = flowsynth.train.steps.augment
+    monkeypatch.setattr(flowsynth.train.steps, "augment", lambda *a: tuple(x.double() for x in crop(*a)))
     monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: {
         "weights": float(sum(p.detach().sum() for p in net.parameters()))})
     g = torch.Generator().manual_seed(2)

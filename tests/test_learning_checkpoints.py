@@ -116,14 +116,14 @@ class Shift(torch.nn.Module):
 def test_report_from_fake_runs_and_nets(tmp_path, monkeypatch):
     """Two results files (one with a --set lever); weights kept at some checkpoints, missing at others (an old run
     kept only its final net); the rows, goals, JSON and picture."""
-    import flowsynth.nets
+    import flowsynth.train.nets
 
     results, weights = tmp_path / "results", tmp_path / "weights"
     results.mkdir()
     weights.mkdir()
     monkeypatch.setattr(checkpoints, "RESULTS_DIR", results)
     monkeypatch.setattr(_common, "RESULTS_DIR", results)
-    monkeypatch.setattr(flowsynth.nets, "raft_small", Shift)  # checkpoints imports it when it loads a net
+    monkeypatch.setattr(flowsynth.train.nets, "raft_small", Shift)  # checkpoints imports it when it loads a net
     still = tuple(torch.zeros(1, c, 8, 12) for c in (3, 3, 2)) + (torch.ones(1, 1, 8, 12),)
     monkeypatch.setattr(checkpoints, "still_pairs", lambda middlebury: {p: still for p in PHOTOS})
     run = {"seed": 0, "zero_flow_epe": ZERO, "results": {"flowsynth": {"curve": _curve(mb_Venus={2000: 3.5})},

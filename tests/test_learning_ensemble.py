@@ -21,7 +21,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import _common
-from flowsynth.nets import raft_small
+from flowsynth.train.nets import raft_small
 from learning import pools, protocol, runs, trainers
 
 WEIGHTS_ATOL, LOSS_RTOL = 1e-11, 1e-10  # tests/test_ensemble.py's, measured there in float64
@@ -50,13 +50,13 @@ def tiny(float64, monkeypatch, tmp_path):
     """The protocol at a test's size, its pools random (the curriculum's two blocks included), results and weights
     under ``tmp_path``."""
     import flowsynth as fs
-    import flowsynth.training
+    import flowsynth.train.steps
 
     monkeypatch.setattr(trainers, "BATCH", 1)
     monkeypatch.setattr(trainers, "CROP", (H, W))
     monkeypatch.setattr(trainers, "UPDATES", 2)
-    crop = flowsynth.training.augment
-    monkeypatch.setattr(flowsynth.training, "augment", lambda *a: tuple(x.double() for x in crop(*a)))
+    crop = flowsynth.train.steps.augment
+    monkeypatch.setattr(flowsynth.train.steps, "augment", lambda *a: tuple(x.double() for x in crop(*a)))
     monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: protocol.with_means({
         "stereo": float(sum(p.detach().sum() for p in net.parameters())),
         "mb_A": float(sum(p.detach().abs().sum() for p in net.parameters()))}))

@@ -115,8 +115,8 @@ def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
     generator's plain draws over the whole pool, as before stages existed. The pool's images carry their index."""
     import torch
 
-    import flowsynth.ensemble
-    import flowsynth.training
+    import flowsynth.train.ensemble
+    import flowsynth.train.steps
 
     seen = []
 
@@ -125,8 +125,8 @@ def test_curriculum_feeds_each_block_its_share_of_steps(monkeypatch):
         return i1, i2, f, v
 
     monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: {})
-    monkeypatch.setattr(flowsynth.training, "augment", augment)
-    monkeypatch.setattr(flowsynth.ensemble, "step_loss", lambda net, batch, opt, sched, *a, **k: torch.zeros(()))
+    monkeypatch.setattr(flowsynth.train.steps, "augment", augment)
+    monkeypatch.setattr(flowsynth.train.ensemble, "step_loss", lambda net, batch, opt, sched, *a, **k: torch.zeros(()))
     pool = (torch.arange(8, dtype=torch.uint8)[:, None, None, None].expand(8, 3, 4, 4), torch.zeros(8, 3, 4, 4),
             torch.zeros(8, 2, 4, 4), torch.ones(8, 1, 4, 4, dtype=torch.bool))
     trainers.train(pool, {}, 10, 3, 3, 5, stages=2)
@@ -147,17 +147,17 @@ def test_train_keeps_every_checkpoints_weights(tmp_path, monkeypatch):
     step adds 1 to one weight, so checkpoint s holds the initial weight + s)."""
     import torch
 
-    import flowsynth.ensemble
-    import flowsynth.training
-    from flowsynth.nets import raft_small
+    import flowsynth.train.ensemble
+    import flowsynth.train.steps
+    from flowsynth.train.nets import raft_small
 
     def step(net, batch, opt, sched, *args, **kwargs):
         next(net.parameters()).data.add_(1.0)
         return torch.zeros(())
 
     monkeypatch.setattr(trainers, "evaluate", lambda net, tests, device: {})
-    monkeypatch.setattr(flowsynth.training, "augment", lambda i1, i2, f, v, crop, g: (i1, i2, f, v))
-    monkeypatch.setattr(flowsynth.ensemble, "step_loss", step)
+    monkeypatch.setattr(flowsynth.train.steps, "augment", lambda i1, i2, f, v, crop, g: (i1, i2, f, v))
+    monkeypatch.setattr(flowsynth.train.ensemble, "step_loss", step)
     pool = tuple(torch.zeros(4, c, 4, 4) for c in (3, 3, 2, 1))
     torch.manual_seed(7)
     first = next(raft_small().parameters()).detach().clone()

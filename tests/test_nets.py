@@ -1,4 +1,4 @@
-"""flowsynth.nets: torchvision's RAFT-small on demand, and a named error where torchvision is missing."""
+"""flowsynth.train.nets: torchvision's RAFT-small on demand, and a named error where torchvision is missing."""
 
 import os
 import subprocess
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import flowsynth as fs
-from flowsynth import nets
+from flowsynth.train import nets
 
 
 def test_raft_small_is_torchvisions_and_runs():
@@ -40,7 +40,7 @@ if {plain_first}:
         print("plain-imports")
     except RuntimeError as e:
         print("operators" if "torchvision::" in str(e) else "other")
-from flowsynth import nets
+from flowsynth.train import nets
 net = nets.raft_small()
 print(sum(p.numel() for p in net.parameters()),
       "own" if hasattr(sys.modules["torchvision._meta_registrations"], "register_meta") else "stand-in")
@@ -97,7 +97,7 @@ def _torch_build() -> str:
 
 DATASETS = """
 from flowsynth.errors import DependencyError
-from flowsynth.nets import torchvision_datasets
+from flowsynth.train.nets import torchvision_datasets
 try:
     print(torchvision_datasets().Sintel.__name__)
 except DependencyError as e:
@@ -130,7 +130,7 @@ def test_torchvision_datasets_as_installed_here(tmp_path):
                            cwd=tmp_path)
     mismatched = plain.returncode != 0 and "torchvision::" in plain.stderr
     assert plain.returncode == 0 or mismatched, plain.stderr[-2000:]
-    for before in ("", "from flowsynth.nets import raft_small; raft_small()\n"):
+    for before in ("", "from flowsynth.train.nets import raft_small; raft_small()\n"):
         r = subprocess.run([sys.executable, "-c", before + DATASETS], capture_output=True, text=True, timeout=600,
                            cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
         assert r.returncode == 0, r.stderr[-2000:]

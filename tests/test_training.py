@@ -1,4 +1,4 @@
-"""flowsynth.training, RAFT's recipe, against oracles: the loss by a direct sum, the augmentation by the translation
+"""flowsynth.train.steps, RAFT's recipe, against oracles: the loss by a direct sum, the augmentation by the translation
 it must keep, the colour jitter by its identity and grey invariants, and ``predict``'s padding by a net that records
 what it was given."""
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from flowsynth.errors import ShapeError
-from flowsynth.training import _jitter_one, augment, epe, one_cycle, predict, sequence_loss, train_step
+from flowsynth.train.steps import _jitter_one, augment, epe, one_cycle, predict, sequence_loss, train_step
 
 
 def test_sequence_loss_is_the_weighted_sum_of_masked_l1_means():
@@ -39,7 +39,7 @@ def _translated_pair(dx: int, dy: int, h: int = 40, w: int = 48):
 
 def test_augment_keeps_the_correspondence_under_crops_and_flips(monkeypatch):
     """With the colour jitter at identity, every augmented pair must still satisfy img2[p + flow(p)] = img1[p]."""
-    import flowsynth.training as tr
+    import flowsynth.train.steps as tr
 
     monkeypatch.setattr(tr, "_draw_jitter", lambda n, g: torch.tensor([[1.0, 1.0, 1.0, 0.0]]).repeat(n, 1))
     a, b, f, v = _translated_pair(3, -2)

@@ -1,4 +1,4 @@
-"""Training precision (``flowsynth.training.PRECISIONS``) against float32 and against itself: a bf16 step of
+"""Training precision (``flowsynth.train.steps.PRECISIONS``) against float32 and against itself: a bf16 step of
 RAFT-small is the float32 step up to bf16's rounding, and autocast really ran; the ensemble in bf16 is K separate bf16
 ``train_step`` runs; fp16's loss scaling skips a step whose gradients overflow and otherwise takes float32's step
 (run on the CPU by letting ``FP16_DEVICES`` include it: the scaler's arithmetic, not CUDA's kernels); bad precisions
@@ -18,10 +18,10 @@ import pytest
 import torch
 from torch import nn
 
-import flowsynth.training as tr
-from flowsynth.ensemble import Ensemble
+import flowsynth.train.steps as tr
+from flowsynth.train.ensemble import Ensemble
 from flowsynth.errors import ConfigError
-from flowsynth.training import check_precision, grad_scaler, one_cycle, step_loss, train_step
+from flowsynth.train.steps import check_precision, grad_scaler, one_cycle, step_loss, train_step
 
 # bf16 against float32, one step of RAFT-small from the same weights and batch. Measured: loss 0.15% apart, the
 # gradient 1.1% apart (norm of the difference over the norm). A step that skipped autocast would be 0 apart: the test
@@ -60,7 +60,7 @@ def fp16_on_cpu(monkeypatch):
 def _raft(seed: int):
     if importlib.util.find_spec("torchvision") is None:
         pytest.skip("torchvision is not installed (scripts/setup.sh installs it for the tests)")
-    from flowsynth.nets import raft_small
+    from flowsynth.train.nets import raft_small
 
     torch.manual_seed(seed)
     return raft_small()

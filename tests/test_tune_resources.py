@@ -61,8 +61,8 @@ def test_training_memory_estimate_bounds_a_measured_peak():
     recipe = dataclasses.replace(QUICK, batch=2, crop=(128, 128), updates=2)
     code = f"""
 import torch
-from flowsynth.ensemble import Ensemble
-from flowsynth.nets import raft_small
+from flowsynth.train.ensemble import Ensemble
+from flowsynth.train.nets import raft_small
 torch.manual_seed(0)
 nets = [raft_small() for _ in range(2)]
 ens = Ensemble(nets, 4e-4, 10, updates={recipe.updates})
@@ -85,8 +85,8 @@ def test_testing_memory_estimate_bounds_a_measured_peak():
     the estimate is at least the measured growth of peak resident memory and at most 1.5 times it."""
     code = """
 import torch
-from flowsynth.nets import raft_small
-from flowsynth.training import predict
+from flowsynth.train.nets import raft_small
+from flowsynth.train.steps import predict
 net = raft_small()
 a, b = torch.rand(1, 3, 400, 600), torch.rand(1, 3, 400, 600)
 before = reset()

@@ -2,8 +2,8 @@
 
     python benchmarks/device/feed.py [--quick] [--device cuda] [--workers K] [--steps N] [--source stream|device]
 
-Two loops run the same step: RAFT's augmentation (``flowsynth.training.augment``: crop, flips, jitter) on the host,
-then ``flowsynth.training.train_step`` on ``--device`` (torchvision's ``raft_small(weights=None)``, batch 6, 128x160
+Two loops run the same step: RAFT's augmentation (``flowsynth.train.steps.augment``: crop, flips, jitter) on the host,
+then ``flowsynth.train.steps.train_step`` on ``--device`` (torchvision's ``raft_small(weights=None)``, batch 6, 128x160
 crops, 8 updates: protocol 0023's recipe, decision 0023), on pairs of the default config at 256x192, 2 frames, its
 ``flow_px`` halved as the judge renders it.
 
@@ -77,7 +77,7 @@ def run_loop(net, opt, sched, next_batch, steps: int, warmup: int, crop, updates
     waiting for the batch and the seconds of the whole step (the loss's read-back synchronises the device)."""
     import torch
 
-    from flowsynth.training import augment, train_step
+    from flowsynth.train.steps import augment, train_step
 
     waits, totals = [], []
     for k in range(warmup + steps):
@@ -119,8 +119,8 @@ def main(argv: list[str] | None = None) -> int:
         if s[key] < lo:
             p.error(f"--{key} {s[key]}: must be at least {lo}")
 
-    from flowsynth.nets import raft_small
-    from flowsynth.training import one_cycle
+    from flowsynth.train.nets import raft_small
+    from flowsynth.train.steps import one_cycle
 
     torch.manual_seed(a.seed)
     net = raft_small().to(a.device)  # on the device before any worker starts, as a training script does

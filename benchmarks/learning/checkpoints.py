@@ -44,8 +44,8 @@ def invented_motion(path: str, stills: dict, device: str = "cpu") -> dict:
     """{photograph: the mean |flow| [px] the net saved at ``path`` predicts on its still pair} (its EPE there)."""
     import torch
 
-    from flowsynth.nets import raft_small
-    from flowsynth.training import predict
+    from flowsynth.train.nets import raft_small
+    from flowsynth.train.steps import predict
 
     net = raft_small()
     net.load_state_dict(torch.load(path, map_location="cpu"))

@@ -115,13 +115,13 @@ def parser() -> argparse.ArgumentParser:
                                                        "after another in this process")
     p.add_argument("--device", default="cpu", help="torch device the nets train and test on (e.g. cuda)")
     p.add_argument("--precision", default="fp32", choices=("fp32", "bf16"),
-                   help="the training step's precision (flowsynth.training): fp32 is protocol 0023, bf16 protocol "
+                   help="the training step's precision (flowsynth.train.steps): fp32 is protocol 0023, bf16 protocol "
                         "0025; tests run in float32 either way")
     p.add_argument("--at-once", action="store_true", help="render every seed's pools, then train every net of every "
                    "seed at once, each in a process of its own (a lent GPU)")
     p.add_argument("--ensemble", action="store_true", help="train the nets (of each seed; with --at-once, of every "
-                   "seed) at once in this process, batched (flowsynth.ensemble), in place of a process each: the same "
-                   "pools, draws, checkpoints and files")
+                   "seed) at once in this process, batched (flowsynth.train.ensemble), in place of a process each: "
+                   "the same pools, draws, checkpoints and files")
     p.add_argument("--train-after", default=None, metavar="FILE", help="--at-once: render the pools, then wait until "
                    "FILE exists before training (so that other benchmarks have the GPU to themselves)")
     p.add_argument("--middlebury", default=None, metavar="DIR",

@@ -53,8 +53,8 @@ def diagnose(nets: list[str], middlebury_dir: str | None) -> list[dict]:
     most 0, 1 and 3 px; on a still pair the EPE is the motion the net invents)."""
     import torch
 
-    from flowsynth.nets import raft_small
-    from flowsynth.training import predict
+    from flowsynth.train.nets import raft_small
+    from flowsynth.train.steps import predict
 
     tests = judge_sets(middlebury_dir)
     tests.update(small_motion_pairs({k: v for k, v in tests.items() if k.startswith("mb_")}))
@@ -89,8 +89,8 @@ def figures(name: str, middlebury_dir: str | None, nets: list[str]) -> list:
     import matplotlib.pyplot as plt
     import torch
 
-    from flowsynth.nets import raft_small
-    from flowsynth.training import predict
+    from flowsynth.train.nets import raft_small
+    from flowsynth.train.steps import predict
     from flowsynth.viz import flow_to_color
 
     tests = judge_sets(middlebury_dir)

@@ -18,8 +18,8 @@ def _rate_loop(k: int, steps: int, warmup: int, batched: bool, device: str, thre
     shape, on a random uint8 pool at RES, after ``warmup`` steps (and ``barrier``, when given)."""
     import torch
 
-    from flowsynth.ensemble import Ensemble
-    from flowsynth.nets import raft_small
+    from flowsynth.train.ensemble import Ensemble
+    from flowsynth.train.nets import raft_small
 
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(0)

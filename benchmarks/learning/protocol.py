@@ -2,11 +2,11 @@
 judges, the score a net gets on them, and the names of the files a run writes. Trains nothing; ``pools`` renders the
 arms, ``trainers`` trains and tests the nets, ``runs`` runs the whole protocol.
 
-- Net: torchvision's ``raft_small(weights=None)`` (``flowsynth.nets.raft_small``, 0.99 M parameters), RAFT's recipe
-  as ``flowsynth.training`` implements it (the same step ``examples/train_raft.py`` runs): sequence loss (gamma 0.8),
-  AdamW at ``LR`` with weight decay 1e-4 and a linear one-cycle schedule, gradient clip 1, ``UPDATES`` flow updates
-  in training and ``TEST_UPDATES`` at test; ``STEPS`` steps of ``BATCH`` random ``CROP`` crops with flips and colour
-  jitter, the same augmentation for every arm.
+- Net: torchvision's ``raft_small(weights=None)`` (``flowsynth.train.nets.raft_small``, 0.99 M parameters), RAFT's
+  recipe as ``flowsynth.train.steps`` implements it (the same step ``examples/train_raft.py`` runs): sequence loss
+  (gamma 0.8), AdamW at ``LR`` with weight decay 1e-4 and a linear one-cycle schedule, gradient clip 1, ``UPDATES`` flow
+  updates in training and ``TEST_UPDATES`` at test; ``STEPS`` steps of ``BATCH`` random ``CROP`` crops with flips and
+  colour jitter, the same augmentation for every arm.
 - Training pools: ``POOL`` pairs per arm rendered at ``RES`` (256x192), images kept as uint8.
   - ``flowsynth``: ``BouncingThingsConfig()`` (with ``--set`` changes: a lever) at 256x192, 2 frames; its
     ``flow_px``, stated at 512 px wide (``flow_px_width``), is scaled by the config to 1 / ``SCALE`` of it, so motion
@@ -77,7 +77,7 @@ def zero_flow(tests: dict) -> dict:
     """The EPE [px] of predicting zero flow on each of ``tests`` (``judge_sets``' dict), with the Middlebury mean."""
     import torch
 
-    from flowsynth.training import epe
+    from flowsynth.train.steps import epe
 
     return with_means({k: epe(torch.zeros_like(v[2]), v[2], v[3]) for k, v in tests.items()})
 

@@ -1,6 +1,6 @@
 """The RAFT judge's trainers: ``train_many`` trains K nets at once in this process by the protocol's recipe
-(``flowsynth.ensemble.Ensemble``) and tests them at every checkpoint (``evaluate``); ``train`` is its one net,
-``train_many([pool], ...)[0]``, stepped by ``flowsynth.training.train_step`` itself.
+(``flowsynth.train.ensemble.Ensemble``) and tests them at every checkpoint (``evaluate``); ``train`` is its one net,
+``train_many([pool], ...)[0]``, stepped by ``flowsynth.train.steps.train_step`` itself.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ def evaluate(net, tests: dict, device: str) -> dict:
     size, ``TEST_UPDATES`` updates), with the Middlebury mean (``protocol.with_means``)."""
     import torch
 
-    from flowsynth.training import predict
+    from flowsynth.train.steps import predict
 
     out = {}
     for name, (img1, img2, flow, valid) in tests.items():
@@ -38,10 +38,10 @@ def draw_one(pool: tuple, g, n: int, step: int, steps: int) -> tuple:
     """One net's batch at ``step`` (1-based) of ``steps``: BATCH pairs drawn from generator ``g`` out of the block of
     ``pool`` that feeds this step in a run of ``n`` stages (the pool's k-th of n equal blocks feeds steps
     k * steps / n + 1 to (k + 1) * steps / n; one stage: the whole pool), augmented to CROP
-    (``flowsynth.training.augment``, from ``g``)."""
+    (``flowsynth.train.steps.augment``, from ``g``)."""
     import torch
 
-    from flowsynth.training import augment
+    from flowsynth.train.steps import augment
 
     img1, img2, flow, valid = pool
     block = len(img1) // n
@@ -71,8 +71,8 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
     of its own seeded ``seeds[k]``. ``saves[k]``: a path for its final weights, each tested checkpoint's beside them
     (``protocol.checkpoint_path``); ``progresses[k]``: a JSON path rewritten with its curve after every test (a run
     cut short keeps its curve). ``batched``: one vmapped step of the K nets (``Ensemble``), or a loop of
-    ``flowsynth.training.train_step``s (the reference). ``threads``: torch threads (0: leave as is). ``precision``:
-    the training step's (``flowsynth.training.PRECISIONS``; tests run in float32 whatever it is).
+    ``flowsynth.train.steps.train_step``s (the reference). ``threads``: torch threads (0: leave as is). ``precision``:
+    the training step's (``flowsynth.train.steps.PRECISIONS``; tests run in float32 whatever it is).
 
     Returns per net {"curve": [{"step", "train_loss" (the mean loss of the last ``every`` steps; None at step 0),
     judge set: EPE [px], ...}], "train_s", "net_seed", "parameters", "at_once": K, "step_s"}: ``train_s`` [s] the
@@ -83,8 +83,8 @@ def train_many(pools: list, tests: dict, steps: int, seeds: list, net_seeds: lis
 
     import torch
 
-    from flowsynth.ensemble import Ensemble
-    from flowsynth.nets import raft_small
+    from flowsynth.train.ensemble import Ensemble
+    from flowsynth.train.nets import raft_small
 
     k = len(pools)
     saves, progresses = saves or [None] * k, progresses or [None] * k
@@ -149,7 +149,7 @@ def train(pool: tuple, tests: dict, steps: int, seed: int, net_seed: int, every:
           device: str = "cpu", save: str | None = None, progress: str | None = None, stages: int = 1,
           precision: str = "fp32") -> dict:
     """One net of ``train_many``: ``train_many([pool], tests, steps, [seed], [net_seed], every, ...)[0]``, stepped by
-    ``flowsynth.training.train_step`` (``batched=False``), without the ensemble's fields (``ENSEMBLE_ONLY``). Returns
+    ``flowsynth.train.steps.train_step`` (``batched=False``), without the ensemble's fields (``ENSEMBLE_ONLY``). Returns
     {"curve", "train_s", "net_seed", "parameters"} as ``train_many`` says."""
     out = train_many([pool], tests, steps, [seed], [net_seed], every, device=device, threads=threads,
                      saves=[save], progresses=[progress], stages=[stages], batched=False, precision=precision)[0]

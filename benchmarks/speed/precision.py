@@ -2,12 +2,12 @@
 
     python benchmarks/speed/precision.py [--quick] [--threads 1 2] [--steps N] [--warmup N] [--rounds R] [--device D]
 
-``flowsynth.training.train_step`` on ``flowsynth.nets.raft_small`` at protocol 0023's shape (batch 6, 128x160 crops,
-8 flow updates, random images and flow), for every combination of precision (fp32, bf16; fp16 too on CUDA), memory
-format (contiguous, or channels_last: the net converted before its optimiser is made, the images converted each step)
-and torch thread count. Every configuration keeps its own net (one seed for all) and optimiser; each round runs every
-configuration in turn, ``--warmup`` untimed steps then ``--steps`` timed ones, so load changes on a shared machine
-hit all of them alike. Per configuration: the median over rounds of the mean s/step, and its ratio to fp32 with
+``flowsynth.train.steps.train_step`` on ``flowsynth.train.nets.raft_small`` at protocol 0023's shape (batch 6, 128x160
+crops, 8 flow updates, random images and flow), for every combination of precision (fp32, bf16; fp16 too on CUDA),
+memory format (contiguous, or channels_last: the net converted before its optimiser is made, the images converted each
+step) and torch thread count. Every configuration keeps its own net (one seed for all) and optimiser; each round runs
+every configuration in turn, ``--warmup`` untimed steps then ``--steps`` timed ones, so load changes on a shared
+machine hit all of them alike. Per configuration: the median over rounds of the mean s/step, and its ratio to fp32 with
 contiguous memory at the same thread count (below 1: faster). Prints a table; writes
 results/precision[_quick].json and a bar chart results/precision[_quick].png when matplotlib is there. ``--quick``
 (the suite's smoke run): batch 2, one thread, one warm-up and one timed step, one round; its ratios mean nothing.
@@ -37,8 +37,8 @@ class Config:
     def __init__(self, precision: str, fmt: str, threads: int, batch: tuple, device: str):
         import torch
 
-        from flowsynth.nets import raft_small
-        from flowsynth.training import grad_scaler, one_cycle
+        from flowsynth.train.nets import raft_small
+        from flowsynth.train.steps import grad_scaler, one_cycle
 
         self.precision, self.fmt, self.threads = precision, fmt, threads
         self.memory = torch.channels_last if fmt == "channels_last" else torch.contiguous_format
@@ -52,7 +52,7 @@ class Config:
         """One training step; returns its loss (read from the device: the step has finished)."""
         import torch
 
-        from flowsynth.training import train_step
+        from flowsynth.train.steps import train_step
 
         torch.set_num_threads(self.threads)
         img1, img2, flow, valid = self.batch
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from flowsynth.errors import DependencyError
-    from flowsynth.training import FP16_DEVICES, PRECISIONS
+    from flowsynth.train.steps import FP16_DEVICES, PRECISIONS
 
     try:
         device = torch.device(a.device)

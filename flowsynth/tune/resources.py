@@ -8,8 +8,8 @@ The estimate, for rung 0 (it holds the most nets; a later rung holds fewer nets 
 - validation pairs: their bytes as ``read_pairs`` holds them (15 a pixel: uint8 images, float32 flow, bool valid),
   sized from the image files' headers, on the host; one pair at a time is also on the device for its test;
 - training (on ``device``): per net ``NET_BYTES`` + ``batch`` x crop pixels x (``PIXEL_BYTES`` + ``updates`` x
-  ``UPDATE_BYTES``), every net of rung 0 at once (``flowsynth.ensemble.Ensemble``);
-- testing (on ``device``): the largest pair, padded as ``flowsynth.training.predict`` pads it: ``TEST_PIXEL_BYTES``
+  ``UPDATE_BYTES``), every net of rung 0 at once (``flowsynth.train.ensemble.Ensemble``);
+- testing (on ``device``): the largest pair, padded as ``flowsynth.train.steps.predict`` pads it: ``TEST_PIXEL_BYTES``
   a pixel and its correlation pyramid, ``CORR_BYTES`` x (pixels / 64) ** 2;
 - rendering (before training, not beside it): each rendering process's sample (``flowsynth.memory.
   sample_memory_bytes``; with ``workers`` the processes' own, else this one's beyond its base) and the chunks in

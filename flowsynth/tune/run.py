@@ -109,14 +109,15 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         candidates: points of the search space tried, the default's among them (None: 8; ``quick``: 2).
         seed: the tune's seed: the candidates drawn, the nets' weights, pools and batches.
         device: the torch device the nets train on ("cpu", "cuda", ...); pools render on the CPU.
-        precision: "fp32", "bf16" or "fp16" (CUDA) (``flowsynth.training.PRECISIONS``).
+        precision: "fp32", "bf16" or "fp16" (CUDA) (``flowsynth.train.steps.PRECISIONS``).
         workers: processes rendering the pools (0: this one).
         quick: a tiny recipe (``flowsynth.tune.trainer.QUICK``) to check that a tune runs; its winner means little.
         pool: training pairs rendered per net (None: the recipe's).
         recipe: how nets train and test (default ``RECIPE``, the learning judge's; ``quick``: ``QUICK``).
         check_resources: estimate the memory and disk the tune needs before any work (``flowsynth.tune.resources``)
             and refuse what does not fit; False: go on anyway.
-        net: builds one net (default ``flowsynth.nets.raft_small``); render: renders a pool (``EnsembleTrainer``'s).
+        net: builds one net (default ``flowsynth.train.nets.raft_small``); render: renders a pool
+            (``EnsembleTrainer``'s).
         log: called with a line of progress after every checkpoint and pool.
 
     Returns:
@@ -127,7 +128,7 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
             memory or disk than the machine has (``check_resources``), or a state or pools in the work folder of
             other settings. DependencyError: torchvision is missing (``net`` None).
     """
-    from flowsynth.training import check_precision
+    from flowsynth.train.steps import check_precision
 
     recipe = recipe or (QUICK if quick else RECIPE)
     if pool is not None:
@@ -143,7 +144,7 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
     rungs = plan_rungs(candidates, check_int("budget", budget, 1))
     layout, files = find_pairs(val, pairs)
     if net is None:
-        from flowsynth.nets import raft_small
+        from flowsynth.train.nets import raft_small
 
         raft_small()  # DependencyError now, before any work, where torchvision is missing
         if min(recipe.crop) < RAFT_MIN:

@@ -1,12 +1,12 @@
-"""``EnsembleTrainer``: a tune's nets trained at once (``flowsynth.ensemble.Ensemble``), each on the pool of its own
-generator setting, and tested on the validation pairs at every checkpoint.
+"""``EnsembleTrainer``: a tune's nets trained at once (``flowsynth.train.ensemble.Ensemble``), each on the pool of its
+own generator setting, and tested on the validation pairs at every checkpoint.
 
 Each net is RAFT's recipe as the learning judge runs it (``Recipe``: its defaults are protocol 0023's): a pool of
 ``pool`` pairs rendered at ``res`` from the net's generator setting (a ``Mixture``'s sources) and seed, batches of
-``batch`` random ``crop`` crops with flips and colour jitter (``flowsynth.training.augment``) drawn from the net's own
-generator, ``updates`` flow updates a step, AdamW on one one-cycle schedule of the plan's full length; tested on every
-validation pair at full size with ``test_updates`` updates (``flowsynth.training.predict``), the EPE over its valid
-pixels.
+``batch`` random ``crop`` crops with flips and colour jitter (``flowsynth.train.steps.augment``) drawn from the net's
+own generator, ``updates`` flow updates a step, AdamW on one one-cycle schedule of the plan's full length; tested on
+every validation pair at full size with ``test_updates`` updates (``flowsynth.train.steps.predict``), the EPE over its
+valid pixels.
 
 The state splits into one part per net (weights, AdamW moments, batch generator) and a shared part (the schedule, the
 optimiser's step count, the loss scaler), so a rung's survivors continue in a smaller ensemble, and a state saved at a
@@ -89,7 +89,7 @@ class EnsembleTrainer:
     ``Mixture(*sources, seed=seed)`` (``flowsynth.tune.pools``), its weights are the net's initialisation under
     ``torch.manual_seed(seed)`` and its batches come from a generator seeded ``seed``. ``pairs``: {name: ``Pair``},
     kept where they are (on the CPU) and moved to ``device`` one at a time to be tested. ``steps``: the schedule's
-    length (the plan's last step). ``net``: builds one net (``flowsynth.nets.raft_small``: RAFT-small with random
+    length (the plan's last step). ``net``: builds one net (``flowsynth.train.nets.raft_small``: RAFT-small with random
     weights). ``render``: renders a pool, ``render(sources, seed, n, out=None)`` (``flowsynth.tune.PoolRenderer``'s
     call; default a ``PoolRenderer(workers)``, whose processes render every pool of a rung and stop before it trains).
     ``cache``: a ``flowsynth.tune.PoolCache`` that keeps the pools on disk, memory-mapped (None: in memory); ``log``:
@@ -98,7 +98,7 @@ class EnsembleTrainer:
     def __init__(self, settings: dict[str, tuple], pairs: dict[str, Pair], recipe: Recipe, steps: int, *,
                  device: str = "cpu", precision: str = "fp32", workers: int = 0, net: Callable | None = None,
                  render: Callable | None = None, cache=None, log: Callable[[str], None] = lambda line: None):
-        from flowsynth.nets import raft_small
+        from flowsynth.train.nets import raft_small
         from flowsynth.tune.pools import PoolRenderer
 
         if not pairs:
@@ -153,7 +153,7 @@ class EnsembleTrainer:
         return tuple(torch.stack(x) for x in zip(*(self._draw(k) for k in self.keys)))
 
     def _draw(self, key: str) -> tuple:
-        from flowsynth.training import augment
+        from flowsynth.train.steps import augment
 
         img1, img2, flow, valid = self.pools[key]
         g = self.gens[key]
@@ -185,7 +185,7 @@ class EnsembleTrainer:
 
     def _assemble(self, keys: list[str]) -> None:
         """An ensemble of the nets ``keys``: those of the current one continue, new ones start (at step 0 only)."""
-        from flowsynth.ensemble import Ensemble
+        from flowsynth.train.ensemble import Ensemble
 
         if self.ens is not None:
             self.nets, self.shared = self._split()
@@ -229,7 +229,7 @@ class EnsembleTrainer:
 
     @torch.no_grad()
     def _evaluate(self) -> dict[str, dict[str, float]]:
-        from flowsynth.training import epe, predict
+        from flowsynth.train.steps import epe, predict
 
         nets = self.ens.copy_to_nets()
         out: dict[str, dict[str, float]] = {key: {} for key in self.keys}

@@ -15,7 +15,7 @@ The recipe, as in torchvision's ``references/optical_flow`` (RAFT, Teed and Deng
   colour jitter of brightness, contrast and saturation (0.4) and hue (0.5 / pi of a turn), the same for both
   frames except with probability 0.2, when each frame draws its own (RAFT's asymmetric jitter).
 
-Precision (``PRECISIONS``, the ``precision`` argument of ``train_step`` and ``flowsynth.ensemble.Ensemble``): the
+Precision (``PRECISIONS``, the ``precision`` argument of ``train_step`` and ``flowsynth.train.ensemble.Ensemble``): the
 weights, the optimiser and the loss stay float32 in every mode; what changes is the net's forward pass.
 
 - ``"fp32"`` (the default): no autocast; the net runs in its own dtype.

@@ -1,4 +1,4 @@
-"""K RAFT-like nets trained at once in one process, each exactly as ``flowsynth.training.train_step`` would train it
+"""K RAFT-like nets trained at once in one process, each exactly as ``flowsynth.train.steps.train_step`` would train it
 alone (docs/architecture.md: the judge must fit one GPU lease). Only torch is imported; the nets come from the
 caller (torchvision's ``raft_small(weights=None)``, or any module called as ``net(img1, img2, num_flow_updates=N)``
 that returns the list of its N flow estimates), all of one architecture.
@@ -24,7 +24,7 @@ Two ways to run the K nets (``Ensemble(..., batched=...)``):
   rate per tensor, so on a (K, ...) stack it is K AdamWs of the same schedule.
 - a loop (``batched=False``, the reference): K modules, K ``one_cycle`` optimisers, ``train_step`` on each in turn.
 
-Precision (``Ensemble(..., precision=...)``, as ``flowsynth.training.train_step`` takes it): fp32, bf16 (the
+Precision (``Ensemble(..., precision=...)``, as ``flowsynth.train.steps.train_step`` takes it): fp32, bf16 (the
 forward pass under autocast, inside the vmapped function in the batched mode) or fp16 (CUDA; dynamic loss scaling).
 In fp16 the loop keeps a gradient scaler per net, as K separate runs do; the batched mode keeps one for the K nets
 (one optimiser), so a step in which any net's gradients overflow is skipped for all K, where separate runs would skip
@@ -41,7 +41,7 @@ import torch
 from torch import nn
 
 from flowsynth.errors import ConfigError, ShapeError
-from flowsynth.training import CLIP, autocast, check_precision, full_precision, grad_scaler, one_cycle, \
+from flowsynth.train.steps import CLIP, autocast, check_precision, full_precision, grad_scaler, one_cycle, \
     sequence_loss, step_loss
 
 __all__ = ["Ensemble", "clip_grad_norms_"]
@@ -80,7 +80,7 @@ class Ensemble:
     ``nets``: K modules of one architecture (the same parameter and buffer names, shapes, dtypes and devices), each
     initialised as its own run would be; they are trained in place of K ``train_step`` runs with
     ``one_cycle(net.parameters(), lr, steps, weight_decay, pct_start)`` each. ``updates`` flow updates a step,
-    gradient norm clipped at ``clip`` per net, the forward pass in ``precision`` (``flowsynth.training.PRECISIONS``).
+    gradient norm clipped at ``clip`` per net, the forward pass in ``precision`` (``flowsynth.train.steps.PRECISIONS``).
     In the batched mode the weights live in stacked tensors while training and ``copy_to_nets()`` copies them back
     into the modules. Raises ConfigError for no nets, nets of different architectures, running statistics in the
     batched mode, an unknown precision, or fp16 off CUDA."""
