@@ -25,6 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 NOT_CACHES = {
     "flowsynth.caches._REGISTRY": "the registry itself",
     "flowsynth.io.layouts._REGISTRY": "the export layout plug-ins by name",
+    "flowsynth.datasets.kinds._MIXTURE": "the mixture kind's classes, registered once at import (a registry)",
     "flowsynth.kernels._initialised_warp": "Warp's initialisation, once per process",
     "flowsynth.scene.physics._clamp_kernel": "a compiled Warp kernel (no argument)",
     "flowsynth._flags.field_docs": "the config's field docstrings, read once from the source (no argument)",
