@@ -175,3 +175,12 @@ def test_the_loaders_endless_stream_broken_off_repeats_nothing():
     assert not set(first) & set(second), passes
     skipped = set(range(max(second) + 1)) - set(first) - set(second)
     assert len(skipped) <= 2 * 2 * 2, passes
+
+
+def test_len_batches_then_the_next_iter_is_the_next_epoch():
+    """Taking exactly ``len(db)`` batches (``zip(range(len(db)), db)``) and iterating again gives the next epoch,
+    not an empty one."""
+    db = DeviceBatches(CFG, ["depth"], 2, 0, seed=2, length=4)
+    epochs = [[b["index"].tolist() for _, b in zip(range(len(db)), db)] for _ in range(2)]
+    db.close()
+    assert epochs == [[[0, 1], [2, 3]], [[4, 5], [6, 7]]]

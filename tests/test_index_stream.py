@@ -80,3 +80,17 @@ def test_load_state_dict_resumes_and_refuses_a_bad_state():
     endless.load_state_dict({"epoch": 0, "pos": 10**6, "seed": 0, "start": 0, "rank": 0, "world_size": 1,
                              "worker": 0, "num_workers": 1})
     assert _take(endless, 2) == [10**6, 10**6 + 1]
+
+
+def test_an_epoch_read_to_its_last_sample_without_exhausting_goes_on_to_the_next():
+    """A loop that stops right after the epoch's last sample (``zip(range(len(ds)), ds)``) leaves the generator
+    unexhausted: the next ``iter()`` is the next epoch, never an empty one; a saved state of that moment resumes
+    there too."""
+    ds = Indices(length=4)
+    assert _take(ds, 4) == [0, 1, 2, 3]  # stops after the last sample: the generator is not exhausted
+    state = ds.state_dict()
+    assert _take(ds, 4) == [4, 5, 6, 7]
+    again = Indices(length=4)
+    again.load_state_dict(state)
+    assert _take(again) == [4, 5, 6, 7]
+    assert _take(again) == [8, 9, 10, 11]  # an exhausted epoch moves on as before

@@ -106,8 +106,9 @@ class DeviceBatches(StreamPosition):
     short when B does not divide n: what a DataLoader with ``batch_size`` B and at most one worker yields over
     ``BouncingThings(..., length=L)``'s epoch e on that rank. An endless stream holds start + r, start + r + W, ... in
     batches of B. Either way each sample is yielded once on one rank: an epoch broken off (the loop stopped reading)
-    resumes at the next ``iter()`` with the first sample not yet yielded (none, when its last batch was read), a
-    finite epoch read to its end is followed by the next epoch, and an endless stream continues where it stopped.
+    resumes at the next ``iter()`` with the first sample not yet yielded (the next epoch's first, when its last batch
+    was read), a finite epoch read to its end is followed by the next epoch, and an endless stream continues where it
+    stopped.
     ``set_epoch`` and ``load_state_dict`` (``IndexStream``'s: a state names its shard, and a position inside an
     epoch resumes only in that shard) move the position; the scene workers start at the first ``iter()`` and stay
     while the position follows on (their prefetched scenes are kept for the next batches), else restart at the new

@@ -170,12 +170,17 @@ class StreamPosition:
                           "(pos 0), which any layout reads")
 
     def _begin(self) -> tuple[int, int]:
-        """(g, G): the shard an iteration starting now reads; ConfigError when the position is another shard's."""
+        """(g, G): the shard an iteration starting now reads; ConfigError when the position is another shard's. A
+        finite epoch whose every sample was read (an iteration stopped right after its last one, as
+        ``zip(range(len(ds)), ds)`` stops) moves to the next epoch here, so no iteration comes out empty."""
         layout = self.shard_layout()
         self._check_layout(layout)
         self._pos_layout = layout
-        return (layout["rank"] * layout["num_workers"] + layout["worker"],
+        g, G = (layout["rank"] * layout["num_workers"] + layout["worker"],
                 layout["world_size"] * layout["num_workers"])
+        if self.length is not None and self._pos and self._pos >= shard_size(self.length, g, G):
+            self._epoch, self._pos = self._epoch + 1, 0
+        return g, G
 
     def set_epoch(self, epoch: int) -> None:
         """Start the next ``iter()`` at the beginning of ``epoch`` (an integer >= 0; needed with non-persistent
