@@ -350,3 +350,24 @@ def test_ray_engine_writes_the_same_shards(ray_cluster, exported, tmp_path):
     assert export(tmp_path / "ray", "--engine", "ray") == 0
     same_shards(tmp_path / "ray", exported)
     assert Counter(p.name.split("-")[0] for p in (tmp_path / "ray").iterdir()) == {"manifest.json": 1, "shard": 3}
+
+
+def test_shards_split_over_ranks_known_from_the_process_group_only(exported, tmp_path):
+    """Two real ranks that know their rank from ``init_process_group`` alone (as ``mp.spawn`` starts them: no
+    ``RANK`` in the environment), each reading through ``fs.datasets.loader``'s forkserver workers, which have no
+    process group: every sample once over both ranks."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK")}
+    program = Path(__file__).with_name("shards_rank_program.py")
+    procs = [subprocess.Popen([sys.executable, str(program), str(exported), str(r), str(port),
+                               str(tmp_path / f"rank{r}.json")], env=env) for r in range(2)]
+    assert [p.wait(timeout=600) for p in procs] == [0, 0]
+    got = [json.loads((tmp_path / f"rank{r}.json").read_text()) for r in range(2)]
+    assert sorted(got[0] + got[1]) == list(range(NUM)), got

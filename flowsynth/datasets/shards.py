@@ -72,6 +72,12 @@ class Shards(IterableDataset):
         self.shuffle, self.seed, self.buffer = bool(shuffle), check_int("seed", seed, 0), buffer
         self.rank, self.world_size = rank, world_size
         self._epoch = 0
+        self._ranks = (0, 1)  # the rank the main process saw when it pickled this stream for a worker
+
+    def __getstate__(self) -> dict:
+        if get_worker_info() is None:  # the main process pickles the stream for a spawned worker: its rank now
+            self._ranks = rank_world()
+        return self.__dict__.copy()
 
     def set_epoch(self, epoch: int) -> None:
         """Shuffle the next ``iter()`` as epoch ``epoch`` (needed with non-persistent workers)."""
@@ -81,7 +87,7 @@ class Shards(IterableDataset):
         """(g, G): this consumer's position among every rank's workers."""
         rank, world = self.rank, self.world_size
         if rank is None:
-            rank, world = rank_world()
+            rank, world = rank_world(self._ranks)
         info = get_worker_info()
         wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
         return rank * nw + wid, world * nw
