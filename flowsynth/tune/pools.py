@@ -154,6 +154,15 @@ def _pool_identity(sources: tuple[dict, dict], seed: int, n: int) -> dict:
             "outputs": list(OUTPUTS)}
 
 
+def refuse_other_tune(what: str, saved: dict, ours: dict) -> None:
+    """ConfigError, naming the fields that differ, when a folder's saved tune identity ``saved`` is not ``ours``
+    (``what`` leads the message: "DIR holds" a tune, "DIR holds the pools of" one)."""
+    if saved != ours:
+        diff = sorted(k for k in saved.keys() | ours.keys() if saved.get(k) != ours.get(k))
+        raise ConfigError(f"{what} a tune of other settings (they differ in {diff}); run it with its own settings "
+                          "to continue it, or remove the folder (or name another --out) to start")
+
+
 class PoolCache:
     """The pools of one tune on disk (module docstring), in ``folder``: ``get`` maps a cached pool, or renders it
     into a new file and maps that. ``tune``: the tune's identity (JSON values), recorded in every pool's ``.json``;
@@ -170,11 +179,7 @@ class PoolCache:
         fields that differ)."""
         for meta in sorted(self.folder.glob("*.json")):
             saved = json.loads(meta.read_text())["tune"]
-            if saved != self.tune:
-                diff = sorted(k for k in saved.keys() | self.tune.keys() if saved.get(k) != self.tune.get(k))
-                raise ConfigError(f"{self.folder} holds the pools of a tune of other settings (they differ in "
-                                  f"{diff}); run it with its own settings to continue it, or remove the folder (or "
-                                  "name another --out) to start")
+            refuse_other_tune(f"{self.folder} holds the pools of", saved, self.tune)
 
     def paths(self, sources: tuple[dict, dict], seed: int, n: int) -> tuple[Path, Path]:
         """The (``.npy``, ``.json``) files of that pool."""

@@ -22,7 +22,7 @@ from flowsynth.options import check_int
 from flowsynth.io import atomic_path, atomic_write_bytes, write_json
 from flowsynth.tune.halving import TWIN, TWIN_SEED, plan_cost, plan_rungs, rank, search
 from flowsynth.tune.pairs import find_pairs, image_size, load_pairs
-from flowsynth.tune.pools import PoolCache
+from flowsynth.tune.pools import PoolCache, refuse_other_tune
 from flowsynth.tune.report import markdown, plot, summarize
 from flowsynth.tune.resources import GIB, check, estimate
 from flowsynth.tune.space import draw_candidates, preset, sources
@@ -83,11 +83,7 @@ def _load(path: Path, identity: dict) -> dict | None:
     if not path.is_file():
         return None
     saved = torch.load(path, map_location="cpu", weights_only=True)
-    if saved["identity"] != identity:
-        diff = sorted(k for k in identity.keys() | saved["identity"].keys()
-                      if identity.get(k) != saved["identity"].get(k))
-        raise ConfigError(f"{path.parent} holds a tune of other settings (they differ in {diff}); run it with "
-                          "its own settings to continue it, or remove the folder (or name another --out) to start")
+    refuse_other_tune(f"{path.parent} holds", saved["identity"], identity)
     return saved["search"]
 
 
