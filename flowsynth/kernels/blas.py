@@ -24,6 +24,9 @@ SLAB_EPS = wp.constant(1.0000004)
 # A zero direction component is replaced by this magnitude in the slab test only: its slabs then hold every
 # origin inside them (t from -huge to +huge) and no other, with no inf * 0.
 TINY_DIR = wp.constant(1.0e-30)
+# Entry distance given a child the ray misses in the sort of a node's children: the largest float32, above any
+# hit's entry (at most the best hit's t, below the finite max_t every caller passes).
+NO_ENTRY = wp.constant(3.4028234663852886e38)
 
 _StackI = wp.types.vector(length=STACK, dtype=wp.int32)
 _StackF = wp.types.vector(length=STACK, dtype=wp.float32)
@@ -130,31 +133,58 @@ def _make_query(anyhit: bool):
                               wp.cw_mul(bounds[base + fz] - oz, iz))
                 tmax = wp.min(tfar * SLAB_EPS, wp.vec4(best_t))
                 ch = kids[cur]
-                hc = wp.vec4i()
-                ht = wp.vec4()
-                nh = wp.int32(0)
-                for j in range(4):  # children the ray enters, sorted near to far (insertion)
-                    if tmin[j] <= tmax[j]:
-                        m = nh
-                        tj = tmin[j]
-                        while m > 0:
-                            if ht[m - 1] > tj:
-                                ht[m] = ht[m - 1]
-                                hc[m] = hc[m - 1]
-                                m -= 1
-                            else:
-                                break
-                        ht[m] = tj
-                        hc[m] = ch[j]
-                        nh += 1
+                # children the ray enters, sorted near to far: a miss gets NO_ENTRY (beyond any hit's entry), then
+                # odd-even transposition of the four (adjacent swaps on strictly greater: ties keep lane order,
+                # the order an insertion sort gives), on scalars so nothing is indexed at run time
+                t0 = wp.where(tmin[0] <= tmax[0], tmin[0], NO_ENTRY)
+                t1 = wp.where(tmin[1] <= tmax[1], tmin[1], NO_ENTRY)
+                t2 = wp.where(tmin[2] <= tmax[2], tmin[2], NO_ENTRY)
+                t3 = wp.where(tmin[3] <= tmax[3], tmin[3], NO_ENTRY)
+                nh = wp.where(t0 < NO_ENTRY, 1, 0) + wp.where(t1 < NO_ENTRY, 1, 0) + wp.where(t2 < NO_ENTRY, 1, 0) \
+                    + wp.where(t3 < NO_ENTRY, 1, 0)
+                c0 = ch[0]
+                c1 = ch[1]
+                c2 = ch[2]
+                c3 = ch[3]
+                if nh == 1:  # the one child entered
+                    c0 = wp.where(t0 < NO_ENTRY, c0, wp.where(t1 < NO_ENTRY, c1, wp.where(t2 < NO_ENTRY, c2, c3)))
+                elif nh > 1:
+                    for _r in range(2):
+                        if t0 > t1:
+                            tt = t0
+                            t0 = t1
+                            t1 = tt
+                            cc = c0
+                            c0 = c1
+                            c1 = cc
+                        if t2 > t3:
+                            tt = t2
+                            t2 = t3
+                            t3 = tt
+                            cc = c2
+                            c2 = c3
+                            c3 = cc
+                        if t1 > t2:
+                            tt = t1
+                            t1 = t2
+                            t2 = tt
+                            cc = c1
+                            c1 = c2
+                            c2 = cc
                 if nh > 0:
-                    m = nh - 1
-                    while m > 0:
-                        st[sp] = hc[m]
-                        stt[sp] = ht[m]
+                    if nh > 3:
+                        st[sp] = c3
+                        stt[sp] = t3
                         sp += 1
-                        m -= 1
-                    cur = hc[0]
+                    if nh > 2:
+                        st[sp] = c2
+                        stt[sp] = t2
+                        sp += 1
+                    if nh > 1:
+                        st[sp] = c1
+                        stt[sp] = t1
+                        sp += 1
+                    cur = c0
                     continue
             else:
                 lc = -2 - cur
