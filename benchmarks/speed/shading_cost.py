@@ -25,7 +25,14 @@ or 1, one layer; the families table run at the revision before and after shows w
    Settings: the default config (flat, edge_spp 4), issue 13's full sample (512x384, 2 frames, direct, 20
    objects, edge_spp 4) and the same with spp 4.
 
-Writes benchmarks/results/shading_cost.json (quick: shading_cost_quick.json).
+4. **Parts** (``parts``): the full sample's own shading (512x384, 2 frames, 20 objects, direct light, edge_spp 4,
+   the default texture mix, every output) beside variants that each leave one part out: the shadow rays (flat
+   mode), the textures (every surface solid), the extra samples of silhouette pixels (edge_spp 1), and the shadow
+   rays and textures together; shade_radiance per sample and what each part costs. Issue 63 reads the full
+   sample against Cycles (benchmarks/peers/cycles.py), and this is what holds its shading where it is.
+
+Writes benchmarks/results/shading_cost.json (quick: shading_cost_quick.json; a subset of ``--tables``:
+shading_cost_<tables>.json).
 """
 
 from __future__ import annotations
@@ -38,7 +45,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE.parents[1])]
-from _common import Timer, full_sample_config, machine_info, pin_single_core, print_table, time_round_robin, write_json
+from _common import (FULL_SAMPLE_OUTPUTS, Timer, full_sample_config, machine_info, pin_single_core, print_table,
+                     time_round_robin, write_json)
 
 PINNING = pin_single_core()
 
@@ -230,7 +238,57 @@ def camera_rays(samples: int, rounds: int, quick: bool) -> list[dict]:
     return rows
 
 
-TABLES = ("lookups", "families", "camera_rays")
+# The full sample's shading with one part of it left out at a time (``parts``): (label, config overrides).
+PARTS = (("full sample (direct, edge_spp 4, default textures)", {}),
+         ("no shadow rays (flat)", {"render_mode": "flat"}),
+         ("solid textures", {"texture_families": ("solid",)}),
+         ("no extra edge samples (edge_spp 1)", {"edge_spp": 1}),
+         ("flat and solid", {"render_mode": "flat", "texture_families": ("solid",)}))
+
+
+def parts(width: int, height: int, samples: int, rounds: int) -> list[dict]:
+    """shade_radiance CPU ms per sample of the full sample (``full_sample_config``: direct light, edge_spp 4, the
+    default texture mix) and of each ``PARTS`` variant that leaves one part of the work out, on the same indices
+    (from 5000), round-robin with a rotating start; each variant's saving against the full sample, and the full
+    sample's whole CPU ms (the share shading is of it)."""
+    import torch
+
+    import flowsynth as fs
+
+    torch.set_num_threads(1)
+    streams = {label: fs.datasets.BouncingThings(full_sample_config(width=width, height=height, **kw),
+                                                 outputs=list(FULL_SAMPLE_OUTPUTS), seed=0, threads=1)
+               for label, kw in PARTS}
+
+    def run(name, spent):
+        def go():
+            spent["s"] = 0.0
+            with Timer() as tm:
+                for i in range(5000, 5000 + samples):
+                    streams[name].sample(i)
+            go.sample_s.append(tm.cpu_s / samples)
+            go.radiance_s.append(spent["s"] / samples)
+        go.sample_s, go.radiance_s = [], []
+        return go
+
+    with radiance_timer() as spent:
+        fns = {name: run(name, spent) for name in streams}
+        time_round_robin(fns, repeat=rounds, warmup=1, rotate=True)
+    for fn in fns.values():  # time_round_robin's warm-up call appended too: drop it
+        del fn.radiance_s[0], fn.sample_s[0]
+    full = PARTS[0][0]
+    full_rad = float(np.median(fns[full].radiance_s))
+    rows = []
+    for name, fn in fns.items():
+        rad = float(np.median(fn.radiance_s))
+        rows.append({"shading": name, "radiance_cpu_ms": rad * 1e3, "saved_ms": (full_rad - rad) * 1e3,
+                     "x_full": rad / full_rad, "sample_cpu_ms": float(np.median(fn.sample_s)) * 1e3,
+                     "radiance_min_ms": float(np.min(fn.radiance_s)) * 1e3,
+                     "radiance_max_ms": float(np.max(fn.radiance_s)) * 1e3})
+    return rows
+
+
+TABLES = ("lookups", "families", "camera_rays", "parts")
 
 
 def main() -> None:
@@ -266,6 +324,14 @@ def main() -> None:
               "over tiles time")
         print_table(out["camera_rays"], ["setting", "bvh_radiance_ms", "tiles_radiance_ms", "x_bvh",
                                          "images_identical"])
+    if "parts" in tables:
+        out["parts"] = parts(W, H, samples, rounds)
+        print(f"\nThe full sample's shading ({W}x{H}, 2 frames, 20 objects, every output) with one part left out: "
+              f"shade_radiance process CPU ms a sample ({samples} samples a round from index 5000, medians of "
+              f"{rounds} rotating round-robin rounds, min and max); saved_ms: the full sample's minus the row's; "
+              "sample_cpu_ms: the whole sample")
+        print_table(out["parts"], ["shading", "radiance_cpu_ms", "saved_ms", "x_full", "sample_cpu_ms",
+                                   "radiance_min_ms", "radiance_max_ms"])
     out["seconds"] = time.perf_counter() - t0
     write_json(("shading_cost_quick" if args.quick else "shading_cost") + ("" if tables == list(TABLES) else
                                                                          "_" + "_".join(tables)), out)
