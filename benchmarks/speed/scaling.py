@@ -24,6 +24,13 @@ times, and prints the medians (``--default-config``: ``_common.default_stream()`
 stage's speed-up, and how much of the sample's wall at all cores exceeds a perfect split of its one-thread wall.
 Writes benchmarks/results/scaling_stages.json.
 
+``--bands`` runs only the cost of how a threaded launch is cut (``flowsynth.parallel.BANDS_PER_THREAD``: each
+launch of an image is cut into that many row bands per thread, which the pool's threads take in turn, so a thread
+that ends a cheap band takes the next): the full sample at one thread and at all cores with each of
+``BAND_SETTINGS``, the settings alternated round by round (order reversed every other round) on the same fresh
+indices in one process, ``--rounds`` rounds of 5 samples; wall ms a sample, and each setting's speed-up over one
+thread paired round by round (median and range). Writes benchmarks/results/scaling_bands.json.
+
 Part 2, curves: hand-built scenes (icospheres of chosen resolution in front of a wall, random rigid
 motion) rendered with depth + flow_fw + occ_fw + instance, at threads 1 and all; each curve fitted
 with cost ~ x^k.
@@ -339,6 +346,50 @@ def stage_times(counts: list[int], n: int, rounds: int) -> list[dict]:
     return rows
 
 
+# Row bands per thread compared by ``--bands`` (flowsynth.parallel.BANDS_PER_THREAD).
+BAND_SETTINGS = (4, 8, 16)
+
+
+def band_times(cpus: int, n: int, rounds: int) -> list[dict]:
+    """Wall ms a full sample (fresh indices from 5000, ``n`` a round) at one thread and at ``cpus`` threads with each
+    of ``BAND_SETTINGS`` bands per thread, alternated round by round in one process (order reversed every other
+    round); each setting's speed-up over the one-thread wall of the same round."""
+    import time
+
+    import numpy as np
+
+    import flowsynth as fs
+    from flowsynth import parallel
+
+    cfg = full_sample_config()
+    streams = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in (1, cpus)}
+    for k, ds in streams.items():  # kernels loaded, caches filled
+        for i in range(4):
+            ds.sample(9000 + i)
+    settings = [(1, parallel.BANDS_PER_THREAD)] + [(cpus, b) for b in BAND_SETTINGS]
+    walls: dict = {s: [] for s in settings}
+    saved = parallel.BANDS_PER_THREAD
+    try:
+        for r in range(rounds):
+            for k, b in (settings if r % 2 == 0 else settings[::-1]):
+                parallel.BANDS_PER_THREAD = b
+                t = time.perf_counter()
+                for i in range(5000 + n * r, 5000 + n * (r + 1)):
+                    streams[k].sample(i)
+                walls[k, b].append((time.perf_counter() - t) / n)
+    finally:
+        parallel.BANDS_PER_THREAD = saved
+    one = np.array(walls[settings[0]])
+    rows = []
+    for (k, b), w in walls.items():
+        w = np.array(w)
+        ratio = one / w
+        rows.append({"threads": k, "bands_per_thread": b if k > 1 else None, "wall_ms": float(np.median(w)) * 1e3,
+                     "speedup": float(np.median(ratio)), "speedup_min": float(ratio.min()),
+                     "speedup_max": float(ratio.max())})
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -349,8 +400,30 @@ def main() -> None:
                    "2 frames, 20 objects, every output)")
     p.add_argument("--stages", action="store_true",
                    help="only the full sample's stages timed at 1 thread and all cores (--rounds rounds)")
+    p.add_argument("--bands", action="store_true",
+                   help="only the full sample at 1 thread and at all cores with 4, 8 and 16 row bands a thread "
+                   "(--rounds rounds of 5 samples, alternated)")
     args = p.parse_args()
     cpus = len(os.sched_getaffinity(0))
+    if args.bands:
+        if args.rounds < 1:
+            p.error(f"--rounds must be >= 1, got {args.rounds}")
+        if cpus < 2:
+            p.error("--bands compares one thread with all cores: this process may use only one CPU")
+        import torch
+
+        torch.set_num_threads(1)
+        before = load()
+        rows = band_times(cpus, 2 if args.quick else 5, args.rounds)
+        print(f"Full sample (512x384, T=2, 20 objects, direct RGB, every output) at 1 thread and {cpus} threads by "
+              f"row bands a thread; {args.rounds} rounds alternated, wall ms a sample (median); speedup over 1 thread "
+              f"paired by round (median, min, max); {before}")
+        print_table(rows, ["threads", "bands_per_thread", "wall_ms", "speedup", "speedup_min", "speedup_max"])
+        after = load()
+        print(after)
+        write_json("scaling_bands", {"machine": machine_info(), "load_before": before, "load_after": after,
+                                     "rounds": args.rounds, "settings": list(BAND_SETTINGS), "rows": rows})
+        return
     if args.stages:
         if args.rounds < 1:
             p.error(f"--rounds must be >= 1, got {args.rounds}")
