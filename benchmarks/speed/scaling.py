@@ -390,6 +390,19 @@ def band_times(cpus: int, n: int, rounds: int) -> list[dict]:
     return rows
 
 
+def _one_against_all(p, option: str, rounds: int, cpus: int) -> str:
+    """Checks of a part that compares one thread with every core (``--rounds`` >= 1, two CPUs at least; else the
+    parser's error, exit 2), torch held at one thread; returns the load average before it."""
+    if rounds < 1:
+        p.error(f"--rounds must be >= 1, got {rounds}")
+    if cpus < 2:
+        p.error(f"{option} compares one thread with all cores: this process may use only one CPU")
+    import torch
+
+    torch.set_num_threads(1)
+    return load()
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true")
@@ -406,14 +419,7 @@ def main() -> None:
     args = p.parse_args()
     cpus = len(os.sched_getaffinity(0))
     if args.bands:
-        if args.rounds < 1:
-            p.error(f"--rounds must be >= 1, got {args.rounds}")
-        if cpus < 2:
-            p.error("--bands compares one thread with all cores: this process may use only one CPU")
-        import torch
-
-        torch.set_num_threads(1)
-        before = load()
+        before = _one_against_all(p, "--bands", args.rounds, cpus)
         rows = band_times(cpus, 2 if args.quick else 5, args.rounds)
         print(f"Full sample (512x384, T=2, 20 objects, direct RGB, every output) at 1 thread and {cpus} threads by "
               f"row bands a thread; {args.rounds} rounds alternated, wall ms a sample (median); speedup over 1 thread "
@@ -425,14 +431,7 @@ def main() -> None:
                                      "rounds": args.rounds, "settings": list(BAND_SETTINGS), "rows": rows})
         return
     if args.stages:
-        if args.rounds < 1:
-            p.error(f"--rounds must be >= 1, got {args.rounds}")
-        if cpus < 2:
-            p.error("--stages compares one thread with all cores: this process may use only one CPU")
-        import torch
-
-        torch.set_num_threads(1)
-        before = load()
+        before = _one_against_all(p, "--stages", args.rounds, cpus)
         n = 4 if args.quick else 12
         rows = stage_times([1, cpus], n, args.rounds)
         print(f"Stages of the full sample (512x384, T=2, 20 objects, direct RGB, depth/normals/instance/flow+occ "

@@ -153,6 +153,29 @@ def radiance_timer():
         shading.shade_radiance = orig
 
 
+def stream_rounds(streams: dict, indices: range, rounds: int, rotate: bool = False) -> dict:
+    """Each stream's samples ``indices`` once a round, round-robin (``time_round_robin``: one untimed warm-up round,
+    then ``rounds``; ``rotate``: each round starts with another stream): {name: fn} with ``fn.radiance_s`` and
+    ``fn.sample_s``, the shade_radiance and whole-sample process CPU seconds a sample of each timed round."""
+    def run(name, spent):
+        def go():
+            spent["s"] = 0.0
+            with Timer() as tm:
+                for i in indices:
+                    streams[name].sample(i)
+            go.sample_s.append(tm.cpu_s / len(indices))
+            go.radiance_s.append(spent["s"] / len(indices))
+        go.sample_s, go.radiance_s = [], []
+        return go
+
+    with radiance_timer() as spent:
+        fns = {name: run(name, spent) for name in streams}
+        time_round_robin(fns, repeat=rounds, warmup=1, rotate=rotate)
+    for fn in fns.values():  # the warm-up round appended too: drop it
+        del fn.radiance_s[0], fn.sample_s[0]
+    return fns
+
+
 def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
     import torch
 
@@ -168,20 +191,7 @@ def families(width: int, height: int, samples: int, rounds: int) -> list[dict]:
     default = fs.datasets.BouncingThings(fs.BouncingThingsConfig(), seed=0, threads=1)
     streams["default config, whole sample"] = default
 
-    def run(name, spent):
-        def go():
-            spent["s"] = 0.0
-            with Timer() as tm:
-                for i in range(samples):
-                    streams[name].sample(i)
-            go.sample_s.append(tm.cpu_s / samples)
-            go.radiance_s.append(spent["s"] / samples)
-        go.sample_s, go.radiance_s = [], []
-        return go
-
-    with radiance_timer() as spent:
-        fns = {name: run(name, spent) for name in streams}
-        time_round_robin(fns, repeat=rounds, warmup=1)
+    fns = stream_rounds(streams, range(samples), rounds)
     solid = float(np.median(fns["solid"].radiance_s))
     rows = []
     for name, fn in fns.items():
@@ -260,22 +270,7 @@ def parts(width: int, height: int, samples: int, rounds: int) -> list[dict]:
                                                  outputs=list(FULL_SAMPLE_OUTPUTS), seed=0, threads=1)
                for label, kw in PARTS}
 
-    def run(name, spent):
-        def go():
-            spent["s"] = 0.0
-            with Timer() as tm:
-                for i in range(5000, 5000 + samples):
-                    streams[name].sample(i)
-            go.sample_s.append(tm.cpu_s / samples)
-            go.radiance_s.append(spent["s"] / samples)
-        go.sample_s, go.radiance_s = [], []
-        return go
-
-    with radiance_timer() as spent:
-        fns = {name: run(name, spent) for name in streams}
-        time_round_robin(fns, repeat=rounds, warmup=1, rotate=True)
-    for fn in fns.values():  # time_round_robin's warm-up call appended too: drop it
-        del fn.radiance_s[0], fn.sample_s[0]
+    fns = stream_rounds(streams, range(5000, 5000 + samples), rounds, rotate=True)
     full = PARTS[0][0]
     full_rad = float(np.median(fns[full].radiance_s))
     rows = []
