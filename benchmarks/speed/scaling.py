@@ -363,7 +363,7 @@ def band_times(cpus: int, n: int, rounds: int) -> list[dict]:
 
     cfg = full_sample_config()
     streams = {k: fs.datasets.BouncingThings(cfg, outputs=FULL_OUTPUTS, seed=0, threads=k) for k in (1, cpus)}
-    for k, ds in streams.items():  # kernels loaded, caches filled
+    for ds in streams.values():  # kernels loaded, caches filled
         for i in range(4):
             ds.sample(9000 + i)
     settings = [(1, parallel.BANDS_PER_THREAD)] + [(cpus, b) for b in BAND_SETTINGS]
