@@ -4,7 +4,7 @@
 #
 #     bash scripts/registered_runs.sh [--dry-run]      # from the repository root; returns at once, runs go on
 #
-# A seed N whose benchmarks/results/learning_raft_cN.json is already in this checkout (taken in) is skipped; the next
+# A seed N whose result file (learning_raft_c5.json, ...) is already in benchmarks/results (taken in) is skipped; the next
 # one starts. Each run is its own session (setsid), so its process group can be paused while something is timed:
 #     kill -STOP -- -"$(cat .cache/registered_run.pgid)"   ...   kill -CONT -- -"$(cat .cache/registered_run.pgid)"
 # Results land in the worktree's benchmarks/results (check them, then copy them here: docs/decisions/0028). A run
