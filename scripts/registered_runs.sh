@@ -4,8 +4,9 @@
 #
 #     bash scripts/registered_runs.sh [--dry-run]      # from the repository root; returns at once, runs go on
 #
-# A seed N whose result file (learning_raft_c5.json, ...) is already in benchmarks/results (taken in) is skipped; the next
-# one starts. Each run is its own session (setsid), so its process group can be paused while something is timed:
+# A seed N whose result file (learning_raft_c5.json, ...) is already in benchmarks/results (taken in) is skipped;
+# the next one starts. While a run it started is alive, a second call refuses (exit 1). Each run is its own
+# session (setsid), so its process group can be paused while something is timed:
 #     kill -STOP -- -"$(cat .cache/registered_run.pgid)"   ...   kill -CONT -- -"$(cat .cache/registered_run.pgid)"
 # Results land in the worktree's benchmarks/results (check them, then copy them here: docs/decisions/0028). A run
 # cut short leaves no result file; the chain stops there, and a new call starts that seed over. Log:
@@ -23,6 +24,11 @@ mkdir -p "$ROOT/.cache"
 if [ ! -d "$WT" ]; then
   [ "$DRY" = 1 ] && echo "would add the worktree $WT at $COMMIT" || git worktree add --detach "$WT" "$COMMIT"
 fi
+PGID_FILE=$ROOT/.cache/registered_run.pgid
+if [ -f "$PGID_FILE" ] && kill -0 "$(cat "$PGID_FILE")" 2>/dev/null; then
+  echo "registered_runs.sh: a registered run is going (pgid $(cat "$PGID_FILE")); not starting another" >&2
+  exit 1
+fi
 todo=()
 for N in 5 6 7 8 9; do
   [ -f "$ROOT/benchmarks/results/learning_raft_c$N.json" ] || todo+=("$N")
@@ -37,10 +43,13 @@ echo "registered_runs.sh: to run, in order: ${todo[*]/#/c}"
     cd "$WT"
     PYTHONPATH="$WT" setsid nice -n 19 "$PY" benchmarks/learning --arms flowsynth,mixture --seeds "$N" --tag "c$N" \
       --middlebury "$MB" > "$ROOT/.cache/registered_c$N.log" 2>&1 &
-    echo $! > "$ROOT/.cache/registered_run.pgid"  # setsid in a background job: the python is its session's leader
+    echo $! > "$PGID_FILE"  # setsid in a background job: the python is its session's leader
     wait $! || true
     echo "c$N end $(date -u +%FT%TZ)" >> "$ROOT/.cache/registered_runs.log"
-    [ -f "$WT/benchmarks/results/learning_raft_c$N.json" ] || { echo "c$N left no result: stop" >> "$ROOT/.cache/registered_runs.log"; exit 1; }
+    if [ ! -f "$WT/benchmarks/results/learning_raft_c$N.json" ]; then
+      echo "c$N left no result: stop" >> "$ROOT/.cache/registered_runs.log"
+      exit 1
+    fi
   done
 ) > /dev/null 2>&1 < /dev/null &
 disown
