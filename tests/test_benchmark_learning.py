@@ -20,7 +20,7 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 FLAGS = ("--seeds", "--arms", "--middlebury", "--set", "--tag", "--summarize", "--screen", "--diagnose", "--figures",
          "--plot", "--stats", "--files", "--arm", "--against", "--nets", "--quick", "--jobs", "--threads", "--workers",
          "--device", "--at-once", "--train-after", "--pool", "--steps", "--every", "--ensemble",
-         "--diagnose-checkpoints", "--weights")
+         "--diagnose-checkpoints", "--weights", "--preset", "--tune-proof", "--held-out", "--tuned-on")
 
 
 def test_command_line_keeps_the_judges_flags(capsys):

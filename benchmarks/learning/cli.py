@@ -6,6 +6,8 @@ diagnoses.
                                [--set FIELD=JSON] [--tag NAME] [--device cuda] [--jobs 2] [--at-once] [--ensemble]
     python benchmarks/learning --summarize [--files 'learning_raft*.json'] [--arm flowsynth] [--against chairs2d_photos]
     python benchmarks/learning --equivalence [--files 'learning_raft_*.json']  # protocol 0025's rule
+    python benchmarks/learning --arms tuned --preset tuned.json --seeds 0 --tag t0 --middlebury DIR  # a tuned net
+    python benchmarks/learning --tune-proof [--files 'learning_raft_*.json']  # decision 0026: tuned / default
     python benchmarks/learning --screen [--files 'learning_raft_s0*.json']       # rule 4 for every lever of seed 0
     python benchmarks/learning --diagnose --nets A.pt,B.pt [--middlebury DIR]   # where the saved nets fail
     python benchmarks/learning --diagnose-checkpoints [--files 'learning_raft_l*.json'] [--middlebury DIR]  # every
@@ -16,7 +18,7 @@ diagnoses.
 
 Without a reading (``--summarize`` ... ``--ensemble-rate``: at most one, ``READINGS``) a run trains the nets
 (``runs.run``) and writes results/learning_raft[_TAG].json after every seed; the readings write beside it:
-learning_raft_summary_*, learning_raft_screens*, learning_raft_diagnose*, learning_raft_stats* (``summary``,
+learning_raft_summary_*, learning_raft_tune_proof*, learning_raft_screens*, learning_raft_diagnose*, learning_raft_stats* (``summary``,
 ``diagnose``), learning_raft_diagnose_checkpoints* (``checkpoints``), learning_raft_ensemble_rate* (``ensemble_rate``).
 Two readings, or a reading with a flag that only a training run reads (``TRAINING_ONLY``), are usage errors (exit 2).
 """
@@ -33,14 +35,23 @@ from .diagnose import diagnose, figures, pool_stats
 from .ensemble_rate import ensemble_rate
 from .protocol import ARMS, EVERY, POOL, STEPS, results_name
 from .runs import run
-from .summary import equivalence, plot_judge_curves, plot_summary, screen, summarize
+from .summary import HELD_OUT, TUNED_ON, equivalence, plot_judge_curves, plot_summary, screen, summarize, tune_proof
 
 TRAINING_ONLY = ("quick", "at_once", "ensemble", "train_after")  # flags a reading refuses
 
 
 def _summarize(args) -> None:
-    out = summarize(args.files, args.arm, args.against)
-    name = results_name(f"summary_{args.arm}_{args.against}", args.tag)
+    arm, against = args.arm or "flowsynth", args.against or "chairs2d_photos"
+    out = summarize(args.files, arm, against)
+    name = results_name(f"summary_{arm}_{against}", args.tag)
+    write_json(name, out)
+    print(f"plot: {plot_summary(out, name) or 'none (matplotlib is in the bench extra)'}")
+
+
+def _tune_proof(args) -> None:
+    out = tune_proof(args.files, args.arm or "tuned", args.against or "flowsynth", args.held_out.split(","),
+                     args.tuned_on.split(","))
+    name = results_name("tune_proof", args.tag)
     write_json(name, out)
     print(f"plot: {plot_summary(out, name) or 'none (matplotlib is in the bench extra)'}")
 
@@ -89,7 +100,7 @@ def _equivalence(args) -> None:
     write_json(results_name("equivalence", args.tag), equivalence(args.files))
 
 
-READINGS = {"summarize": _summarize, "equivalence": _equivalence, "screen": _screen, "plot": _plot, "stats": _stats,
+READINGS = {"summarize": _summarize, "tune_proof": _tune_proof, "equivalence": _equivalence, "screen": _screen, "plot": _plot, "stats": _stats,
             "diagnose": _diagnose, "diagnose_checkpoints": _diagnose_checkpoints, "figures": _figures,
             "ensemble_rate": _ensemble_rate}
 
@@ -128,16 +139,25 @@ def parser() -> argparse.ArgumentParser:
                    help="a folder of Middlebury flow pairs (NAME/frame10.png, frame11.png, flow10.flo)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
                    help="a lever: the flowsynth arms' config with this field changed (repeatable); use with --tag")
+    p.add_argument("--preset", default=None, metavar="FILE", help="the tuned arm's preset (what flowsynth tune wrote)")
+    p.add_argument("--held-out", default=",".join(HELD_OUT), help="--tune-proof: the Middlebury pairs the tune never "
+                   "saw (comma-separated)")
+    p.add_argument("--tuned-on", default=",".join(TUNED_ON), help="--tune-proof: the pairs it was tuned on")
     p.add_argument("--tag", default="", help="results/learning_raft_TAG.json")
     p.add_argument("--files", default="learning_raft*.json", help="--summarize: results/ files to pool (a glob)")
-    p.add_argument("--arm", default="flowsynth", help="--summarize: the numerator arm")
-    p.add_argument("--against", default="chairs2d_photos", help="--summarize: the denominator arm")
+    p.add_argument("--arm", default=None, help="--summarize, --tune-proof: the numerator arm (default flowsynth; "
+                   "tuned)")
+    p.add_argument("--against", default=None, help="--summarize, --tune-proof: the denominator arm (default "
+                   "chairs2d_photos; flowsynth)")
     p.add_argument("--nets", default="", help="--figures, --diagnose: comma-separated .pt files of training runs")
     p.add_argument("--weights", default=None, metavar="DIR", help="--diagnose-checkpoints: the folder of the runs' "
                    "saved weights (default .cache/learning_raft)")
     readings = p.add_argument_group("readings", "each trains nothing; at most one, and none of --quick, --at-once, "
                                     "--ensemble, --train-after with it").add_mutually_exclusive_group()
     readings.add_argument("--summarize", action="store_true", help="pool the seeds of --files")
+    readings.add_argument("--tune-proof", action="store_true", help="decision 0026's reading: --arm (default tuned) "
+                          "/ --against (default flowsynth) on the --held-out pairs' mean score, beside --tuned-on and "
+                          "Motorcycle, and the goal (results/learning_raft_tune_proof[_TAG].json, .png)")
     readings.add_argument("--equivalence", action="store_true", help="protocol 0025's rule: bf16 / fp32 scores of "
                           "the default and the photo baseline, seeds 0-1, in the --files results "
                           "(results/learning_raft_equivalence[_TAG].json)")
@@ -185,6 +205,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.ensemble_rate is not None and args.ensemble_rate < 1:
             p.error(f"--ensemble-rate {args.ensemble_rate}: give at least 1 net")
         return READINGS[reading](args)
+    if "tuned" in args.arms.split(",") and not args.preset:
+        p.error("--arms tuned: give --preset FILE (the preset flowsynth tune wrote)")
     if args.steps is not None and args.steps < 20:
         p.error(f"--steps {args.steps}: give at least 20 steps")
     if args.quick:

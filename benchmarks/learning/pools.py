@@ -91,8 +91,9 @@ def baseline_pool(n: int, seed: int, sources, target_flow: float):
 class SeedPools:
     """What the arms of one seed share: ``n`` pairs an arm, the flowsynth ``pool`` (its first ``n`` pairs of
     ``rendered``, which holds n / 2 more, the chairs2d pool's textures, when an arm of CHAIRS2D_ARMS is built), its
-    mean |flow| ``target`` [px] (the baselines' motion is scaled to it), and ``info``, the facts recorded for the
-    results (motion scales). ``chairs2d()`` makes the chairs2d pool on first use."""
+    mean |flow| ``target`` [px] (the baselines' motion is scaled to it), ``info``, the facts recorded for the
+    results (motion scales), and the ``tuned`` arm's ``preset`` file. ``chairs2d()`` makes the chairs2d pool on first
+    use."""
 
     n: int
     seed: int
@@ -101,6 +102,7 @@ class SeedPools:
     rendered: tuple
     info: dict
     chairs: tuple | None = None
+    preset: str | None = None
 
     @property
     def pool(self) -> tuple:
@@ -226,20 +228,52 @@ def still_natural(s: SeedPools, sources=None) -> tuple:
     return tuple(torch.cat([f[:n - k], t]) for f, t in zip(s.pool, tail))
 
 
+def preset_sources(path) -> tuple[dict, dict]:
+    """A preset file's (``fs.datasets.MixtureConfig.from_file``) ``Mixture`` arguments at ``RES``: {name: config with
+    width and height set to RES}, its weights. Each config scales its own motion to the width (``flow_px`` is stated at
+    ``flow_px_width``; the layers' shifts scale with width / 128), as docs/tune.md says of a preset rendered at another
+    size."""
+    from flowsynth.datasets import MixtureConfig
+
+    mix = MixtureConfig.from_file(path)
+    w, h = RES
+    return {k: dataclasses.replace(c, width=w, height=h) for k, c in mix.configs.items()}, mix.weights
+
+
+def tuned(s: SeedPools) -> tuple:
+    """``flowsynth tune``'s preset (``--preset FILE``, docs/decisions/0026) at RES: pairs 0 .. n-1 of its ``Mixture``
+    seeded with the run's seed, rendered as the tune renders its own pools (``flowsynth.tune.pools.render_pool``: the
+    same bits as the tune's pool of that point and seed). ``info["preset"]`` records the file's name, its SHA-256
+    and its contents."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    from flowsynth.tune.pools import render_pool
+
+    if s.preset is None:
+        raise SystemExit("the tuned arm needs --preset FILE (the preset flowsynth tune wrote)")
+    raw = Path(s.preset).read_bytes()
+    s.info["preset"] = {"file": Path(s.preset).name, "sha256": hashlib.sha256(raw).hexdigest(),
+                        "preset": json.loads(raw)}
+    return render_pool(preset_sources(s.preset), s.seed, s.n, s.workers)
+
+
 ARM_POOLS = {f.__name__: f for f in (flowsynth, chairs2d_photos, chairs2d, flowsynth_photos, flowsynth_natural,
-                                     flowsynth_final, mixture, curriculum, control, still_natural)}  # ARMS' makers
+                                     flowsynth_final, mixture, curriculum, control, still_natural, tuned)}  # ARMS' makers
 
 
-def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL) -> tuple[dict, dict, object]:
+def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL,
+               preset: str | None = None) -> tuple[dict, dict, object]:
     """The pools (``n`` pairs each) of the arms ``names`` (of ``protocol.ARMS``) for ``seed``: ({arm: pool}, info,
-    the flowsynth config). ``info``: the flowsynth pool's mean |flow| [px], the baselines' motion scales, the 2D
+    the flowsynth config); ``preset``: the ``tuned`` arm's preset file. ``info``: the flowsynth pool's mean |flow| [px], the baselines' motion scales, the 2D
     pools' generator ("layers": ``LAYERS``, when a 2D arm is built), and per arm its mean |flow| [px] and the share of
     valid pixels moving less than 0.5 px ("still_share")."""
     import torch
 
     extra = n // 2 if set(CHAIRS2D_ARMS) & set(names) else 0
     rendered, cfg = flowsynth_pool(n + extra, seed, workers, overrides)
-    s = SeedPools(n, seed, workers, overrides, rendered, {})
+    s = SeedPools(n, seed, workers, overrides, rendered, {}, preset=preset)
     s.info["flowsynth_mean_flow"] = mean_flow(s.pool)
     arms = {name: ARM_POOLS[name](s) for name in names}
     info = s.info

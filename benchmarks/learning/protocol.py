@@ -29,6 +29,8 @@ arms, ``trainers`` trains and tests the nets, ``runs`` runs the whole protocol.
   - ``control``: the flowsynth pool again, with another net seed (seed + ``CONTROL_SEED``): the judge's own noise.
   - ``still_natural``: the ``flowsynth`` pool with its last 15% of pairs replaced by still (half) and near-still
     (half, sub-pixel) 2D pairs textured with ``sets.natural_folder``'s images (``pools.still_natural``).
+  - ``tuned``: the preset ``flowsynth tune`` wrote (``--preset FILE``), at RES, rendered as the tune renders its own
+    pools (``pools.tuned``): decision 0026's judge of the tune.
 - Judges (``judge_sets``): Motorcycle ("stereo": the whole stereo pair at half resolution, plain and mirrored,
   ``sets.motorcycle_full``) and, with ``--middlebury DIR``, the mean EPE over the Middlebury pairs found there
   ("middlebury", each pair also "mb_NAME"), at full resolution. Tested at step 0 and every ``EVERY`` steps; a net's
@@ -53,7 +55,7 @@ UPDATES, TEST_UPDATES = 8, 12
 POOL = 1200  # training pairs per arm
 SCALE = 512 // RES[0]  # the pools are 1 / SCALE of the 512x384 scale that flow_px is stated at
 ARMS = ("flowsynth", "chairs2d_photos", "chairs2d", "flowsynth_photos", "flowsynth_natural", "flowsynth_final",
-        "mixture", "curriculum", "control", "still_natural")
+        "mixture", "curriculum", "control", "still_natural", "tuned")
 STAGES = {"curriculum": 2}  # arms trained in stages: the pool's k-th of n equal blocks feeds the k-th n-th of steps
 CONTROL_SEED = 100  # the control's net seed is the run's seed + this
 JUDGES = ("stereo", "middlebury")

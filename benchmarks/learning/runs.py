@@ -124,7 +124,8 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
     pools, infos, cfg = {}, {}, None
     t = time.perf_counter()
     for seed in seeds:
-        pools[seed], infos[seed], cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL)
+        pools[seed], infos[seed], cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL,
+                                                   args.preset)
         print(f"pools of seed {seed} ready after {time.perf_counter() - t:.0f} s", flush=True)
     gen_s = time.perf_counter() - t
     while args.train_after and not Path(args.train_after).exists():  # the device's other benchmarks come first
@@ -157,7 +158,8 @@ def run_at_once(args, names: list, seeds: list, steps: int, every: int, tests: d
 def run(args) -> None:
     """Train the arms of every seed (``protocol``'s docstring) and write the results after each seed. ``args``: the
     command line's namespace (``cli``): seeds, arms, steps, every, pool, workers, threads, jobs, device, at_once,
-    ensemble, train_after, middlebury, overrides (the ``--set`` fields), tag, precision. Raises SystemExit for an
+    ensemble, train_after, middlebury, overrides (the ``--set`` fields), tag, precision, preset (the ``tuned`` arm's
+    file). Raises SystemExit for an
     unknown arm."""
     import torch
 
@@ -178,7 +180,7 @@ def run(args) -> None:
     runs = []
     for seed in seeds:
         t = time.perf_counter()
-        arms, info, cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL)
+        arms, info, cfg = build_arms(names, seed, args.workers, args.overrides, args.pool or POOL, args.preset)
         gen_s = time.perf_counter() - t
         if args.ensemble:
             res = {arm: r for (_, arm), r in train_together({(seed, arm): pool for arm, pool in arms.items()}, tests,

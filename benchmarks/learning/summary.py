@@ -41,11 +41,13 @@ def _complete_runs(pattern: str, who: str, precision: str = "fp32"):
             yield f, d, r
 
 
-def summarize(pattern: str, arm: str, against: str) -> dict:
+def summarize(pattern: str, arm: str, against: str, judges: dict[str, tuple[str, ...]] | None = None) -> dict:
     """Pool the seeds on which the complete runs with no ``--set`` in the results/ files matching ``pattern`` hold
     both arms (a seed's two arms may come from two files; an arm twice on one seed is an error): per judge, each
     seed's score ratio ``arm`` / ``against``, their geometric mean with a 95% interval (t on the log ratios), the
-    seeds in favour, and the rule-1 count (``arm``'s net ends below zero flow and below its untrained start)."""
+    seeds in favour, and the rule-1 count (``arm``'s net ends below zero flow and below its untrained start).
+    ``judges``: {name: the curves' judges it averages} (default: each of JUDGES alone); a net's score on one is the
+    mean of its scores on those, and so are zero flow's and the untrained net's EPE."""
     import numpy as np
     from scipy import stats
 
@@ -78,27 +80,34 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
         raise SystemExit(f"--summarize: no complete run of results/{pattern} with no --set holds both {arm} and "
                          f"{against} on a seed")
     out, rows = {}, []
-    for j in JUDGES:
-        rs = [r for r in runs.values() if j in r["zero_flow_epe"]]
+    for j, keys in (judges or {j: (j,) for j in JUDGES}).items():
+        rs = [r for r in runs.values() if all(k in r["zero_flow_epe"] for k in keys)]
         if not rs:
             continue
-        a = np.array([score(r["results"][arm]["curve"], j) for r in rs])
-        b = np.array([score(r["results"][against]["curve"], j) for r in rs])
+
+        def mean(values):
+            return sum(values) / len(keys)
+
+        def net(r, name):
+            return mean([score(r["results"][name]["curve"], k) for k in keys])
+
+        a = np.array([net(r, arm) for r in rs])
+        b = np.array([net(r, against) for r in rs])
         logs = np.log(a / b)
         if not np.isfinite(logs).all():  # a diverged net (NaN EPE) or a zero score: no ratio to pool
             bad = [r["seed"] for r, x in zip(rs, logs) if not np.isfinite(x)]
             raise SystemExit(f"--summarize: {arm} / {against} on {j} is not finite on seeds {bad}")
         n = len(logs)
         half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n) if n > 1 else None  # one seed: none
-        useful = sum(score(r["results"][arm]["curve"], j) < min(r["zero_flow_epe"][j],
-                                                                 r["results"][arm]["curve"][0][j]) for r in rs)
+        zero = [mean([r["zero_flow_epe"][k] for k in keys]) for r in rs]
+        untrained = [mean([r["results"][arm]["curve"][0][k] for k in keys]) for r in rs]
+        useful = int(sum(x < min(z, u) for x, z, u in zip(a, zero, untrained)))
         out[j] = {"seeds": [r["seed"] for r in rs], "ratios": (a / b).tolist(),
                   "geometric_mean": float(np.exp(logs.mean())),
                   "ci95": None if half is None else [float(np.exp(logs.mean() - half)),
                                                      float(np.exp(logs.mean() + half))],
                   "in_favour": int((logs < 0).sum()), "useful": useful, arm: a.tolist(), against: b.tolist(),
-                  "zero_flow": float(np.mean([r["zero_flow_epe"][j] for r in rs])),
-                  "untrained": float(np.mean([r["results"][arm]["curve"][0][j] for r in rs]))}
+                  "zero_flow": float(np.mean(zero)), "untrained": float(np.mean(untrained))}
         o = out[j]
         rows.append({"judge": j, "seeds": n, "ratio": o["geometric_mean"],
                      "95% CI": f"{o['ci95'][0]:.3f}-{o['ci95'][1]:.3f}" if o["ci95"] else "n/a (one seed)",
@@ -108,6 +117,35 @@ def summarize(pattern: str, arm: str, against: str) -> dict:
     print(f"{arm} / {against}, scores (mean of the last {JUDGED} checkpoints), seeds {sorted(runs)}")
     print_table(rows, list(rows[0]))
     return {"arm": arm, "against": against, "pattern": pattern, "judges": out}
+
+
+# decision 0026's proof of the tune: the pairs it tuned on and the two it never saw (Middlebury), the seeds, the goal
+TUNED_ON, HELD_OUT = ("Dimetrodon", "Grove2"), ("Urban2", "Venus")
+PROOF_SEEDS, PROOF_GOAL = (0, 1, 2, 3, 4), 0.9
+
+
+def tune_proof(pattern: str, arm: str = "tuned", against: str = "flowsynth", held_out=HELD_OUT,
+               tuned_on=TUNED_ON) -> dict:
+    """Decision 0026's reading over the results/``pattern`` files: ``summarize`` of ``arm`` / ``against`` on the
+    held-out score (a net's mean score on the ``held_out`` Middlebury pairs), beside the pairs the tune saw
+    (``tuned_on``: the gap is how much the tune overfits) and Motorcycle, deciding nothing. The goal: over seeds
+    PROOF_SEEDS, the held-out geometric mean at most PROOF_GOAL and the upper end of its 95% interval below 1; read
+    only when the pooled seeds are exactly PROOF_SEEDS ("goal_met" None otherwise)."""
+    judges = {"held_out": tuple(f"mb_{p}" for p in held_out), "tuned_on": tuple(f"mb_{p}" for p in tuned_on),
+              "stereo": ("stereo",)}
+    out = summarize(pattern, arm, against, judges)
+    h = out["judges"].get("held_out")
+    if h is None:
+        raise SystemExit(f"--tune-proof: no seed of results/{pattern} was judged on {', '.join(held_out)}")
+    read = tuple(h["seeds"]) == PROOF_SEEDS
+    met = read and h["geometric_mean"] <= PROOF_GOAL and h["ci95"][1] < 1
+    out.update({"held_out": list(held_out), "tuned_on": list(tuned_on), "goal": {
+        "seeds": list(PROOF_SEEDS), "geometric_mean_at_most": PROOF_GOAL, "ci95_upper_below": 1.0},
+        "goal_met": met if read else None})
+    verdict = ("met" if met else "missed") if read else f"not read: seeds {h['seeds']}, not {list(PROOF_SEEDS)}"
+    print(f"decision 0026: held-out ({', '.join(held_out)}) {arm} / {against} {h['geometric_mean']:.3f}"
+          + (f" ({h['ci95'][0]:.3f}-{h['ci95'][1]:.3f})" if h["ci95"] else "") + f"; the goal: {verdict}")
+    return out
 
 
 def plot_summary(out: dict, name: str):
