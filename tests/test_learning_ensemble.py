@@ -69,7 +69,7 @@ def tiny(float64, monkeypatch, tmp_path):
                 torch.randint(256, (4, 3, H + 8, W + 16), dtype=torch.uint8, generator=g),
                 3 * torch.randn(4, 2, H + 8, W + 16, generator=g), torch.ones(4, 1, H + 8, W + 16, dtype=torch.bool))
 
-    def build_arms(names, seed, workers, overrides, n):
+    def build_arms(names, seed, workers, overrides, n, preset=None):
         arms = {a: pool(10 * seed + k) for k, a in enumerate(names)}
         return arms, {"mean_flow": {a: 3.0 for a in names}}, fs.BouncingThingsConfig()
 
@@ -83,7 +83,7 @@ def tiny(float64, monkeypatch, tmp_path):
 def _args(tag: str, **kw) -> argparse.Namespace:
     base = {"threads": 1, "steps": 3, "every": 2, "arms": "flowsynth,curriculum", "middlebury": None, "seeds": "0,1",
             "tag": tag, "pool": 4, "workers": 0, "overrides": {}, "at_once": False, "ensemble": False, "jobs": 0,
-            "device": "cpu", "train_after": None, "precision": "fp32"}
+            "device": "cpu", "train_after": None, "precision": "fp32", "preset": None}
     return argparse.Namespace(**{**base, **kw})
 
 

@@ -18,9 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from learning import cli, pools, protocol, summary
 
-from flowsynth.tune import RECIPE, preset
-from flowsynth.tune.pools import render_pool
-from flowsynth.tune.space import sources
+from flowsynth.tune import RECIPE, preset, render_pool, sources
 
 # a point of the search space that mixes in the 2D layers (both of a preset's sources)
 KEY = "motion=small,objects=few,camera=moving,still=0,textures=procedural,layers=0.5"

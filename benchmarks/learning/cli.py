@@ -18,8 +18,9 @@ diagnoses.
 
 Without a reading (``--summarize`` ... ``--ensemble-rate``: at most one, ``READINGS``) a run trains the nets
 (``runs.run``) and writes results/learning_raft[_TAG].json after every seed; the readings write beside it:
-learning_raft_summary_*, learning_raft_tune_proof*, learning_raft_screens*, learning_raft_diagnose*, learning_raft_stats* (``summary``,
-``diagnose``), learning_raft_diagnose_checkpoints* (``checkpoints``), learning_raft_ensemble_rate* (``ensemble_rate``).
+learning_raft_summary_*, learning_raft_tune_proof*, learning_raft_screens*, learning_raft_diagnose*,
+learning_raft_stats* (``summary``, ``diagnose``), learning_raft_diagnose_checkpoints* (``checkpoints``),
+learning_raft_ensemble_rate* (``ensemble_rate``).
 Two readings, or a reading with a flag that only a training run reads (``TRAINING_ONLY``), are usage errors (exit 2).
 """
 
@@ -100,7 +101,8 @@ def _equivalence(args) -> None:
     write_json(results_name("equivalence", args.tag), equivalence(args.files))
 
 
-READINGS = {"summarize": _summarize, "tune_proof": _tune_proof, "equivalence": _equivalence, "screen": _screen, "plot": _plot, "stats": _stats,
+READINGS = {"summarize": _summarize, "tune_proof": _tune_proof, "equivalence": _equivalence, "screen": _screen,
+            "plot": _plot, "stats": _stats,
             "diagnose": _diagnose, "diagnose_checkpoints": _diagnose_checkpoints, "figures": _figures,
             "ensemble_rate": _ensemble_rate}
 

@@ -249,7 +249,7 @@ def tuned(s: SeedPools) -> tuple:
     import json
     from pathlib import Path
 
-    from flowsynth.tune.pools import render_pool
+    from flowsynth.tune import render_pool
 
     if s.preset is None:
         raise SystemExit("the tuned arm needs --preset FILE (the preset flowsynth tune wrote)")
@@ -260,15 +260,17 @@ def tuned(s: SeedPools) -> tuple:
 
 
 ARM_POOLS = {f.__name__: f for f in (flowsynth, chairs2d_photos, chairs2d, flowsynth_photos, flowsynth_natural,
-                                     flowsynth_final, mixture, curriculum, control, still_natural, tuned)}  # ARMS' makers
+                                     flowsynth_final, mixture, curriculum, control, still_natural,
+                                     tuned)}  # ARMS' makers
 
 
 def build_arms(names: list, seed: int, workers: int, overrides: dict, n: int = POOL,
                preset: str | None = None) -> tuple[dict, dict, object]:
     """The pools (``n`` pairs each) of the arms ``names`` (of ``protocol.ARMS``) for ``seed``: ({arm: pool}, info,
-    the flowsynth config); ``preset``: the ``tuned`` arm's preset file. ``info``: the flowsynth pool's mean |flow| [px], the baselines' motion scales, the 2D
-    pools' generator ("layers": ``LAYERS``, when a 2D arm is built), and per arm its mean |flow| [px] and the share of
-    valid pixels moving less than 0.5 px ("still_share")."""
+    the flowsynth config); ``preset``: the ``tuned`` arm's preset file. ``info``: the flowsynth pool's mean |flow|
+    [px], the baselines' motion scales, the 2D pools' generator ("layers": ``LAYERS``, when a 2D arm is built), the
+    tuned arm's preset, and per arm its mean |flow| [px] and the share of valid pixels moving less than 0.5 px
+    ("still_share")."""
     import torch
 
     extra = n // 2 if set(CHAIRS2D_ARMS) & set(names) else 0

@@ -41,6 +41,12 @@ def _complete_runs(pattern: str, who: str, precision: str = "fp32"):
             yield f, d, r
 
 
+def _mean(values) -> float:
+    """The mean of an iterable of numbers (one number: itself, to the bit)."""
+    values = list(values)
+    return sum(values) / len(values)
+
+
 def summarize(pattern: str, arm: str, against: str, judges: dict[str, tuple[str, ...]] | None = None) -> dict:
     """Pool the seeds on which the complete runs with no ``--set`` in the results/ files matching ``pattern`` hold
     both arms (a seed's two arms may come from two files; an arm twice on one seed is an error): per judge, each
@@ -85,22 +91,16 @@ def summarize(pattern: str, arm: str, against: str, judges: dict[str, tuple[str,
         if not rs:
             continue
 
-        def mean(values):
-            return sum(values) / len(keys)
-
-        def net(r, name):
-            return mean([score(r["results"][name]["curve"], k) for k in keys])
-
-        a = np.array([net(r, arm) for r in rs])
-        b = np.array([net(r, against) for r in rs])
+        a = np.array([_mean(score(r["results"][arm]["curve"], k) for k in keys) for r in rs])
+        b = np.array([_mean(score(r["results"][against]["curve"], k) for k in keys) for r in rs])
         logs = np.log(a / b)
         if not np.isfinite(logs).all():  # a diverged net (NaN EPE) or a zero score: no ratio to pool
             bad = [r["seed"] for r, x in zip(rs, logs) if not np.isfinite(x)]
             raise SystemExit(f"--summarize: {arm} / {against} on {j} is not finite on seeds {bad}")
         n = len(logs)
         half = stats.t.ppf(0.975, n - 1) * logs.std(ddof=1) / np.sqrt(n) if n > 1 else None  # one seed: none
-        zero = [mean([r["zero_flow_epe"][k] for k in keys]) for r in rs]
-        untrained = [mean([r["results"][arm]["curve"][0][k] for k in keys]) for r in rs]
+        zero = [_mean(r["zero_flow_epe"][k] for k in keys) for r in rs]
+        untrained = [_mean(r["results"][arm]["curve"][0][k] for k in keys) for r in rs]
         useful = int(sum(x < min(z, u) for x, z, u in zip(a, zero, untrained)))
         out[j] = {"seeds": [r["seed"] for r in rs], "ratios": (a / b).tolist(),
                   "geometric_mean": float(np.exp(logs.mean())),

@@ -34,8 +34,8 @@ from pathlib import Path
 
 from flowsynth.errors import ConfigError
 
-__all__ = ["CORR_BYTES", "NET_BYTES", "PIXEL_BYTES", "TEST_BASE_BYTES", "TEST_PIXEL_BYTES", "UPDATE_BYTES", "check", "estimate",
-           "memory_to_test", "memory_to_train"]
+__all__ = ["CORR_BYTES", "NET_BYTES", "PIXEL_BYTES", "TEST_BASE_BYTES", "TEST_PIXEL_BYTES", "UPDATE_BYTES", "check",
+           "estimate", "memory_to_test", "memory_to_train"]
 
 NET_BYTES = 64 << 20
 """Training memory of one RAFT-small net besides its batch [bytes]: weights, gradients, AdamW moments, workspace."""
