@@ -112,3 +112,17 @@ def test_tune_proof_is_not_read_on_other_seeds(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match="judged on Art"):
         summary.tune_proof("learning_raft_*.json", held_out=("Art",))
 
+
+
+def test_tune_proof_picture_is_written(tmp_path, monkeypatch):
+    """With matplotlib (the bench extra) the reading's picture is a PNG under results/; without it, none."""
+    import _common
+
+    monkeypatch.setattr(summary, "RESULTS_DIR", tmp_path)
+    monkeypatch.setattr(_common, "RESULTS_DIR", tmp_path)
+    _runs(tmp_path, (0.8, 0.85, 0.82, 0.78, 0.84))
+    path = summary.plot_summary(summary.tune_proof("learning_raft_*.json"), "learning_raft_tune_proof")
+    if _common.pyplot() is None:
+        assert path is None
+    else:
+        assert Path(path).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

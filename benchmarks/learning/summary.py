@@ -166,13 +166,19 @@ def plot_summary(out: dict, name: str):
         ax.errorbar([x + 0.25], [o["geometric_mean"]], yerr=[[o["geometric_mean"] - lo], [hi - o["geometric_mean"]]],
                     fmt="s", color="C3", capsize=4)
     ax.axhline(1.0, color="grey", lw=1)
+    if "goal" in out:  # tune_proof's: the held-out geometric mean at most this
+        ax.axhline(out["goal"]["geometric_mean_at_most"], color="C2", lw=1, ls="--",
+                   label=f"decision 0026's goal ({out['goal']['geometric_mean_at_most']})")
+        ax.legend(fontsize=7, loc="upper right")
     ax.set_yscale("log")
     from matplotlib.ticker import FormatStrFormatter
 
     ax.yaxis.set_major_formatter(FormatStrFormatter("%.2g"))
     ax.yaxis.set_minor_formatter(FormatStrFormatter("%.2g"))
-    ax.set_xticks(range(len(judges)), [{"stereo": "Motorcycle", "middlebury": "Middlebury mean"}.get(j, j)
-                                       for j in judges])
+    names = {"stereo": "Motorcycle", "middlebury": "Middlebury mean",  # tune_proof's judges name their pairs
+             "held_out": "held out\n" + ", ".join(out.get("held_out", ())),
+             "tuned_on": "tuned on\n" + ", ".join(out.get("tuned_on", ()))}
+    ax.set_xticks(range(len(judges)), [names.get(j, j) for j in judges], fontsize=8)
     ax.set_xlim(-0.5, len(judges) - 0.3)
     ax.set_ylabel(f"score ratio {out['arm']} / {out['against']}")
     ax.set_title("seeds (dots), geometric mean and 95% interval (squares)", fontsize=9)
