@@ -7,10 +7,11 @@
 #
 # It starts only when step 4 is in (0028's seeds c5-c9 all taken into benchmarks/results) and no registered run of
 # scripts/registered_runs.sh is alive; while a step it started is alive, a second call refuses (exit 1).
-# 1. The tune, into ../shared/tune-0026 where ../shared exists, else ../tune-0026 (TUNE_OUT): the same command resumes
-#    it from its saved state, so a session that ends under it loses at most one checkpoint's work; a finished tune only
-#    rewrites its preset and report. ../shared, because a new session's checkout keeps the repository and ../shared
-#    only, and the tune (9600 net-steps) outlasts a session. Where it writes changes nothing the tune finds.
+# 1. The tune, into .cache/tune-0026 in this checkout (TUNE_OUT overrides): the same command resumes it from its saved
+#    state, so a session that ends under it loses at most one checkpoint's work; a finished tune only rewrites its
+#    preset and report. In the checkout, because the tune (9600 net-steps) outlasts a session and the checkout is what
+#    a next session has been seen to keep (../shared came back fresh and read-only, ../tune-0026 was lost once).
+#    Where it writes changes nothing the tune finds.
 # 2. The judge runs (benchmarks/learning --arms tuned --preset TUNE_OUT/tuned.json): tags tuned_a (seeds 0,1 at
 #    once), tuned_b (2,3), tuned_c (4). A tag whose results file is already here (taken in) or in the worktree
 #    (finished, not yet taken in) is skipped. A run cut short leaves no complete file and starts over.
@@ -23,9 +24,7 @@ ROOT=$PWD
 COMMIT=0201cb6
 WT=${TUNE_WORKTREE:-$ROOT/../wt-$COMMIT}
 MB=${MIDDLEBURY:-$ROOT/../shared/data/middlebury}
-OUT_DEFAULT=$ROOT/../tune-0026
-[ -d "$ROOT/../shared" ] && [ -w "$ROOT/../shared" ] && OUT_DEFAULT=$ROOT/../shared/tune-0026
-OUT=${TUNE_OUT:-$OUT_DEFAULT}
+OUT=${TUNE_OUT:-$ROOT/.cache/tune-0026}
 PY=$ROOT/.venv/bin/python
 FS=$ROOT/.venv/bin/flowsynth
 DRY=0; [ "${1:-}" = "--dry-run" ] && DRY=1
