@@ -10,7 +10,7 @@
 # 1. The tune, into .cache/tune-0026 in this checkout (TUNE_OUT overrides): the same command resumes it from its saved
 #    state, so a session that ends under it loses at most one checkpoint's work; a finished tune only rewrites its
 #    preset and report. In the checkout, because the tune (9600 net-steps) outlasts a session and the checkout is what
-#    a next session has been seen to keep (../shared came back fresh and read-only, ../tune-0026 was lost once).
+#    a next session has been seen to keep (../shared came back fresh, losing a tune at step 1800 of 2400).
 #    Where it writes changes nothing the tune finds.
 # 2. The judge runs (benchmarks/learning --arms tuned --preset TUNE_OUT/tuned.json): tags tuned_a (seeds 0,1 at
 #    once), tuned_b (2,3), tuned_c (4). A tag whose results file is already here (taken in) or in the worktree
