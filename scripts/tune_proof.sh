@@ -11,8 +11,10 @@
 #    state, so a session that ends under it loses at most one checkpoint's work; a finished tune only rewrites its
 #    preset and report. In the checkout, because the tune (9600 net-steps) outlasts a session and the checkout is what
 #    a next session has been seen to keep (../shared came back fresh, losing a tune at step 1800 of 2400).
-#    Where it writes changes nothing the tune finds.
-# 2. The judge runs (benchmarks/learning --arms tuned --preset TUNE_OUT/tuned.json): tags tuned_a (seeds 0,1 at
+#    Where it writes changes nothing the tune finds. A finished tune's preset and report, once taken in
+#    (benchmarks/results/tune_0026/tuned.json, report.json, report.md), are what the judge uses, and the tune is not
+#    run again: its state is GBs and cannot be committed, its preset can.
+# 2. The judge runs (benchmarks/learning --arms tuned --preset PRESET): tags tuned_a (seeds 0,1 at
 #    once), tuned_b (2,3), tuned_c (4). A tag whose results file is already here (taken in) or in the worktree
 #    (finished, not yet taken in) is skipped. A run cut short leaves no complete file and starts over.
 # Each step is its own session (setsid): pause it with kill -STOP -- -"$(cat .cache/tune_proof.pgid)" (and -CONT).
@@ -47,11 +49,18 @@ done
 if [ ! -d "$WT" ]; then
   [ "$DRY" = 1 ] && echo "would add the worktree $WT at $COMMIT" || git worktree add --detach "$WT" "$COMMIT"
 fi
-todo=(tune)
+PRESET=$ROOT/benchmarks/results/tune_0026/tuned.json
+TUNE=0
+[ -f "$PRESET" ] || { PRESET=$OUT/tuned.json; TUNE=1; }
+judge=()
 for tag in tuned_a tuned_b tuned_c; do
-  [ -f "$ROOT/benchmarks/results/learning_raft_$tag.json" ] || todo+=("$tag")
+  [ -f "$ROOT/benchmarks/results/learning_raft_$tag.json" ] || judge+=("$tag")
 done
-echo "tune_proof.sh: to run, in order: ${todo[*]} (the tune resumes, or only rewrites its report when finished)"
+if [ "$TUNE" = 1 ]; then
+  echo "tune_proof.sh: to run, in order: tune ${judge[*]} (the tune resumes, or only rewrites its report when finished)"
+else
+  echo "tune_proof.sh: the tune is taken in ($PRESET); to run, in order: ${judge[*]:-nothing}"
+fi
 [ "$DRY" = 1 ] && exit 0
 PGID_FILE=$ROOT/.cache/tune_proof.pgid
 LOG=$ROOT/.cache/tune_proof.log
@@ -67,9 +76,11 @@ mkdir -p "$OUT"
     echo "$1 end $(date -u +%FT%TZ) rc $rc" >> "$LOG"
     return $rc
   }
-  step tune "$FS" tune --val "$MB" --pairs Dimetrodon,Grove2 --out "$OUT/tuned.json" --budget 9600 --candidates 6 \
-    --seed 0 --precision fp32 --device cpu --workers 2 || { echo "the tune stopped: stop" >> "$LOG"; exit 1; }
-  for tag in "${todo[@]:1}"; do
+  if [ "$TUNE" = 1 ]; then
+    step tune "$FS" tune --val "$MB" --pairs Dimetrodon,Grove2 --out "$OUT/tuned.json" --budget 9600 --candidates 6 \
+      --seed 0 --precision fp32 --device cpu --workers 2 || { echo "the tune stopped: stop" >> "$LOG"; exit 1; }
+  fi
+  for tag in "${judge[@]}"; do
     [ -f "$WT/benchmarks/results/learning_raft_$tag.json" ] && grep -q '"complete": true' \
       "$WT/benchmarks/results/learning_raft_$tag.json" && continue  # finished, not yet taken in
     case $tag in
@@ -77,7 +88,7 @@ mkdir -p "$OUT"
       tuned_b) seeds=(--seeds 2,3 --at-once) ;;
       tuned_c) seeds=(--seeds 4) ;;
     esac
-    step "$tag" "$PY" benchmarks/learning --arms tuned --preset "$OUT/tuned.json" "${seeds[@]}" --tag "$tag" \
+    step "$tag" "$PY" benchmarks/learning --arms tuned --preset "$PRESET" "${seeds[@]}" --tag "$tag" \
       --middlebury "$MB" || true
     if ! grep -q '"complete": true' "$WT/benchmarks/results/learning_raft_$tag.json" 2>/dev/null; then
       echo "$tag left no complete result: stop" >> "$LOG"
