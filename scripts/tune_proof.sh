@@ -12,7 +12,7 @@
 #    preset and report. In the checkout, because the tune (9600 net-steps) outlasts a session and the checkout is what
 #    a next session has been seen to keep (../shared came back fresh, losing a tune at step 1800 of 2400).
 #    Where it writes changes nothing the tune finds. A finished tune's preset and report, once taken in
-#    (benchmarks/results/tune_0026/tuned.json, report.json, report.md), are what the judge uses, and the tune is not
+#    (benchmarks/results/tune_0026_tuned.json and its report), are what the judge uses, and the tune is not
 #    run again: its state is GBs and cannot be committed, its preset can.
 # 2. The judge runs (benchmarks/learning --arms tuned --preset PRESET): tags tuned_a (seeds 0,1 at
 #    once), tuned_b (2,3), tuned_c (4). A tag whose results file is already here (taken in) or in the worktree
@@ -49,7 +49,7 @@ done
 if [ ! -d "$WT" ]; then
   [ "$DRY" = 1 ] && echo "would add the worktree $WT at $COMMIT" || git worktree add --detach "$WT" "$COMMIT"
 fi
-PRESET=$ROOT/benchmarks/results/tune_0026/tuned.json
+PRESET=$ROOT/benchmarks/results/tune_0026_tuned.json
 TUNE=0
 [ -f "$PRESET" ] || { PRESET=$OUT/tuned.json; TUNE=1; }
 judge=()
