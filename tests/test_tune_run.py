@@ -157,6 +157,9 @@ def test_quick_tune_command_end_to_end(tmp_path, capsys):
     assert (tmp_path / "preset.tune" / "report.md").read_text().count("\n| ") == 1 + len(rep["nets"])
     printed = capsys.readouterr().out
     assert f"wrote {out}" in printed
+    last_rung = len(rungs) - 1  # the log names the rungs as the report does, from 0
+    assert f"rung {last_rung} [px]" in (tmp_path / "preset.tune" / "report.md").read_text()
+    assert f"rung {last_rung} (of 0-{last_rung}) done" in printed and f"rung {last_rung + 1} " not in printed
     out.unlink()
     assert main(argv) == 0  # finished: rewrites the preset and the report from the state
     assert "continuing" in capsys.readouterr().out and read_json(tmp_path / "preset.tune" / "report.json") == rep

@@ -174,17 +174,19 @@ def tune(val: str | Path, out: str | Path, *, pairs: list[str] | None = None, bu
         if st["step"] == logged[0]:  # the end of a rung: its scores
             scores = st["scores"][-1]
             best = min(scores, key=lambda k: (rank(scores[k]), k))
-            log(f"tune: rung {len(st['scores'])} of {len(rungs)} done, best score {_px(scores[best])} ({best})"
+            log(f"tune: rung {len(st['scores']) - 1} (of 0-{len(rungs) - 1}) done, best score {_px(scores[best])} "
+                f"({best})"
                 + (f"; kept {len(st['alive'])}" if "winner" not in st else f"; winner {st['winner']}"))
             return
         logged[0] = st["step"]
         now = {k: c[-1]["mean"] for k, c in st["curves"].items() if c[-1]["step"] == st["step"]}
         best = min(now, key=lambda k: (rank(now[k]), k))
-        log(f"tune: step {st['step']} of {rungs[-1].end} (rung {st['rung'] + 1}): {len(now)} nets tested, best "
+        log(f"tune: step {st['step']} of {rungs[-1].end} (rung {st['rung']}): {len(now)} nets tested, best "
             f"{_px(now[best])} ({best})")
 
-    log(f"tune: {len(val_pairs)} {layout} pairs, {candidates} candidates, {len(rungs)} rungs ending at steps "
-        f"{[r.end for r in rungs]}, budget {budget} net-steps; needs about {need['peak'] / GIB:.1f} GiB of memory"
+    log(f"tune: {len(val_pairs)} {layout} pairs, {candidates} candidates, {len(rungs)} rungs (0-{len(rungs) - 1}) "
+        f"ending at steps {[r.end for r in rungs]}, budget {budget} net-steps; "
+        f"needs about {need['peak'] / GIB:.1f} GiB of memory"
         + (f" and {need['device_peak'] / GIB:.1f} GiB on {device}" if need["device_peak"] else "")
         + f", {need['disk']['pools'] / GIB:.1f} GiB of disk for new pools" + (", continuing" if state else ""))
     if state is None or "winner" not in state:
