@@ -220,7 +220,7 @@ def test_pool_cache_reads_what_it_wrote_and_refuses_another_tune(tmp_path):
     assert est == 3 * 160 * 128 * POOL_BYTES  # QUICK's size: the estimate is pool_bytes at the recipe's
     assert pool_bytes(3, (64, 48)) == 3 * 64 * 48 * POOL_BYTES <= data.stat().st_size <= pool_bytes(3, (64, 48)) + 384
     assert json.loads(meta.read_text())["tune"] == {"seed": 0, "pairs": ["a"]}
-    with pytest.raises(ConfigError, match=r"differ in \['seed'\]"):
+    with pytest.raises(ConfigError, match=r"differ in \['seed'\]: seed: 0 there, 1 here\)"):
         PoolCache(tmp_path / "pools", {"seed": 1, "pairs": ["a"]}).check()
     cache.clear()
     assert not (tmp_path / "pools").exists()

@@ -165,7 +165,8 @@ def test_quick_tune_command_end_to_end(tmp_path, capsys):
     assert "continuing" in capsys.readouterr().out and read_json(tmp_path / "preset.tune" / "report.json") == rep
     assert fs.datasets.Mixture.from_preset(out).configs == mix.configs
     assert main([*argv, "--seed", "1"]) == 2  # the folder holds another tune: refused, naming what differs
-    assert "differ in ['candidates', 'seed']" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "differ in ['candidates', 'seed']" in err and "seed: 0 there, 1 here" in err, err
 
 
 def _run(argv, capsys):

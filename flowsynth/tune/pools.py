@@ -159,8 +159,14 @@ def refuse_other_tune(what: str, saved: dict, ours: dict) -> None:
     (``what`` leads the message: "DIR holds" a tune, "DIR holds the pools of" one)."""
     if saved != ours:
         diff = sorted(k for k in saved.keys() | ours.keys() if saved.get(k) != ours.get(k))
-        raise ConfigError(f"{what} a tune of other settings (they differ in {diff}); run it with its own settings "
-                          "to continue it, or remove the folder (or name another --out) to start")
+
+        def field(k: str) -> str:  # a short value is named (a pool's configs are not: too long to read)
+            old, new = json.dumps(saved.get(k)), json.dumps(ours.get(k))
+            return k if max(len(old), len(new)) > 40 else f"{k}: {old} there, {new} here"
+
+        raise ConfigError(f"{what} a tune of other settings (they differ in {diff}: {'; '.join(map(field, diff))}); "
+                          "run it with its own settings to continue it, or remove the folder (or name another --out) "
+                          "to start")
 
 
 class PoolCache:
